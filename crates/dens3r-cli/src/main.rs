@@ -1,0 +1,43 @@
+//! `dens3r`: render ground-truth scenes, evaluate depth / normals / meshes, inspect scene
+//! folders. Errors print one line and exit with status 2.
+
+mod eval;
+mod info;
+mod render;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "dens3r",
+    version,
+    about = "Dense 3D from images: Dens3R / DUSt3R / MASt3R in Rust, and the reconstruction around them"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a mesh or a procedural scene along a camera path into a scene folder.
+    Render(render::RenderArgs),
+    /// Compare depth, normals (two scene folders) or meshes (two mesh files).
+    #[command(subcommand)]
+    Eval(eval::EvalCommand),
+    /// Summarise a scene folder (frames, cameras, layers, depth range).
+    Info(info::InfoArgs),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Render(a) => render::run(a),
+        Command::Eval(c) => eval::run(c),
+        Command::Info(a) => info::run(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(2);
+    }
+}

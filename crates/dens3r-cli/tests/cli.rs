@@ -1,0 +1,141 @@
+//! The `dens3r` binary end to end, as a user runs it.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn dens3r(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_dens3r")).args(args).output().expect("binary runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = dens3r(args);
+    assert!(out.status.success(), "{args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap()
+}
+
+/// Runs a command that must fail: exit status 2, exactly one stderr line starting with
+/// `error:`, no panic. Returns that line.
+fn fails(args: &[&str]) -> String {
+    let out = dens3r(args);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "{args:?}: one line expected, got {err}");
+    assert!(lines[0].starts_with("error:"), "{err}");
+    lines[0].to_string()
+}
+
+fn json(args: &[&str]) -> serde_json::Value {
+    serde_json::from_str(&ok(args)).unwrap()
+}
+
+#[test]
+fn render_info_and_eval_round_trip() {
+    let dir = tempfile::tempdir().unwrap();
+    let room = dir.path().join("room");
+    let room_s = room.to_str().unwrap();
+    let out = ok(&["render", "--procedural", "room", "--views", "3", "--width", "96", "--height", "72", "-o", room_s]);
+    assert!(out.contains("rendered 3 views of 96x72"), "{out}");
+    let info = ok(&["info", room_s]);
+    assert!(info.contains("frames    3") && info.contains("96x72") && info.contains("depth     3/3"), "{info}");
+
+    // A scene against itself: zero depth error, zero angle.
+    let d = json(&["eval", "depth", room_s, room_s, "--json"]);
+    assert_eq!((d["abs_rel"].as_f64(), d["delta1"].as_f64()), (Some(0.0), Some(1.0)));
+    let n = json(&["eval", "normals", room_s, room_s, "--json"]);
+    assert!(n["mean"].as_f64().unwrap() < 1e-3, "{n}");
+    // Normals derived from the rendered depth agree with the rendered normals.
+    let n = json(&["eval", "normals", "--from-depth", room_s, room_s, "--json"]);
+    assert!(n["median"].as_f64().unwrap() < 1.0, "{n}");
+
+    // The ground-truth mesh against itself: 0; against a re-render of the mesh file: also 0.
+    let gt = room.join("gt_mesh.ply");
+    let m = json(&["eval", "mesh", gt.to_str().unwrap(), gt.to_str().unwrap(), "--samples", "5000", "--json"]);
+    assert!(m["chamfer_l1"].as_f64().unwrap() < 1e-6, "{m}");
+    let orbit = dir.path().join("orbit");
+    ok(&[
+        "render",
+        "--mesh",
+        gt.to_str().unwrap(),
+        "--views",
+        "2",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "-o",
+        orbit.to_str().unwrap(),
+    ]);
+    assert!(orbit.join("cameras.json").is_file());
+}
+
+#[test]
+fn bad_input_is_one_line_and_leaves_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let o = out.to_str().unwrap();
+    let e = fails(&["render", "--mesh", "/no/such/mesh.ply", "-o", o]);
+    assert!(e.contains("/no/such/mesh.ply") && e.contains("not found"), "{e}");
+    assert!(!out.exists(), "a failed render must not leave an output folder");
+    let e = fails(&["render", "--procedural", "room", "--views", "0", "-o", o]);
+    assert!(e.contains("--views"), "{e}");
+    let e = fails(&["render", "--procedural", "room", "--width", "100000", "-o", o]);
+    assert!(e.contains("--width"), "{e}");
+    assert!(!out.exists());
+
+    let e = fails(&["info", dir.path().to_str().unwrap()]);
+    assert!(e.contains("cameras.json") && e.contains("missing"), "{e}");
+    let corrupt = dir.path().join("corrupt.ply");
+    std::fs::write(&corrupt, "ply\nformat ascii 1.0\nelement vertex 3\nend_header\n").unwrap();
+    let e = fails(&["eval", "mesh", corrupt.to_str().unwrap(), corrupt.to_str().unwrap()]);
+    assert!(e.contains("corrupt.ply"), "{e}");
+
+    // Two scenes with no frame in common, and a scene whose depth array has the wrong shape.
+    let a = dir.path().join("a");
+    ok(&[
+        "render",
+        "--procedural",
+        "room",
+        "--views",
+        "1",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "-o",
+        a.to_str().unwrap(),
+    ]);
+    let b = dir.path().join("b");
+    ok(&[
+        "render",
+        "--procedural",
+        "blob",
+        "--views",
+        "1",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "-o",
+        b.to_str().unwrap(),
+    ]);
+    let cams = std::fs::read_to_string(b.join("cameras.json")).unwrap().replace("\"0000\"", "\"other\"");
+    std::fs::write(b.join("cameras.json"), cams).unwrap();
+    let e = fails(&["eval", "depth", a.to_str().unwrap(), b.to_str().unwrap()]);
+    assert!(e.contains("share no frame names"), "{e}");
+    std::fs::copy(a.join("normals/0000.npy"), a.join("depth/0000.npy")).unwrap();
+    let e = fails(&["eval", "depth", a.to_str().unwrap(), a.to_str().unwrap()]);
+    assert!(e.contains("depth/0000.npy") && e.contains("should be [24, 32]"), "{e}");
+    assert_no_temp_files(dir.path());
+}
+
+fn assert_no_temp_files(p: &Path) {
+    for e in std::fs::read_dir(p).unwrap() {
+        let e = e.unwrap().path();
+        assert!(!e.display().to_string().contains(".dens3r-tmp"), "{}", e.display());
+        if e.is_dir() {
+            assert_no_temp_files(&e);
+        }
+    }
+}

@@ -1,0 +1,18 @@
+//! Evaluation metrics for depth and normal maps (mesh metrics live in `dens3r-mesh`).
+
+pub mod depth;
+pub mod normals;
+
+pub use depth::{depth_metrics, DepthAlign, DepthMetrics};
+pub use normals::{normal_metrics, NormalMetrics};
+
+/// Why a metric could not be computed.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum MetricError {
+    /// The two maps differ in size.
+    #[error("maps differ in size: {0}x{1} vs {2}x{3}")]
+    SizeMismatch(usize, usize, usize, usize),
+    /// No pixel is valid in both maps (and the mask).
+    #[error("no pixel is valid in both maps")]
+    NoValidPixels,
+}

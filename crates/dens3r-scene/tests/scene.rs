@@ -1,0 +1,182 @@
+use dens3r_geom::camera::look_at;
+use dens3r_geom::{DVec3, Intrinsics, PinholeCamera, Raster, Vec3};
+use dens3r_scene::{Frame, Scene, SceneWriter};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+const W: usize = 8;
+const H: usize = 6;
+
+fn cam() -> PinholeCamera {
+    PinholeCamera {
+        intrinsics: Intrinsics::from_hfov(W, H, 60.0),
+        width: W,
+        height: H,
+        cam_to_world: look_at(DVec3::new(1.0, 2.0, 3.0), DVec3::ZERO, DVec3::Z).unwrap(),
+    }
+}
+
+/// A complete two-frame scene with every layer.
+fn write_scene(dir: &Path) {
+    let mut w = SceneWriter::create(dir).unwrap();
+    for name in ["a", "b"] {
+        let rgb = image::RgbImage::from_fn(W as u32, H as u32, |x, y| image::Rgb([x as u8 * 20, y as u8 * 30, 7]));
+        w.add_frame(Frame::new(name, &cam()), &rgb).unwrap();
+        w.write_depth(name, &Raster::from_fn(W, H, |x, y| (x + y) as f32 * 0.5)).unwrap();
+        w.write_normals(name, &Raster::from_fn(W, H, |x, _| Vec3::new(x as f32, 0.0, -1.0).normalize())).unwrap();
+        w.write_conf(name, &Raster::filled(W, H, 2.0)).unwrap();
+        w.write_mask(name, &Raster::from_fn(W, H, |x, _| x > 2)).unwrap();
+        w.write_labels(name, &Raster::from_fn(W, H, |x, _| x as u16)).unwrap();
+        w.write_instances(name, &Raster::from_fn(W, H, |x, y| (x * 1000 + y) as u16)).unwrap();
+    }
+    w.write_classes(&BTreeMap::from([(0, "bg".to_string()), (3, "wall".to_string())])).unwrap();
+    w.finish().unwrap();
+}
+
+#[test]
+fn written_scene_reads_back_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    write_scene(dir.path());
+    let s = Scene::open(dir.path()).unwrap();
+    assert_eq!(s.frames().len(), 2);
+    let f = s.frame("b").unwrap();
+    assert_eq!(f.camera(), cam());
+    assert_eq!(s.image(f).unwrap().get_pixel(3, 2).0, [60, 60, 7]);
+    assert_eq!(*s.depth(f).unwrap().unwrap().get(5, 4), 4.5);
+    assert_eq!(*s.normals(f).unwrap().unwrap().get(0, 1), Vec3::new(0.0, 0.0, -1.0));
+    assert_eq!(*s.conf(f).unwrap().unwrap().get(1, 1), 2.0);
+    let mask = s.mask(f).unwrap().unwrap();
+    assert!(!*mask.get(2, 0) && *mask.get(3, 0));
+    assert_eq!(*s.labels(f).unwrap().unwrap().get(7, 0), 7);
+    assert_eq!(*s.instances(f).unwrap().unwrap().get(7, 5), 7005, "16-bit ids survive");
+    assert_eq!(s.classes().unwrap()[&3], "wall");
+    // Layout and JSON as documented.
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("cameras.json")).unwrap()).unwrap();
+    assert_eq!(json["convention"], "opencv");
+    assert_eq!(json["frames"][0]["image"], "images/a.png");
+    assert_eq!(json["frames"][0]["K"][0][0].as_f64().unwrap(), cam().intrinsics.fx);
+    assert_eq!(json["frames"][0]["cam_to_world"][3], serde_json::json!([0.0, 0.0, 0.0, 1.0]));
+    for p in ["depth/a.npy", "normals/a.npy", "conf/a.npy", "masks/a.png", "labels/a.png", "instances/a.png"] {
+        assert!(dir.path().join(p).is_file(), "{p}");
+    }
+    // Nothing temporary is left anywhere.
+    let leftovers: Vec<_> = walk(dir.path()).into_iter().filter(|p| p.contains(".dens3r-tmp")).collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}
+
+fn walk(p: &Path) -> Vec<String> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(p).unwrap() {
+        let e = e.unwrap().path();
+        if e.is_dir() {
+            out.extend(walk(&e));
+        } else {
+            out.push(e.display().to_string());
+        }
+    }
+    out
+}
+
+/// Opens (and reads frame "a" of) a scene after `breakit` damaged it; returns the error.
+fn error_after(breakit: impl FnOnce(&Path)) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    write_scene(dir.path());
+    breakit(dir.path());
+    let r = Scene::open(dir.path()).and_then(|s| {
+        let f = s.frame("a").unwrap().clone();
+        s.image(&f)?;
+        s.depth(&f)?;
+        s.normals(&f)?;
+        s.labels(&f)?;
+        Ok(())
+    });
+    let e = r.expect_err("damaged scene must not load").to_string();
+    assert!(!e.contains('\n'), "one line: {e}");
+    e
+}
+
+fn edit_cameras(dir: &Path, f: impl FnOnce(&mut serde_json::Value)) {
+    let p = dir.join("cameras.json");
+    let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    f(&mut v);
+    std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
+}
+
+#[test]
+fn bad_scenes_give_one_clear_line() {
+    let e = error_after(|d| std::fs::remove_file(d.join("cameras.json")).unwrap());
+    assert!(e.contains("cameras.json") && e.contains("missing"), "{e}");
+
+    let e = error_after(|d| std::fs::write(d.join("cameras.json"), "{ not json").unwrap());
+    assert!(e.contains("cameras.json") && e.contains("invalid"), "{e}");
+
+    // NaN is not JSON, so Python's json.dump(NaN) output is rejected at parse time...
+    let e = error_after(|d| {
+        edit_cameras(d, |v| v["frames"][0]["cam_to_world"][0][0] = "NAN_MARKER".into());
+        let t = std::fs::read_to_string(d.join("cameras.json")).unwrap();
+        assert!(t.contains("\"NAN_MARKER\""));
+        std::fs::write(d.join("cameras.json"), t.replace("\"NAN_MARKER\"", "NaN")).unwrap();
+    });
+    assert!(e.contains("cameras.json"), "{e}");
+    // ...and a pose that is not rigid is named.
+    let e = error_after(|d| edit_cameras(d, |v| v["frames"][0]["cam_to_world"][0][0] = 2.0.into()));
+    assert!(e.contains("frame 'a'") && e.contains("not a rotation"), "{e}");
+    let e = error_after(|d| edit_cameras(d, |v| v["frames"][1]["cam_to_world"][3][2] = 1.0.into()));
+    assert!(e.contains("frame 'b'") && e.contains("last row"), "{e}");
+
+    let e = error_after(|d| edit_cameras(d, |v| v["frames"][0]["K"][0][0] = (-5.0).into()));
+    assert!(e.contains("K must be"), "{e}");
+    let e = error_after(|d| edit_cameras(d, |v| v["frames"][0]["K"] = serde_json::json!([[1, 0, 0], [0, 1, 0]])));
+    assert!(e.contains("cameras.json"), "{e}");
+    let e = error_after(|d| edit_cameras(d, |v| v["convention"] = "opengl".into()));
+    assert!(e.contains("convention 'opengl'"), "{e}");
+    let e = error_after(|d| edit_cameras(d, |v| v["frames"][1]["name"] = "a".into()));
+    assert!(e.contains("used twice"), "{e}");
+    let e = error_after(|d| edit_cameras(d, |v| v["frames"][0]["width"] = 100000.into()));
+    assert!(e.contains("outside"), "{e}");
+    let e = error_after(|d| edit_cameras(d, |v| v["frames"][0]["image"] = "../../etc/passwd".into()));
+    assert!(e.contains("inside the scene folder"), "{e}");
+    let e = error_after(|d| edit_cameras(d, |v| v["frames"] = serde_json::json!([])));
+    assert!(e.contains("no frames"), "{e}");
+
+    let e = error_after(|d| std::fs::remove_file(d.join("images/b.png")).unwrap());
+    assert!(e.contains("images/b.png") && e.contains("missing"), "{e}");
+    let e = error_after(|d| std::fs::write(d.join("images/a.png"), b"\x89PNG but not really").unwrap());
+    assert!(e.contains("images/a.png") && e.contains("unreadable image"), "{e}");
+    let e = error_after(|d| {
+        image::RgbImage::new(5, 5).save(d.join("images/a.png")).unwrap();
+    });
+    assert!(e.contains("is 5x5 but cameras.json says 8x6"), "{e}");
+
+    // Wrong array shapes are named with the expected shape.
+    let e = error_after(|d| dens3r_scene::npy::write_f32(&d.join("depth/a.npy"), &[W, H], &[0.0; W * H]).unwrap());
+    assert!(e.contains("depth/a.npy") && e.contains("should be [6, 8]"), "{e}");
+    let e = error_after(|d| dens3r_scene::npy::write_f32(&d.join("normals/a.npy"), &[H, W], &[0.0; W * H]).unwrap());
+    assert!(e.contains("normals/a.npy") && e.contains("HxWx3"), "{e}");
+    let e = error_after(|d| std::fs::write(d.join("depth/a.npy"), b"\x93NUMPY\x01\x00garbage").unwrap());
+    assert!(e.contains("depth/a.npy") && e.contains("not a valid .npy"), "{e}");
+    let e = error_after(|d| image::RgbImage::new(W as u32, H as u32).save(d.join("labels/a.png")).unwrap());
+    assert!(e.contains("labels/a.png") && e.contains("single-channel"), "{e}");
+
+    let missing = Scene::open(Path::new("/nonexistent/scene")).unwrap_err().to_string();
+    assert!(missing.contains("/nonexistent/scene") && missing.contains("not found"), "{missing}");
+}
+
+#[test]
+fn writer_refuses_mismatched_layers_and_finishing_empty() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut w = SceneWriter::create(dir.path()).unwrap();
+    assert!(w.write_depth("x", &Raster::filled(W, H, 1.0)).unwrap_err().to_string().contains("must be added"));
+    let rgb = image::RgbImage::new(W as u32, H as u32);
+    w.add_frame(Frame::new("x", &cam()), &rgb).unwrap();
+    assert!(w.add_frame(Frame::new("x", &cam()), &rgb).is_err());
+    let e = w.write_depth("x", &Raster::filled(3, 3, 1.0)).unwrap_err().to_string();
+    assert!(e.contains("3x3") && e.contains("8x6"), "{e}");
+    // A writer that never finishes leaves no cameras.json: the folder is not a scene.
+    drop(w);
+    assert!(!dir.path().join("cameras.json").exists());
+    assert!(Scene::open(dir.path()).is_err());
+    let w = SceneWriter::create(&dir.path().join("empty")).unwrap();
+    assert!(w.finish().unwrap_err().to_string().contains("no frames"));
+}
