@@ -92,34 +92,8 @@ fn bad_input_is_one_line_and_leaves_nothing() {
     assert!(e.contains("corrupt.ply"), "{e}");
 
     // Two scenes with no frame in common, and a scene whose depth array has the wrong shape.
-    let a = dir.path().join("a");
-    ok(&[
-        "render",
-        "--procedural",
-        "room",
-        "--views",
-        "1",
-        "--width",
-        "32",
-        "--height",
-        "24",
-        "-o",
-        a.to_str().unwrap(),
-    ]);
-    let b = dir.path().join("b");
-    ok(&[
-        "render",
-        "--procedural",
-        "blob",
-        "--views",
-        "1",
-        "--width",
-        "32",
-        "--height",
-        "24",
-        "-o",
-        b.to_str().unwrap(),
-    ]);
+    let a = render_tiny("room", &dir.path().join("a"));
+    let b = render_tiny("blob", &dir.path().join("b"));
     let cams = std::fs::read_to_string(b.join("cameras.json")).unwrap().replace("\"0000\"", "\"other\"");
     std::fs::write(b.join("cameras.json"), cams).unwrap();
     let e = fails(&["eval", "depth", a.to_str().unwrap(), b.to_str().unwrap()]);
@@ -128,6 +102,24 @@ fn bad_input_is_one_line_and_leaves_nothing() {
     let e = fails(&["eval", "depth", a.to_str().unwrap(), a.to_str().unwrap()]);
     assert!(e.contains("depth/0000.npy") && e.contains("should be [24, 32]"), "{e}");
     assert_no_temp_files(dir.path());
+}
+
+/// Renders a one-view 32x24 procedural scene into `out`.
+fn render_tiny(kind: &str, out: &Path) -> std::path::PathBuf {
+    ok(&[
+        "render",
+        "--procedural",
+        kind,
+        "--views",
+        "1",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    out.to_path_buf()
 }
 
 fn assert_no_temp_files(p: &Path) {
