@@ -4,6 +4,7 @@
 mod eval;
 mod info;
 mod render;
+mod verify;
 
 use clap::{Parser, Subcommand};
 
@@ -27,6 +28,8 @@ enum Command {
     Eval(eval::EvalCommand),
     /// Summarise a scene folder (frames, cameras, layers, depth range).
     Info(info::InfoArgs),
+    /// Check a checkpoint against arrays dumped from the PyTorch model (parity).
+    Verify(verify::VerifyArgs),
 }
 
 fn main() {
@@ -35,6 +38,7 @@ fn main() {
         Command::Render(a) => render::run(a),
         Command::Eval(c) => eval::run(c),
         Command::Info(a) => info::run(a),
+        Command::Verify(a) => verify::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -1,0 +1,183 @@
+//! Model configuration read from the weight shapes (model spec section 1.7).
+
+use crate::weights::{Weights, WeightsError};
+
+/// How RoPE-2D positions are scaled.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RopeScaling {
+    /// Dens3R: positions scaled by `32 / S` per call, `S = max(position) + 1`.
+    Interpolated,
+    /// Upstream DUSt3R / MASt3R / CroCo: integer positions as they are.
+    Plain,
+}
+
+/// Widths of a DPT head.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DptConfig {
+    /// Key prefix, e.g. `ptsmatch_local_head.dpt`.
+    pub prefix: String,
+    /// act_postprocess output widths (4 layers).
+    pub layer_dims: [usize; 4],
+    /// Fusion width (256 full size).
+    pub feature_dim: usize,
+    /// Width of `head.0` output (feature_dim / 2 full size).
+    pub head_dim: usize,
+    /// Width of `head.2` output (128 full size).
+    pub last_dim: usize,
+    /// Output channels.
+    pub out_channels: usize,
+    /// Upsampling factors of act_postprocess 0 and 1 (ConvTranspose kernel = stride).
+    pub up: [usize; 2],
+}
+
+/// A point (+ descriptor) head.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PtsHeadConfig {
+    /// Key prefix, e.g. `ptsmatch_local_head`.
+    pub prefix: String,
+    /// Its DPT.
+    pub dpt: DptConfig,
+    /// Descriptor MLP hidden width (`head_local_features.fc1`), if the head has one.
+    pub mlp_hidden: Option<usize>,
+}
+
+/// Everything needed to build the network.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelConfig {
+    /// Patch size (16).
+    pub patch: usize,
+    /// Encoder width.
+    pub enc_dim: usize,
+    /// Encoder blocks.
+    pub enc_depth: usize,
+    /// Encoder attention heads.
+    pub enc_heads: usize,
+    /// Decoder width.
+    pub dec_dim: usize,
+    /// Decoder blocks.
+    pub dec_depth: usize,
+    /// Decoder attention heads.
+    pub dec_heads: usize,
+    /// MLP hidden widths (encoder, decoder).
+    pub mlp_hidden: (usize, usize),
+    /// One decoder shared by both views (no `dec_blocks2.*`).
+    pub shared_decoder: bool,
+    /// RoPE base frequency (100).
+    pub rope_base: f64,
+    /// RoPE position scaling.
+    pub rope: RopeScaling,
+    /// Head for view 1 (`ptsmatch_local_head` or `downstream_head1`).
+    pub head1: PtsHeadConfig,
+    /// Head for view 2 (`ptsmatch_global_head` or `downstream_head2`).
+    pub head2: PtsHeadConfig,
+    /// Normal head (`normal_local_head`), shared by both views; Dens3R only.
+    pub normal_head: Option<DptConfig>,
+    /// The DPT predicts a confidence channel.
+    pub has_conf: bool,
+    /// Descriptor dimension (24), 0 without descriptors.
+    pub desc_dim: usize,
+    /// The descriptor MLP predicts a separate descriptor confidence.
+    pub desc_conf: bool,
+}
+
+impl ModelConfig {
+    /// Reads the configuration from the tensor shapes. Head counts are not recoverable from
+    /// weights: pass them (from the checkpoint's config) or `None` for head dim 64.
+    pub fn from_weights(w: &Weights, heads: Option<(usize, usize)>) -> Result<Self, WeightsError> {
+        let err = |m: String| WeightsError { path: w.path().to_path_buf(), message: m };
+        let shape = |k: &str| {
+            w.shape(k)
+                .map(<[usize]>::to_vec)
+                .ok_or_else(|| err(format!("missing key '{k}': not a Dens3R / DUSt3R / MASt3R checkpoint")))
+        };
+        let pe = shape("patch_embed.proj.weight")?;
+        if pe.len() != 4 || pe[1] != 3 || pe[2] != pe[3] {
+            return Err(err(format!("patch_embed.proj.weight has shape {pe:?}, expected (D, 3, P, P)")));
+        }
+        let count = |prefix: &str| (0..).take_while(|i| w.contains(&format!("{prefix}.{i}.norm1.weight"))).count();
+        let enc_depth = count("enc_blocks");
+        let dec_depth = count("dec_blocks");
+        if enc_depth == 0 || dec_depth == 0 {
+            return Err(err("no enc_blocks.* or dec_blocks.* keys: not a Dens3R / DUSt3R / MASt3R checkpoint".into()));
+        }
+        let enc_dim = pe[0];
+        let dec_dim = shape("decoder_embed.weight")?[0];
+        let (enc_heads, dec_heads) = heads.unwrap_or((enc_dim / 64, dec_dim / 64));
+        if enc_heads == 0 || enc_dim % enc_heads != 0 || dec_heads == 0 || dec_dim % dec_heads != 0 {
+            return Err(err(format!(
+                "head counts ({enc_heads}, {dec_heads}) do not divide the widths ({enc_dim}, {dec_dim})"
+            )));
+        }
+        let mlp_hidden = (shape("enc_blocks.0.mlp.fc1.weight")?[0], shape("dec_blocks.0.mlp.fc1.weight")?[0]);
+        let dens3r = w.contains("ptsmatch_local_head.dpt.head.4.weight");
+        let (p1, p2) = if dens3r {
+            ("ptsmatch_local_head", "ptsmatch_global_head")
+        } else {
+            ("downstream_head1", "downstream_head2")
+        };
+        if !w.contains(&format!("{p1}.dpt.head.4.weight")) {
+            return Err(err(format!(
+                "no DPT head found ({p1}.dpt.*); linear-head DUSt3R checkpoints are not supported yet"
+            )));
+        }
+        let dpt = |prefix: &str| -> Result<DptConfig, WeightsError> {
+            let p = format!("{prefix}.dpt");
+            let l = |i: usize| shape(&format!("{p}.act_postprocess.{i}.0.weight")).map(|s| s[0]);
+            let up = |i: usize| shape(&format!("{p}.act_postprocess.{i}.1.weight")).map(|s| s[2]);
+            let h0 = shape(&format!("{p}.head.0.weight"))?;
+            let h2 = shape(&format!("{p}.head.2.weight"))?;
+            let h4 = shape(&format!("{p}.head.4.weight"))?;
+            Ok(DptConfig {
+                prefix: p.clone(),
+                layer_dims: [l(0)?, l(1)?, l(2)?, l(3)?],
+                feature_dim: h0[1],
+                head_dim: h0[0],
+                last_dim: h2[0],
+                out_channels: h4[0],
+                up: [up(0)?, up(1)?],
+            })
+        };
+        let pts = |prefix: &str| -> Result<PtsHeadConfig, WeightsError> {
+            let mlp = w.shape(&format!("{prefix}.head_local_features.fc1.weight")).map(|s| s[0]);
+            Ok(PtsHeadConfig { prefix: prefix.into(), dpt: dpt(prefix)?, mlp_hidden: mlp })
+        };
+        let head1 = pts(p1)?;
+        let head2 = pts(p2)?;
+        let has_conf = head1.dpt.out_channels == 4;
+        let (desc_dim, desc_conf) = match w.shape(&format!("{p1}.head_local_features.fc2.weight")) {
+            Some(s) => {
+                let per_pixel = s[0] / (pe[2] * pe[2]);
+                // 24-d descriptors, plus one channel when desc_conf is on.
+                (24, per_pixel == 25)
+            }
+            None => (0, false),
+        };
+        let normal_head =
+            if w.contains("normal_local_head.dpt.head.4.weight") { Some(dpt("normal_local_head")?) } else { None };
+        Ok(Self {
+            patch: pe[2],
+            enc_dim,
+            enc_depth,
+            enc_heads,
+            dec_dim,
+            dec_depth,
+            dec_heads,
+            mlp_hidden,
+            shared_decoder: !w.contains("dec_blocks2.0.norm1.weight"),
+            rope_base: 100.0,
+            rope: if dens3r { RopeScaling::Interpolated } else { RopeScaling::Plain },
+            head1,
+            head2,
+            normal_head,
+            has_conf,
+            desc_dim,
+            desc_conf,
+        })
+    }
+
+    /// Decoder layers fed to the DPT heads: `[0, L*2/4, L*3/4, L]` of the layer list.
+    pub fn hooks(&self) -> [usize; 4] {
+        let l = self.dec_depth;
+        [0, l * 2 / 4, l * 3 / 4, l]
+    }
+}

@@ -1,0 +1,508 @@
+//! The network: config -> loader -> forward, in one file (candle-transformers style).
+
+use crate::config::{DptConfig, ModelConfig, PtsHeadConfig};
+use crate::ops::{gelu, grid_positions, pixel_shuffle, sdpa, upsample2x, Conv, ConvTranspose, LayerNorm, Linear, Rope};
+use crate::weights::{Weights, WeightsError};
+use burn::tensor::activation::relu;
+use burn::tensor::{Device, Tensor};
+
+// ---------------------------------------------------------------------------------------------
+// Loading helpers
+
+struct Loader<'a> {
+    w: &'a Weights,
+    device: &'a Device,
+}
+
+impl Loader<'_> {
+    fn linear(&self, p: &str, inp: usize, out: usize) -> Linear {
+        Linear {
+            weight: self.w.get(&format!("{p}.weight"), [out, inp], self.device).transpose(),
+            bias: Some(self.w.get(&format!("{p}.bias"), [out], self.device)),
+        }
+    }
+    fn norm(&self, p: &str, d: usize) -> LayerNorm {
+        LayerNorm {
+            gamma: self.w.get(&format!("{p}.weight"), [d], self.device),
+            beta: self.w.get(&format!("{p}.bias"), [d], self.device),
+            eps: 1e-6,
+        }
+    }
+    fn conv(&self, p: &str, inp: usize, out: usize, k: usize, stride: usize, bias: bool) -> Conv {
+        Conv {
+            weight: self.w.get(&format!("{p}.weight"), [out, inp, k, k], self.device),
+            bias: bias.then(|| self.w.get(&format!("{p}.bias"), [out], self.device)),
+            stride,
+            padding: k / 2,
+        }
+    }
+    fn conv_t(&self, p: &str, ch: usize, k: usize) -> ConvTranspose {
+        ConvTranspose {
+            weight: self.w.get(&format!("{p}.weight"), [ch, ch, k, k], self.device),
+            bias: self.w.get(&format!("{p}.bias"), [ch], self.device),
+            stride: k,
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Transformer blocks
+
+struct Mlp {
+    fc1: Linear,
+    fc2: Linear,
+}
+
+impl Mlp {
+    fn load(l: &Loader, p: &str, d: usize, hidden: usize, out: usize) -> Self {
+        Self { fc1: l.linear(&format!("{p}.fc1"), d, hidden), fc2: l.linear(&format!("{p}.fc2"), hidden, out) }
+    }
+    fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
+        self.fc2.forward(gelu(self.fc1.forward(x)))
+    }
+}
+
+/// `(B, N, heads*Dh) -> (B, heads, N, Dh)`.
+fn split_heads(x: Tensor<3>, heads: usize) -> Tensor<4> {
+    let [b, n, d] = x.dims();
+    x.reshape([b, n, heads, d / heads]).swap_dims(1, 2)
+}
+
+/// `(B, heads, N, Dh) -> (B, N, heads*Dh)`.
+fn merge_heads(x: Tensor<4>) -> Tensor<3> {
+    let [b, h, n, dh] = x.dims();
+    x.swap_dims(1, 2).reshape([b, n, h * dh])
+}
+
+struct SelfAttention {
+    qkv: Linear,
+    proj: Linear,
+    heads: usize,
+}
+
+impl SelfAttention {
+    fn forward(&self, x: Tensor<3>, rope: &Rope) -> Tensor<3> {
+        let [b, n, d] = x.dims();
+        let dh = d / self.heads;
+        // (B, N, 3, heads, Dh) -> three (B, heads, N, Dh)
+        let qkv = self.qkv.forward(x).reshape([b, n, 3, self.heads, dh]).permute([2, 0, 3, 1, 4]);
+        let take = |i: usize| qkv.clone().narrow(0, i, 1).reshape([b, self.heads, n, dh]);
+        let (q, k, v) = (rope.apply(take(0)), rope.apply(take(1)), take(2));
+        self.proj.forward(merge_heads(sdpa(q, k, v)))
+    }
+}
+
+struct CrossAttention {
+    q: Linear,
+    k: Linear,
+    v: Linear,
+    proj: Linear,
+    heads: usize,
+}
+
+impl CrossAttention {
+    fn forward(&self, x: Tensor<3>, y: Tensor<3>, rope_q: &Rope, rope_k: &Rope) -> Tensor<3> {
+        let q = rope_q.apply(split_heads(self.q.forward(x), self.heads));
+        let k = rope_k.apply(split_heads(self.k.forward(y.clone()), self.heads));
+        let v = split_heads(self.v.forward(y), self.heads);
+        self.proj.forward(merge_heads(sdpa(q, k, v)))
+    }
+}
+
+struct EncoderBlock {
+    norm1: LayerNorm,
+    attn: SelfAttention,
+    norm2: LayerNorm,
+    mlp: Mlp,
+}
+
+impl EncoderBlock {
+    fn load(l: &Loader, p: &str, d: usize, heads: usize, hidden: usize) -> Self {
+        Self {
+            norm1: l.norm(&format!("{p}.norm1"), d),
+            attn: SelfAttention {
+                qkv: l.linear(&format!("{p}.attn.qkv"), d, 3 * d),
+                proj: l.linear(&format!("{p}.attn.proj"), d, d),
+                heads,
+            },
+            norm2: l.norm(&format!("{p}.norm2"), d),
+            mlp: Mlp::load(l, &format!("{p}.mlp"), d, hidden, d),
+        }
+    }
+    fn forward(&self, x: Tensor<3>, rope: &Rope) -> Tensor<3> {
+        let x = x.clone() + self.attn.forward(self.norm1.forward(x), rope);
+        x.clone() + self.mlp.forward(self.norm2.forward(x))
+    }
+}
+
+struct DecoderBlock {
+    norm1: LayerNorm,
+    attn: SelfAttention,
+    norm_y: LayerNorm,
+    norm2: LayerNorm,
+    cross: CrossAttention,
+    norm3: LayerNorm,
+    mlp: Mlp,
+}
+
+impl DecoderBlock {
+    fn load(l: &Loader, p: &str, d: usize, heads: usize, hidden: usize) -> Self {
+        let lin = |n: &str| l.linear(&format!("{p}.cross_attn.{n}"), d, d);
+        Self {
+            norm1: l.norm(&format!("{p}.norm1"), d),
+            attn: SelfAttention {
+                qkv: l.linear(&format!("{p}.attn.qkv"), d, 3 * d),
+                proj: l.linear(&format!("{p}.attn.proj"), d, d),
+                heads,
+            },
+            norm_y: l.norm(&format!("{p}.norm_y"), d),
+            norm2: l.norm(&format!("{p}.norm2"), d),
+            cross: CrossAttention { q: lin("projq"), k: lin("projk"), v: lin("projv"), proj: lin("proj"), heads },
+            norm3: l.norm(&format!("{p}.norm3"), d),
+            mlp: Mlp::load(l, &format!("{p}.mlp"), d, hidden, d),
+        }
+    }
+    fn forward(&self, x: Tensor<3>, y: Tensor<3>, rope_x: &Rope, rope_y: &Rope) -> Tensor<3> {
+        let x = x.clone() + self.attn.forward(self.norm1.forward(x), rope_x);
+        let y = self.norm_y.forward(y);
+        let x = x.clone() + self.cross.forward(self.norm2.forward(x), y, rope_x, rope_y);
+        x.clone() + self.mlp.forward(self.norm3.forward(x))
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// DPT head
+
+struct ResidualConvUnit {
+    conv1: Conv,
+    conv2: Conv,
+}
+
+impl ResidualConvUnit {
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        self.conv2.forward(relu(self.conv1.forward(relu(x.clone())))) + x
+    }
+}
+
+struct FusionBlock {
+    rcu1: ResidualConvUnit,
+    rcu2: ResidualConvUnit,
+    out_conv: Conv,
+}
+
+impl FusionBlock {
+    fn forward(&self, x: Tensor<4>, skip: Option<Tensor<4>>) -> Tensor<4> {
+        let x = match skip {
+            Some(s) => x + self.rcu1.forward(s),
+            None => x,
+        };
+        self.out_conv.forward(upsample2x(self.rcu2.forward(x)))
+    }
+}
+
+struct Dpt {
+    /// Per hooked layer: 1x1 projection, then optional resampling.
+    project: Vec<Conv>,
+    up: Vec<Option<ConvTranspose>>,
+    down: Option<Conv>,
+    layer_rn: Vec<Conv>,
+    refine: Vec<FusionBlock>,
+    head0: Conv,
+    head2: Conv,
+    head4: Conv,
+}
+
+impl Dpt {
+    fn load(l: &Loader, c: &DptConfig, in_dims: [usize; 4]) -> Self {
+        let p = &c.prefix;
+        let f = c.feature_dim;
+        let project = (0..4)
+            .map(|i| l.conv(&format!("{p}.act_postprocess.{i}.0"), in_dims[i], c.layer_dims[i], 1, 1, true))
+            .collect();
+        let up = (0..4)
+            .map(|i| (i < 2).then(|| l.conv_t(&format!("{p}.act_postprocess.{i}.1"), c.layer_dims[i], c.up[i])))
+            .collect();
+        let down = Some(l.conv(&format!("{p}.act_postprocess.3.1"), c.layer_dims[3], c.layer_dims[3], 3, 2, true));
+        let layer_rn = (0..4)
+            .map(|i| l.conv(&format!("{p}.scratch.layer{}_rn", i + 1), c.layer_dims[i], f, 3, 1, false))
+            .collect();
+        let refine = (1..=4)
+            .map(|i| {
+                let r = format!("{p}.scratch.refinenet{i}");
+                let rcu = |u: usize| ResidualConvUnit {
+                    conv1: l.conv(&format!("{r}.resConfUnit{u}.conv1"), f, f, 3, 1, true),
+                    conv2: l.conv(&format!("{r}.resConfUnit{u}.conv2"), f, f, 3, 1, true),
+                };
+                FusionBlock { rcu1: rcu(1), rcu2: rcu(2), out_conv: l.conv(&format!("{r}.out_conv"), f, f, 1, 1, true) }
+            })
+            .collect();
+        Self {
+            project,
+            up,
+            down,
+            layer_rn,
+            refine,
+            head0: l.conv(&format!("{p}.head.0"), f, c.head_dim, 3, 1, true),
+            head2: l.conv(&format!("{p}.head.2"), c.head_dim, c.last_dim, 3, 1, true),
+            head4: l.conv(&format!("{p}.head.4"), c.last_dim, c.out_channels, 1, 1, true),
+        }
+    }
+
+    /// Raw output `(B, C_out, H, W)` from the four hooked token maps `(B, N, C)`.
+    fn forward(&self, layers: [Tensor<3>; 4], (h, w): (usize, usize)) -> Tensor<4> {
+        let mut maps = Vec::with_capacity(4);
+        for (i, t) in layers.into_iter().enumerate() {
+            let [b, _, c] = t.dims();
+            let mut x = self.project[i].forward(t.swap_dims(1, 2).reshape([b, c, h, w]));
+            if let Some(u) = &self.up[i] {
+                x = u.forward(x);
+            }
+            if i == 3 {
+                x = self.down.as_ref().expect("layer 4 downsamples").forward(x);
+            }
+            maps.push(self.layer_rn[i].forward(x));
+        }
+        let l3 = maps[2].dims();
+        let path4 = self.refine[3].forward(maps[3].clone(), None);
+        // An odd grid makes the stride-2 conv round up: crop back to layer 3's size.
+        let path4 = path4.slice([0..l3[0], 0..l3[1], 0..l3[2], 0..l3[3]]);
+        let path3 = self.refine[2].forward(path4, Some(maps[2].clone()));
+        let path2 = self.refine[1].forward(path3, Some(maps[1].clone()));
+        let path1 = self.refine[0].forward(path2, Some(maps[0].clone()));
+        let x = upsample2x(self.head0.forward(path1));
+        self.head4.forward(relu(self.head2.forward(x)))
+    }
+}
+
+struct PtsHead {
+    dpt: Dpt,
+    mlp: Option<Mlp>,
+}
+
+// ---------------------------------------------------------------------------------------------
+// Public API
+
+/// Backbone output for one view; reusable by any head without re-running the backbone.
+#[derive(Debug, Clone)]
+pub struct ViewFeatures {
+    /// Encoder tokens after `enc_norm`, `(B, N, D_enc)`.
+    pub enc: Tensor<3>,
+    /// Decoder block outputs, `(B, N, D_dec)` each; the last one after `dec_norm`.
+    pub dec: Vec<Tensor<3>>,
+    /// Token grid `(h, w)`.
+    pub grid: (usize, usize),
+}
+
+impl ViewFeatures {
+    /// The head input list of spec 1.3: encoder output, then every decoder layer.
+    pub fn layer(&self, i: usize) -> Tensor<3> {
+        if i == 0 {
+            self.enc.clone()
+        } else {
+            self.dec[i - 1].clone()
+        }
+    }
+
+    /// Image size `(H, W)` in pixels for patch size `p`.
+    pub fn image_size(&self, p: usize) -> (usize, usize) {
+        (self.grid.0 * p, self.grid.1 * p)
+    }
+}
+
+/// Features of a pair (view 1 is the reference frame).
+#[derive(Debug, Clone)]
+pub struct Features {
+    /// View 1 then view 2.
+    pub views: [ViewFeatures; 2],
+}
+
+/// Post-processed outputs of one view, `(B, H, W[, C])` (spec 1.6).
+#[derive(Debug, Clone)]
+pub struct ViewPrediction {
+    /// Pointmap in camera 1's OpenCV frame (view 2: `pts3d_in_other_view`), `(B, H, W, 3)`.
+    pub pts3d: Tensor<4>,
+    /// Confidence `1 + exp(x)`, `(B, H, W)`, if the model predicts one.
+    pub conf: Option<Tensor<3>>,
+    /// Unit descriptors `(B, H, W, 24)`, if the model has a descriptor MLP.
+    pub desc: Option<Tensor<4>>,
+    /// Descriptor confidence `(B, H, W)` (a copy of `conf` without desc_conf).
+    pub desc_conf: Option<Tensor<3>>,
+    /// Unit normals in the view's own camera frame, **Dens3R raw convention**, `(B, H, W, 3)`.
+    pub normal: Option<Tensor<4>>,
+    /// Raw DPT output of the point head `(B, C, H, W)` and of the normal head, and the raw
+    /// descriptor MLP output `(B, N, C*P^2)`: kept for parity checks.
+    pub raw_pts: Tensor<4>,
+    /// See `raw_pts`.
+    pub raw_normal: Option<Tensor<4>>,
+    /// See `raw_pts`.
+    pub raw_mlp: Option<Tensor<3>>,
+}
+
+/// Predictions of a pair.
+#[derive(Debug, Clone)]
+pub struct Predictions {
+    /// View 1 then view 2.
+    pub views: [ViewPrediction; 2],
+}
+
+/// A loaded Dens3R / DUSt3R / MASt3R network.
+pub struct Dens3r {
+    /// The configuration read from the weights.
+    pub config: ModelConfig,
+    device: Device,
+    patch: Conv,
+    enc_blocks: Vec<EncoderBlock>,
+    enc_norm: LayerNorm,
+    decoder_embed: Linear,
+    dec_blocks: Vec<DecoderBlock>,
+    dec_blocks2: Option<Vec<DecoderBlock>>,
+    dec_norm: LayerNorm,
+    head1: PtsHead,
+    head2: PtsHead,
+    normal_head: Option<Dpt>,
+}
+
+impl Dens3r {
+    /// Builds the network from checkpoint tensors. A missing or mis-shaped key is an error
+    /// listing every such key; the returned list holds unexpected (unused) keys.
+    pub fn load(w: &Weights, config: ModelConfig, device: &Device) -> Result<(Self, Vec<String>), WeightsError> {
+        let l = Loader { w, device };
+        let c = &config;
+        let patch = l.conv("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, true);
+        let patch = Conv { padding: 0, ..patch };
+        let enc_blocks = (0..c.enc_depth)
+            .map(|i| EncoderBlock::load(&l, &format!("enc_blocks.{i}"), c.enc_dim, c.enc_heads, c.mlp_hidden.0))
+            .collect();
+        let dec = |name: &str| {
+            (0..c.dec_depth)
+                .map(|i| DecoderBlock::load(&l, &format!("{name}.{i}"), c.dec_dim, c.dec_heads, c.mlp_hidden.1))
+                .collect::<Vec<_>>()
+        };
+        let in_dims = [c.enc_dim, c.dec_dim, c.dec_dim, c.dec_dim];
+        let pts_head = |h: &PtsHeadConfig| PtsHead {
+            dpt: Dpt::load(&l, &h.dpt, in_dims),
+            mlp: h.mlp_hidden.map(|hidden| {
+                let out = (c.desc_dim + c.desc_conf as usize) * c.patch * c.patch;
+                Mlp::load(&l, &format!("{}.head_local_features", h.prefix), c.enc_dim + c.dec_dim, hidden, out)
+            }),
+        };
+        let model = Self {
+            device: device.clone(),
+            patch,
+            enc_blocks,
+            enc_norm: l.norm("enc_norm", c.enc_dim),
+            decoder_embed: l.linear("decoder_embed", c.enc_dim, c.dec_dim),
+            dec_blocks: dec("dec_blocks"),
+            dec_blocks2: (!c.shared_decoder).then(|| dec("dec_blocks2")),
+            dec_norm: l.norm("dec_norm", c.dec_dim),
+            head1: pts_head(&c.head1),
+            head2: pts_head(&c.head2),
+            normal_head: c.normal_head.as_ref().map(|d| Dpt::load(&l, d, in_dims)),
+            config,
+        };
+        let unexpected = w.finish()?;
+        Ok((model, unexpected))
+    }
+
+    /// The device the weights live on.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    fn rope(&self, grid: (usize, usize), head_dim: usize) -> Rope {
+        Rope::new(&grid_positions(grid.0, grid.1), head_dim, self.config.rope_base, self.config.rope, &self.device)
+    }
+
+    /// Encoder tokens `(B, N, D_enc)` of normalised images `(B, 3, H, W)` (H, W multiples of
+    /// the patch size).
+    pub fn encode_image(&self, img: Tensor<4>) -> (Tensor<3>, (usize, usize)) {
+        let [b, _, h, w] = img.dims();
+        let p = self.config.patch;
+        let grid = (h / p, w / p);
+        let x = self.patch.forward(img); // (B, D, h, w)
+        let d = self.config.enc_dim;
+        let mut x = x.reshape([b, d, grid.0 * grid.1]).swap_dims(1, 2);
+        let rope = self.rope(grid, d / self.config.enc_heads);
+        for blk in &self.enc_blocks {
+            x = blk.forward(x, &rope);
+        }
+        (self.enc_norm.forward(x), grid)
+    }
+
+    /// Runs encoder and decoder on a pair of normalised images `(B, 3, H, W)` in `[-1, 1]`.
+    pub fn encode(&self, img1: Tensor<4>, img2: Tensor<4>) -> Features {
+        let (e1, g1) = self.encode_image(img1);
+        let (e2, g2) = self.encode_image(img2);
+        let dh = self.config.dec_dim / self.config.dec_heads;
+        let (r1, r2) = (self.rope(g1, dh), self.rope(g2, dh));
+        let (mut f1, mut f2) = (self.decoder_embed.forward(e1.clone()), self.decoder_embed.forward(e2.clone()));
+        let (mut out1, mut out2) = (Vec::new(), Vec::new());
+        let blocks2 = self.dec_blocks2.as_ref().unwrap_or(&self.dec_blocks);
+        for (b1, b2) in self.dec_blocks.iter().zip(blocks2) {
+            let n1 = b1.forward(f1.clone(), f2.clone(), &r1, &r2);
+            let n2 = b2.forward(f2, f1, &r2, &r1);
+            (f1, f2) = (n1, n2);
+            out1.push(f1.clone());
+            out2.push(f2.clone());
+        }
+        for out in [&mut out1, &mut out2] {
+            let last = out.pop().expect("decoder has blocks");
+            out.push(self.dec_norm.forward(last));
+        }
+        Features {
+            views: [ViewFeatures { enc: e1, dec: out1, grid: g1 }, ViewFeatures { enc: e2, dec: out2, grid: g2 }],
+        }
+    }
+
+    /// Runs the heads on backbone features.
+    pub fn heads(&self, f: &Features) -> Predictions {
+        let [v1, v2] = &f.views;
+        Predictions { views: [self.view_heads(&self.head1, v1), self.view_heads(&self.head2, v2)] }
+    }
+
+    /// Encoder + decoder + heads on a pair.
+    pub fn forward(&self, img1: Tensor<4>, img2: Tensor<4>) -> Predictions {
+        self.heads(&self.encode(img1, img2))
+    }
+
+    fn view_heads(&self, head: &PtsHead, v: &ViewFeatures) -> ViewPrediction {
+        let c = &self.config;
+        let hooks = c.hooks();
+        let layers = || hooks.map(|i| v.layer(i));
+        let raw_pts = head.dpt.forward(layers(), v.grid);
+        let raw_normal = self.normal_head.as_ref().map(|d| d.forward(layers(), v.grid));
+        let raw_mlp = head.mlp.as_ref().map(|m| m.forward(Tensor::cat(vec![v.layer(0), v.layer(c.dec_depth)], 2)));
+        // (B, C, H, W) -> (B, H, W, C)
+        let fmap = raw_pts.clone().permute([0, 2, 3, 1]);
+        let [b, h, w, _] = fmap.dims();
+        let v3 = fmap.clone().narrow(3, 0, 3);
+        let d = v3.clone().square().sum_dim(3).sqrt(); // (B, H, W, 1)
+        let pts3d = v3 / d.clone().clamp_min(1e-8) * d.exp().sub_scalar(1.0);
+        let conf = c.has_conf.then(|| fmap.clone().narrow(3, 3, 1).exp().add_scalar(1.0).reshape([b, h, w]));
+        let (desc, desc_conf) = match &raw_mlp {
+            Some(m) => {
+                let [_, n, ch] = m.dims();
+                let per = ch / (c.patch * c.patch);
+                let maps = pixel_shuffle(m.clone().swap_dims(1, 2).reshape([b, ch, v.grid.0, v.grid.1]), c.patch);
+                let maps = maps.permute([0, 2, 3, 1]); // (B, H, W, per)
+                debug_assert_eq!(n, v.grid.0 * v.grid.1);
+                let raw = maps.clone().narrow(3, 0, c.desc_dim);
+                let norm = raw.clone().square().sum_dim(3).sqrt();
+                let desc = raw / norm;
+                let dc = if c.desc_conf && per > c.desc_dim {
+                    Some(maps.narrow(3, c.desc_dim, 1).exp().reshape([b, h, w]))
+                } else {
+                    conf.clone()
+                };
+                (Some(desc), dc)
+            }
+            None => (None, None),
+        };
+        let normal = raw_normal.as_ref().map(|r| {
+            let n = r.clone().permute([0, 2, 3, 1]).clamp(-1.0, 1.0);
+            let len = n.clone().square().sum_dim(3).sqrt().clamp_min(1e-12);
+            n / len
+        });
+        ViewPrediction { pts3d, conf, desc, desc_conf, normal, raw_pts, raw_normal, raw_mlp }
+    }
+}

@@ -1,0 +1,190 @@
+//! The tensor seam: every numeric op the model needs, written once on burn. Everything else in
+//! the crate calls these, so a backend quirk is fixed in one place.
+
+use crate::config::RopeScaling;
+use burn::tensor::module::{attention, conv2d, conv_transpose2d, interpolate};
+use burn::tensor::ops::{
+    AttentionModuleOptions, ConvOptions, ConvTransposeOptions, InterpolateMode, InterpolateOptions,
+};
+use burn::tensor::{Device, Tensor, TensorData};
+
+/// A linear layer with its weight stored transposed, `(in, out)`, as burn's `linear` wants.
+#[derive(Debug, Clone)]
+pub struct Linear {
+    /// `(in, out)`.
+    pub weight: Tensor<2>,
+    /// `(out)`.
+    pub bias: Option<Tensor<1>>,
+}
+
+impl Linear {
+    /// `x @ W^T + b` over the last dimension.
+    pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
+        burn::tensor::module::linear(x, self.weight.clone(), self.bias.clone())
+    }
+}
+
+/// LayerNorm over the last dimension (biased variance, like PyTorch).
+#[derive(Debug, Clone)]
+pub struct LayerNorm {
+    /// Scale, `(D)`.
+    pub gamma: Tensor<1>,
+    /// Shift, `(D)`.
+    pub beta: Tensor<1>,
+    /// Epsilon (1e-6 in every CroCo norm).
+    pub eps: f64,
+}
+
+impl LayerNorm {
+    /// Normalises `(B, N, D)` tokens.
+    pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
+        let d = x.dims()[2];
+        let mean = x.clone().mean_dim(2);
+        let centered = x - mean;
+        let var = centered.clone().square().mean_dim(2);
+        let normed = centered / var.add_scalar(self.eps).sqrt();
+        normed * self.gamma.clone().reshape([1, 1, d]) + self.beta.clone().reshape([1, 1, d])
+    }
+}
+
+/// A 2-D convolution with square kernel, stride and padding.
+#[derive(Debug, Clone)]
+pub struct Conv {
+    /// `(out, in, k, k)`.
+    pub weight: Tensor<4>,
+    /// `(out)`.
+    pub bias: Option<Tensor<1>>,
+    /// Stride.
+    pub stride: usize,
+    /// Zero padding on every side.
+    pub padding: usize,
+}
+
+impl Conv {
+    /// Applies the convolution to `(B, C, H, W)`.
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let opts = ConvOptions::new([self.stride; 2], [self.padding; 2], [1, 1], 1);
+        conv2d(x, self.weight.clone(), self.bias.clone(), opts)
+    }
+}
+
+/// A transposed convolution with kernel = stride (non-overlapping upsampling).
+#[derive(Debug, Clone)]
+pub struct ConvTranspose {
+    /// `(in, out, k, k)` (PyTorch layout).
+    pub weight: Tensor<4>,
+    /// `(out)`.
+    pub bias: Tensor<1>,
+    /// Kernel = stride.
+    pub stride: usize,
+}
+
+impl ConvTranspose {
+    /// Upsamples `(B, C, H, W)` by `stride`.
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let opts = ConvTransposeOptions::new([self.stride; 2], [0, 0], [0, 0], [1, 1], 1);
+        conv_transpose2d(x, self.weight.clone(), Some(self.bias.clone()), opts)
+    }
+}
+
+/// Bilinear x2 upsampling with `align_corners=True` (DPT).
+pub fn upsample2x(x: Tensor<4>) -> Tensor<4> {
+    let [_, _, h, w] = x.dims();
+    let opts =
+        InterpolateOptions::new(InterpolateMode::Bilinear).with_align_corners(true).with_output_size([2 * h, 2 * w]);
+    interpolate(x, opts)
+}
+
+/// `(B, C r^2, h, w) -> (B, C, h r, w r)`, PyTorch's `pixel_shuffle`.
+pub fn pixel_shuffle(x: Tensor<4>, r: usize) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    let c_out = c / (r * r);
+    x.reshape([b, c_out, r, r, h, w]).permute([0, 1, 4, 2, 5, 3]).reshape([b, c_out, h * r, w * r])
+}
+
+/// Exact (erf) GELU.
+pub fn gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    burn::tensor::activation::gelu(x)
+}
+
+/// Softmax attention of `(B, heads, N, Dh)` queries, keys and values, scaled by `Dh^-1/2`.
+pub fn sdpa(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>) -> Tensor<4> {
+    attention(q, k, v, None, None, AttentionModuleOptions::default())
+}
+
+/// Precomputed RoPE-2D rotation for one set of token positions.
+#[derive(Debug, Clone)]
+pub struct Rope {
+    cos_y: Tensor<2>,
+    sin_y: Tensor<2>,
+    cos_x: Tensor<2>,
+    sin_x: Tensor<2>,
+}
+
+impl Rope {
+    /// Tables for `(row, col)` positions and head dimension `head_dim` (spec 1.4): the first
+    /// half of each head is rotated by the row, the second by the column, with rotate-half
+    /// pairing and `inv_freq_k = base^(-2k / (head_dim / 2))`. Under
+    /// [`RopeScaling::Interpolated`] positions are multiplied by `32 / S`, `S = max(pos) + 1`
+    /// over both coordinates of this call.
+    pub fn new(
+        positions: &[(usize, usize)],
+        head_dim: usize,
+        base: f64,
+        scaling: RopeScaling,
+        device: &Device,
+    ) -> Self {
+        let half = head_dim / 2;
+        let nfreq = half / 2;
+        // The reference scales in float32 as t = arange(S) * 32 / S, S = max(pos) + 1.
+        let s = (positions.iter().map(|&(r, c)| r.max(c)).max().unwrap_or(0) + 1) as f32;
+        let position = |i: usize| match scaling {
+            RopeScaling::Plain => i as f32,
+            RopeScaling::Interpolated => i as f32 * 32.0 / s,
+        };
+        let table = |coord: &dyn Fn(&(usize, usize)) -> usize, f: fn(f32) -> f32| {
+            let mut v = Vec::with_capacity(positions.len() * half);
+            for p in positions {
+                let t = position(coord(p));
+                for _ in 0..2 {
+                    for k in 0..nfreq {
+                        let inv = (1.0 / base.powf(2.0 * k as f64 / half as f64)) as f32;
+                        v.push(f(t * inv));
+                    }
+                }
+            }
+            Tensor::<2>::from_data(TensorData::new(v, [positions.len(), half]), device)
+        };
+        Self {
+            cos_y: table(&|p| p.0, f32::cos),
+            sin_y: table(&|p| p.0, f32::sin),
+            cos_x: table(&|p| p.1, f32::cos),
+            sin_x: table(&|p| p.1, f32::sin),
+        }
+    }
+
+    /// Rotates `(B, heads, N, Dh)` queries or keys.
+    pub fn apply(&self, x: Tensor<4>) -> Tensor<4> {
+        let [b, h, n, d] = x.dims();
+        let half = d / 2;
+        let y_part = x.clone().narrow(3, 0, half);
+        let x_part = x.narrow(3, half, half);
+        let rot = |t: Tensor<4>, cos: &Tensor<2>, sin: &Tensor<2>| {
+            let f = half / 2;
+            let lo = t.clone().narrow(3, 0, f);
+            let hi = t.clone().narrow(3, f, f);
+            let rotated = Tensor::cat(vec![hi.neg(), lo], 3);
+            let c = cos.clone().reshape([1, 1, n, half]);
+            let s = sin.clone().reshape([1, 1, n, half]);
+            t * c + rotated * s
+        };
+        let out = Tensor::cat(vec![rot(y_part, &self.cos_y, &self.sin_y), rot(x_part, &self.cos_x, &self.sin_x)], 3);
+        debug_assert_eq!(out.dims(), [b, h, n, d]);
+        out
+    }
+}
+
+/// Row-major `(row, col)` positions of an `h x w` token grid.
+pub fn grid_positions(h: usize, w: usize) -> Vec<(usize, usize)> {
+    (0..h).flat_map(|r| (0..w).map(move |c| (r, c))).collect()
+}

@@ -1,0 +1,151 @@
+//! Parity check against arrays dumped from the PyTorch model (`dens3r verify DIR`).
+//!
+//! `DIR` holds `weights.safetensors`, `config.json` (constructor keywords; head counts are
+//! read from it), `img1.npy` (and `img2.npy`, else a self-pair) as `(1, 3, H, W)` in `[-1, 1]`,
+//! and any of the reference arrays `enc{1,2}.npy`, `dec{1,2}_layers.npy`,
+//! `raw_<head>_{dpt,mlp}_raw_<i>.npy`, `pred1_*.npy`, `pred2_*.npy`.
+
+use crate::config::ModelConfig;
+use crate::model::{Dens3r, Predictions};
+use crate::weights::Weights;
+use burn::tensor::{Device, Tensor, TensorData};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Absolute tolerance (tokens, raw outputs, points, normals, descriptors).
+pub const ABS_TOL: f64 = 1e-4;
+/// Relative tolerance (confidences, which are exponentials).
+pub const REL_TOL: f64 = 1e-4;
+
+/// One compared array.
+#[derive(Debug, Clone)]
+pub struct Comparison {
+    /// File stem.
+    pub name: String,
+    /// Shape compared.
+    pub shape: Vec<usize>,
+    /// Largest absolute difference.
+    pub max_abs: f64,
+    /// Largest difference relative to the reference magnitude (floored at 1e-6).
+    pub max_rel: f64,
+    /// Within tolerance (relative for confidences, absolute otherwise).
+    pub pass: bool,
+}
+
+fn tensor_values<const D: usize>(t: &Tensor<D>) -> (Vec<usize>, Vec<f32>) {
+    let data = t.to_data();
+    (data.shape().to_vec(), data.try_to_vec::<f32>().expect("float tensor"))
+}
+
+fn load_image(path: &Path, device: &Device) -> Result<Tensor<4>, String> {
+    let (shape, v) = dens3r_scene::npy::read_f32(path).map_err(|e| e.to_string())?;
+    if shape.len() != 4 || shape[1] != 3 {
+        return Err(format!("{}: shape {shape:?}, expected (1, 3, H, W)", path.display()));
+    }
+    Ok(Tensor::from_data(TensorData::new(v, [shape[0], shape[1], shape[2], shape[3]]), device))
+}
+
+/// Head counts from `config.json` (`enc_num_heads`, `dec_num_heads`), if present.
+pub fn heads_from_config(path: &Path) -> Result<Option<(usize, usize)>, String> {
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("{}: invalid JSON: {e}", path.display()))?;
+    let get = |k: &str| v.get(k).and_then(serde_json::Value::as_u64).map(|x| x as usize);
+    Ok(get("enc_num_heads").zip(get("dec_num_heads")))
+}
+
+/// Our arrays under the reference file stems.
+fn outputs(model: &Dens3r, img1: Tensor<4>, img2: Tensor<4>) -> BTreeMap<String, (Vec<usize>, Vec<f32>)> {
+    let f = model.encode(img1, img2);
+    let p: Predictions = model.heads(&f);
+    let mut out = BTreeMap::new();
+    let c = &model.config;
+    for (i, v) in f.views.iter().enumerate() {
+        out.insert(format!("enc{}", i + 1), tensor_values(&v.enc));
+        let stacked = Tensor::stack::<4>(v.dec.clone(), 0);
+        out.insert(format!("dec{}_layers", i + 1), tensor_values(&stacked));
+    }
+    let heads = [&c.head1.prefix, &c.head2.prefix];
+    for (i, v) in p.views.iter().enumerate() {
+        out.insert(format!("raw_{}_dpt_raw_0", heads[i]), tensor_values(&v.raw_pts));
+        if let Some(m) = &v.raw_mlp {
+            out.insert(format!("raw_{}_mlp_raw_0", heads[i]), tensor_values(m));
+        }
+        if let Some(n) = &v.raw_normal {
+            out.insert(format!("raw_normal_local_head_dpt_raw_{i}"), tensor_values(n));
+        }
+        let pre = format!("pred{}", i + 1);
+        let pts = if i == 0 { "pts3d" } else { "pts3d_in_other_view" };
+        out.insert(format!("{pre}_{pts}"), tensor_values(&v.pts3d));
+        if let Some(t) = &v.conf {
+            out.insert(format!("{pre}_conf"), tensor_values(t));
+        }
+        if let Some(t) = &v.desc {
+            out.insert(format!("{pre}_desc"), tensor_values(t));
+        }
+        if let Some(t) = &v.desc_conf {
+            out.insert(format!("{pre}_desc_conf"), tensor_values(t));
+        }
+        if let Some(t) = &v.normal {
+            out.insert(format!("{pre}_normal"), tensor_values(t));
+        }
+    }
+    out
+}
+
+/// Loads the model in `dir`, runs it and compares every reference array present.
+pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, String> {
+    let weights_path = dir.join("weights.safetensors");
+    let w = Weights::from_safetensors(&weights_path).map_err(|e| e.to_string())?;
+    let heads = heads_from_config(&dir.join("config.json"))?;
+    let cfg = ModelConfig::from_weights(&w, heads).map_err(|e| e.to_string())?;
+    let (model, _unexpected) = Dens3r::load(&w, cfg, device).map_err(|e| e.to_string())?;
+    let img1 = load_image(&dir.join("img1.npy"), device)?;
+    let img2 = if dir.join("img2.npy").is_file() { load_image(&dir.join("img2.npy"), device)? } else { img1.clone() };
+    let ours = outputs(&model, img1, img2);
+    let mut results = Vec::new();
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .map_err(|e| format!("{}: {e}", dir.display()))?
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter_map(|n| n.strip_suffix(".npy").map(str::to_string))
+        .filter(|n| {
+            n.starts_with("enc")
+                || n.starts_with("dec")
+                || n.starts_with("raw_")
+                || n.starts_with("pred1_")
+                || n.starts_with("pred2_")
+        })
+        .collect();
+    names.sort();
+    for name in names {
+        let path = dir.join(format!("{name}.npy"));
+        let (shape, reference) = dens3r_scene::npy::read_f32(&path).map_err(|e| e.to_string())?;
+        let Some((our_shape, values)) = ours.get(&name) else {
+            return Err(format!(
+                "{}: the model produces no such output (check the checkpoint matches the dump)",
+                path.display()
+            ));
+        };
+        if *our_shape != shape {
+            return Err(format!("{}: reference shape {shape:?}, ours {our_shape:?}", path.display()));
+        }
+        let (mut max_abs, mut max_rel) = (0.0f64, 0.0f64);
+        for (a, b) in values.iter().zip(&reference) {
+            let d = (*a as f64 - *b as f64).abs();
+            max_abs = max_abs.max(if d.is_nan() { f64::INFINITY } else { d });
+            max_rel = max_rel.max(d / (*b as f64).abs().max(1e-6));
+        }
+        let pass = if name.ends_with("conf") { max_rel <= REL_TOL } else { max_abs <= ABS_TOL };
+        results.push(Comparison { name, shape, max_abs, max_rel, pass });
+    }
+    if results.is_empty() {
+        return Err(format!(
+            "{}: no reference arrays (enc*.npy, dec*_layers.npy, raw_*.npy, pred*_*.npy) to compare",
+            dir.display()
+        ));
+    }
+    Ok(results)
+}

@@ -1,0 +1,171 @@
+//! Checkpoint tensors by name (safetensors; f32, f16 or bf16 stored, f32 in memory), with
+//! shape checks, PyTorch's aliased DPT keys, and a record of which keys were used so that a
+//! wrong or partial checkpoint is reported with its missing, unexpected and mis-shaped keys.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use std::cell::RefCell;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+/// A checkpoint problem, naming the file and the keys at fault.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {message}")]
+pub struct WeightsError {
+    /// The checkpoint file.
+    pub path: PathBuf,
+    /// What is wrong.
+    pub message: String,
+}
+
+/// Named f32 tensors of a checkpoint.
+pub struct Weights {
+    path: PathBuf,
+    tensors: BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    used: RefCell<BTreeSet<String>>,
+    missing: RefCell<Vec<String>>,
+    misshaped: RefCell<Vec<String>>,
+}
+
+impl Weights {
+    /// Reads a `.safetensors` file.
+    pub fn from_safetensors(path: &Path) -> Result<Self, WeightsError> {
+        let err = |m: String| WeightsError { path: path.to_path_buf(), message: m };
+        if path.extension().is_some_and(|e| e == "pth" || e == "pt") {
+            return Err(err("PyTorch .pth checkpoints are not read directly: convert once with `python3 scripts/pth_to_safetensors.py MODEL.pth` (see README)".into()));
+        }
+        let bytes = std::fs::read(path).map_err(|e| err(format!("cannot read the checkpoint: {e}")))?;
+        let st = safetensors::SafeTensors::deserialize(&bytes)
+            .map_err(|e| err(format!("not a valid safetensors file ({e}); re-export the checkpoint")))?;
+        let mut tensors = BTreeMap::new();
+        for (name, view) in st.tensors() {
+            let data = view.data();
+            let values: Vec<f32> = match view.dtype() {
+                safetensors::Dtype::F32 => {
+                    data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+                }
+                safetensors::Dtype::F16 => {
+                    data.chunks_exact(2).map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32()).collect()
+                }
+                safetensors::Dtype::BF16 => {
+                    data.chunks_exact(2).map(|c| half::bf16::from_le_bytes([c[0], c[1]]).to_f32()).collect()
+                }
+                safetensors::Dtype::I64
+                | safetensors::Dtype::I32
+                | safetensors::Dtype::BOOL
+                | safetensors::Dtype::U8 => continue,
+                other => return Err(err(format!("tensor '{name}' has dtype {other:?}; store f32, f16 or bf16"))),
+            };
+            tensors.insert(name, (view.shape().to_vec(), values));
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            tensors,
+            used: Default::default(),
+            missing: Default::default(),
+            misshaped: Default::default(),
+        })
+    }
+
+    /// The checkpoint path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// True when a tensor (or its alias) exists.
+    pub fn contains(&self, name: &str) -> bool {
+        self.resolve(name).is_some()
+    }
+
+    /// Shape of a tensor (or its alias), if present.
+    pub fn shape(&self, name: &str) -> Option<&[usize]> {
+        self.resolve(name).map(|k| self.tensors[k].0.as_slice())
+    }
+
+    /// All key names.
+    pub fn keys(&self) -> impl Iterator<Item = &str> {
+        self.tensors.keys().map(String::as_str)
+    }
+
+    /// Loads `name` as a rank-`D` tensor of shape `expect`; a missing or mis-shaped key is
+    /// recorded (see [`Weights::finish`]) and a zero tensor of the expected shape returned, so
+    /// every problem is reported at once.
+    pub fn get<const D: usize>(&self, name: &str, expect: [usize; D], device: &Device) -> Tensor<D> {
+        match self.resolve(name) {
+            None => self.missing.borrow_mut().push(format!("{name} {expect:?}")),
+            Some(key) => {
+                let (shape, values) = &self.tensors[key];
+                self.mark_used(name, key);
+                if shape.as_slice() == expect {
+                    return Tensor::from_data(TensorData::new(values.clone(), expect), device);
+                }
+                self.misshaped.borrow_mut().push(format!("{name}: {shape:?}, expected {expect:?}"));
+            }
+        }
+        Tensor::zeros(expect, device)
+    }
+
+    /// Errors out listing missing and mis-shaped keys; returns the unexpected (unused) keys,
+    /// ignoring the ones known to be unused at inference (`mask_token`, `atm_block.*`,
+    /// `enc_pos_embed`, `dec_pos_embed`).
+    pub fn finish(&self) -> Result<Vec<String>, WeightsError> {
+        let (missing, misshaped) = (self.missing.borrow(), self.misshaped.borrow());
+        if !missing.is_empty() || !misshaped.is_empty() {
+            let mut m = String::from("checkpoint does not fit the model");
+            if !missing.is_empty() {
+                m += &format!("; missing {} keys: {}", missing.len(), preview(&missing));
+            }
+            if !misshaped.is_empty() {
+                m += &format!("; mis-shaped {} keys: {}", misshaped.len(), preview(&misshaped));
+            }
+            return Err(WeightsError { path: self.path.clone(), message: m });
+        }
+        let used = self.used.borrow();
+        Ok(self
+            .tensors
+            .keys()
+            .filter(|k| !used.contains(*k))
+            .filter(|k| !(k.as_str() == "mask_token" || k.starts_with("atm_block.") || k.ends_with("pos_embed")))
+            .cloned()
+            .collect())
+    }
+
+    /// The stored key for `name`, trying the DPT alias `scratch.layer_rn.{i}` <->
+    /// `scratch.layer{i+1}_rn`.
+    fn resolve(&self, name: &str) -> Option<&str> {
+        if let Some((k, _)) = self.tensors.get_key_value(name) {
+            return Some(k);
+        }
+        let alias = alias_of(name)?;
+        self.tensors.get_key_value(&alias).map(|(k, _)| k.as_str())
+    }
+
+    fn mark_used(&self, name: &str, key: &str) {
+        let mut used = self.used.borrow_mut();
+        used.insert(key.to_string());
+        used.insert(name.to_string());
+        if let Some(a) = alias_of(name) {
+            used.insert(a);
+        }
+    }
+}
+
+fn alias_of(name: &str) -> Option<String> {
+    for i in 0..4 {
+        let (a, b) = (format!("scratch.layer{}_rn.", i + 1), format!("scratch.layer_rn.{i}."));
+        if name.contains(&a) {
+            return Some(name.replace(&a, &b));
+        }
+        if name.contains(&b) {
+            return Some(name.replace(&b, &a));
+        }
+    }
+    None
+}
+
+fn preview(v: &[String]) -> String {
+    let mut s = v.iter().take(8).cloned().collect::<Vec<_>>().join(", ");
+    if v.len() > 8 {
+        s += &format!(", ... ({} more)", v.len() - 8);
+    }
+    s
+}
