@@ -10,6 +10,8 @@
 pub mod config;
 pub mod model;
 pub mod ops;
+pub mod predict;
+pub mod preprocess;
 pub mod verify;
 pub mod weights;
 

@@ -45,7 +45,9 @@ fn load_image(path: &Path, device: &Device) -> Result<Tensor<4>, String> {
     Ok(Tensor::from_data(TensorData::new(v, [shape[0], shape[1], shape[2], shape[3]]), device))
 }
 
-/// Head counts from `config.json` (`enc_num_heads`, `dec_num_heads`), if present.
+/// Head counts from a JSON config, if present: either constructor keywords
+/// (`enc_num_heads`, `dec_num_heads`, as in the parity dumps) or the converter's
+/// `{"args": "AsymmetricMASt3R(..., enc_num_heads=16, dec_num_heads=12, ...)"}`.
 pub fn heads_from_config(path: &Path) -> Result<Option<(usize, usize)>, String> {
     if !path.is_file() {
         return Ok(None);
@@ -54,7 +56,28 @@ pub fn heads_from_config(path: &Path) -> Result<Option<(usize, usize)>, String> 
     let v: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| format!("{}: invalid JSON: {e}", path.display()))?;
     let get = |k: &str| v.get(k).and_then(serde_json::Value::as_u64).map(|x| x as usize);
-    Ok(get("enc_num_heads").zip(get("dec_num_heads")))
+    if let Some(h) = get("enc_num_heads").zip(get("dec_num_heads")) {
+        return Ok(Some(h));
+    }
+    let args = v.get("args").and_then(serde_json::Value::as_str).unwrap_or("");
+    let kw = |k: &str| -> Option<usize> {
+        let rest = &args[args.find(&format!("{k}="))? + k.len() + 1..];
+        rest.chars().take_while(char::is_ascii_digit).collect::<String>().parse().ok()
+    };
+    Ok(kw("enc_num_heads").zip(kw("dec_num_heads")))
+}
+
+/// Loads a safetensors checkpoint; head counts come from `config` (see
+/// [`heads_from_config`]) or default to head dim 64. Returns the unexpected keys too.
+pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Result<(Dens3r, Vec<String>), String> {
+    let w = Weights::from_safetensors(weights).map_err(|e| e.to_string())?;
+    let heads = match config {
+        Some(c) if !c.is_file() => return Err(format!("{}: config file not found", c.display())),
+        Some(c) => heads_from_config(c)?,
+        None => None,
+    };
+    let cfg = ModelConfig::from_weights(&w, heads).map_err(|e| e.to_string())?;
+    Dens3r::load(&w, cfg, device).map_err(|e| e.to_string())
 }
 
 /// Our arrays under the reference file stems.
@@ -98,11 +121,9 @@ fn outputs(model: &Dens3r, img1: Tensor<4>, img2: Tensor<4>) -> BTreeMap<String,
 
 /// Loads the model in `dir`, runs it and compares every reference array present.
 pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, String> {
-    let weights_path = dir.join("weights.safetensors");
-    let w = Weights::from_safetensors(&weights_path).map_err(|e| e.to_string())?;
-    let heads = heads_from_config(&dir.join("config.json"))?;
-    let cfg = ModelConfig::from_weights(&w, heads).map_err(|e| e.to_string())?;
-    let (model, _unexpected) = Dens3r::load(&w, cfg, device).map_err(|e| e.to_string())?;
+    let config = dir.join("config.json");
+    let (model, _unexpected) =
+        load_model(&dir.join("weights.safetensors"), config.is_file().then_some(config.as_path()), device)?;
     let img1 = load_image(&dir.join("img1.npy"), device)?;
     let img2 = if dir.join("img2.npy").is_file() { load_image(&dir.join("img2.npy"), device)? } else { img1.clone() };
     let ours = outputs(&model, img1, img2);

@@ -3,6 +3,7 @@
 
 mod eval;
 mod info;
+mod predict;
 mod render;
 mod verify;
 
@@ -28,6 +29,8 @@ enum Command {
     Eval(eval::EvalCommand),
     /// Summarise a scene folder (frames, cameras, layers, depth range).
     Info(info::InfoArgs),
+    /// Predict depth, normals, confidence and intrinsics for images into a scene folder.
+    Predict(predict::PredictArgs),
     /// Check a checkpoint against arrays dumped from the PyTorch model (parity).
     Verify(verify::VerifyArgs),
 }
@@ -39,6 +42,7 @@ fn main() {
         Command::Eval(c) => eval::run(c),
         Command::Info(a) => info::run(a),
         Command::Verify(a) => verify::run(a),
+        Command::Predict(a) => predict::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -131,3 +131,78 @@ fn assert_no_temp_files(p: &Path) {
         }
     }
 }
+
+fn fixture(case: &str) -> std::path::PathBuf {
+    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/parity").join(case)
+}
+
+#[test]
+fn verify_passes_on_fixtures_and_fails_on_a_wrong_dump() {
+    let out = ok(&["verify", fixture("B_two_dec_descconf_48x64_64x48").to_str().unwrap()]);
+    assert!(out.contains("20 arrays compared, 0 over tolerance"), "{out}");
+    // Fixture C's references (A's weights on a self-pair of img1) fed another image: must fail.
+    let dir = tempfile::tempdir().unwrap();
+    for f in std::fs::read_dir(fixture("C_self_pair_48x64")).unwrap() {
+        let f = f.unwrap();
+        std::fs::copy(f.path(), dir.path().join(f.file_name())).unwrap();
+    }
+    std::fs::copy(fixture("A_shared_dec_48x64").join("img2.npy"), dir.path().join("img1.npy")).unwrap();
+    let e = fails(&["verify", dir.path().to_str().unwrap()]);
+    assert!(e.contains("arrays differ from the reference"), "{e}");
+}
+
+#[test]
+fn predict_writes_a_valid_scene_and_rejects_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = fixture("A_shared_dec_48x64");
+    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
+    let (w, c) = (w.to_str().unwrap(), c.to_str().unwrap());
+    let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples");
+    let img = samples.join("room/images/0000.png");
+    // A portrait copy of the same image.
+    let portrait = dir.path().join("portrait.png");
+    image::imageops::rotate90(&image::open(&img).unwrap().to_rgb8()).save(&portrait).unwrap();
+    let out = dir.path().join("pred");
+    let o = out.to_str().unwrap();
+    ok(&[
+        "predict",
+        "--weights",
+        w,
+        "--config",
+        c,
+        "--size",
+        "64",
+        img.to_str().unwrap(),
+        portrait.to_str().unwrap(),
+        "-o",
+        o,
+    ]);
+    let scene = dens3r_scene::Scene::open(&out).unwrap();
+    let sizes: Vec<_> = scene.frames().iter().map(|f| (f.name.clone(), f.width, f.height)).collect();
+    assert_eq!(sizes, [("0000".to_string(), 64, 48), ("portrait".to_string(), 48, 64)]);
+    for f in scene.frames() {
+        let n = scene.normals(f).unwrap().expect("normals written");
+        assert!(n.data().iter().all(|v| (v.length() - 1.0).abs() < 1e-4), "unit normals");
+        assert!(scene.depth(f).unwrap().is_some() && scene.conf(f).unwrap().is_some());
+        assert!(out.join("viz").join(format!("{}_normal.png", f.name)).is_file());
+        assert!(out.join("pointmaps").join(format!("{}.ply", f.name)).is_file());
+    }
+    // The portrait frame's depth is the landscape frame's, rotated back clockwise.
+    let (d0, dp) =
+        (scene.depth(&scene.frames()[0]).unwrap().unwrap(), scene.depth(&scene.frames()[1]).unwrap().unwrap());
+    for y in 0..64 {
+        for x in 0..48 {
+            assert_eq!(dp.get(x, y), d0.get(y, 47 - x), "({x},{y})");
+        }
+    }
+    let bad = dir.path().join("bad");
+    let e = fails(&["predict", "--weights", w, "/no/such.png", "-o", bad.to_str().unwrap()]);
+    assert!(e.contains("/no/such.png") && e.contains("not found"), "{e}");
+    let junk = dir.path().join("junk.png");
+    std::fs::write(&junk, b"not an image").unwrap();
+    let e = fails(&["predict", "--weights", w, "--config", c, junk.to_str().unwrap(), "-o", bad.to_str().unwrap()]);
+    assert!(e.contains("junk.png"), "{e}");
+    let e = fails(&["predict", "--weights", img.to_str().unwrap(), img.to_str().unwrap(), "-o", bad.to_str().unwrap()]);
+    assert!(e.contains("0000.png") && e.contains("safetensors"), "{e}");
+    assert!(!bad.exists(), "failed runs leave no output folder");
+}

@@ -1,0 +1,188 @@
+//! Input preprocessing exactly as Dens3R's `load_images` (model spec section 2) and the
+//! inverse `rotate_recover` (section 3.2).
+
+use burn::tensor::{Device, Tensor, TensorData};
+use image::{DynamicImage, ImageDecoder, RgbImage};
+use std::path::Path;
+
+/// How an image became a network input, and how to map outputs back.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PrepInfo {
+    /// Size after EXIF orientation, before anything else (width, height).
+    pub original: (u32, u32),
+    /// The image was portrait and was rotated 90 degrees counter-clockwise to landscape.
+    pub rotated: bool,
+    /// Size after rotation and resizing (width, height).
+    pub resized: (u32, u32),
+    /// Crop box `(x0, y0, x1, y1)` in the resized image.
+    pub crop: (u32, u32, u32, u32),
+}
+
+impl PrepInfo {
+    /// Network input size (width, height).
+    pub fn input_size(&self) -> (u32, u32) {
+        (self.crop.2 - self.crop.0, self.crop.3 - self.crop.1)
+    }
+}
+
+/// A preprocessed image.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// The network input as RGB (landscape, cropped).
+    pub rgb: RgbImage,
+    /// Geometry of the transformation.
+    pub info: PrepInfo,
+}
+
+impl Prepared {
+    /// `(1, 3, H, W)` tensor normalised to `[-1, 1]`.
+    pub fn tensor(&self, device: &Device) -> Tensor<4> {
+        let (w, h) = self.rgb.dimensions();
+        let (w, h) = (w as usize, h as usize);
+        let mut v = vec![0f32; 3 * w * h];
+        for (x, y, p) in self.rgb.enumerate_pixels() {
+            for c in 0..3 {
+                v[c * w * h + y as usize * w + x as usize] = (p.0[c] as f32 / 255.0 - 0.5) / 0.5;
+            }
+        }
+        Tensor::from_data(TensorData::new(v, [1, 3, h, w]), device)
+    }
+}
+
+/// Python's `round` (half to even) of a non-negative float.
+fn round_half_even(x: f64) -> u32 {
+    let r = x.round();
+    if (x - x.trunc() - 0.5).abs() < 1e-12 && r as u64 % 2 == 1 {
+        (r - 1.0) as u32
+    } else {
+        r as u32
+    }
+}
+
+/// Resized size (width, height) for long side `size`: `round(W L / S) x round(H L / S)`.
+pub fn resized_size(w: u32, h: u32, size: u32) -> (u32, u32) {
+    let s = w.max(h) as f64;
+    (round_half_even(w as f64 * size as f64 / s), round_half_even(h as f64 * size as f64 / s))
+}
+
+/// The centred crop to multiples of 16 of a `w x h` image: `(x0, y0, x1, y1)`.
+pub fn crop_box(w: u32, h: u32) -> (u32, u32, u32, u32) {
+    let (cx, cy) = (w / 2, h / 2);
+    let (hw, hh) = (((2 * cx) / 16) * 8, ((2 * cy) / 16) * 8);
+    (cx - hw, cy - hh, cx + hw, cy + hh)
+}
+
+/// Reads an image file applying its EXIF orientation.
+pub fn open_oriented(path: &Path) -> Result<DynamicImage, String> {
+    let err = |e: image::ImageError| format!("{}: unreadable image ({e}); use PNG or JPEG", path.display());
+    let mut decoder = image::ImageReader::open(path)
+        .map_err(|e| format!("{}: cannot open ({e})", path.display()))?
+        .with_guessed_format()
+        .map_err(|e| format!("{}: cannot read ({e})", path.display()))?
+        .into_decoder()
+        .map_err(err)?;
+    let orientation = decoder.orientation().map_err(err)?;
+    let mut img = DynamicImage::from_decoder(decoder).map_err(err)?;
+    img.apply_orientation(orientation);
+    Ok(img)
+}
+
+/// Preprocesses an oriented image for long side `size` (512 or 1024 for Dens3R):
+/// portrait -> rotate 90 degrees counter-clockwise; resize (Lanczos3 when shrinking,
+/// Catmull-Rom bicubic otherwise, as PIL's LANCZOS / BICUBIC); centre crop to multiples of 16.
+/// `rotate_portrait = false` keeps portrait images as they are (upstream DUSt3R / MASt3R).
+pub fn preprocess(img: &DynamicImage, size: u32, rotate_portrait: bool) -> Result<Prepared, String> {
+    let (w0, h0) = (img.width(), img.height());
+    if w0 == 0 || h0 == 0 {
+        return Err("image is empty".into());
+    }
+    if size < 16 || size > 8192 {
+        return Err(format!("size {size} must be in 16..=8192"));
+    }
+    let rotated = rotate_portrait && w0 < h0;
+    let rgb = img.to_rgb8();
+    let rgb = if rotated { image::imageops::rotate270(&rgb) } else { rgb };
+    let (w, h) = rgb.dimensions();
+    let (rw, rh) = resized_size(w, h, size);
+    let filter =
+        if w.max(h) > size { image::imageops::FilterType::Lanczos3 } else { image::imageops::FilterType::CatmullRom };
+    let resized = image::imageops::resize(&rgb, rw.max(1), rh.max(1), filter);
+    let crop = crop_box(rw, rh);
+    if crop.2 <= crop.0 || crop.3 <= crop.1 {
+        return Err(format!("image of {w0}x{h0} is too small for size {size}: the crop to multiples of 16 is empty"));
+    }
+    let cropped = image::imageops::crop_imm(&resized, crop.0, crop.1, crop.2 - crop.0, crop.3 - crop.1).to_image();
+    Ok(Prepared { rgb: cropped, info: PrepInfo { original: (w0, h0), rotated, resized: (rw, rh), crop } })
+}
+
+/// Undoes the portrait rotation of an `(H, W, C)` row-major map: rotates it 90 degrees
+/// clockwise (numpy `rot90(k=-1)`), returning the new `(H, W)`.
+pub fn rotate_map_clockwise<T: Copy>(data: &[T], h: usize, w: usize, c: usize) -> (Vec<T>, usize, usize) {
+    // out has shape (w, h): out[i][j] = in[h - 1 - j][i]
+    let mut out = Vec::with_capacity(data.len());
+    for i in 0..w {
+        for j in 0..h {
+            let src = ((h - 1 - j) * w + i) * c;
+            out.extend_from_slice(&data[src..src + c]);
+        }
+    }
+    (out, w, h)
+}
+
+/// Rotation applied to OpenCV-frame vectors (points and normals) when undoing the portrait
+/// rotation: `R_z(+90)`, `(x, y, z) -> (-y, x, z)`.
+pub fn unrotate_vector(v: [f32; 3]) -> [f32; 3] {
+    [-v[1], v[0], v[2]]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spec_examples() {
+        // Spec section 2 step 4.
+        for ((w, h), resized, input) in [
+            ((1920, 1080), (512, 288), (512, 288)),
+            ((4032, 3024), (512, 384), (512, 384)),
+            ((1000, 750), (512, 384), (512, 384)),
+            ((1000, 700), (512, 358), (512, 352)),
+        ] {
+            let img = DynamicImage::new_rgb8(w, h);
+            let p = preprocess(&img, 512, true).unwrap();
+            assert_eq!((p.info.resized, p.info.input_size(), p.info.rotated), (resized, input, false), "{w}x{h}");
+        }
+        // Python rounds half to even: 2.5 -> 2, 3.5 -> 4.
+        assert_eq!((round_half_even(2.5), round_half_even(3.5), round_half_even(2.4999)), (2, 4, 2));
+        // A portrait phone photo is rotated to landscape.
+        let p = preprocess(&DynamicImage::new_rgb8(3024, 4032), 512, true).unwrap();
+        assert_eq!((p.info.rotated, p.info.input_size()), (true, (512, 384)));
+        let p = preprocess(&DynamicImage::new_rgb8(3024, 4032), 512, false).unwrap();
+        assert_eq!((p.info.rotated, p.info.input_size()), (false, (384, 512)));
+        assert!(preprocess(&DynamicImage::new_rgb8(4, 2), 8, true).is_err());
+    }
+
+    #[test]
+    fn portrait_rotation_round_trips() {
+        // Rotating counter-clockwise (as preprocessing does) then back clockwise is identity.
+        let img = RgbImage::from_fn(5, 3, |x, y| image::Rgb([x as u8, y as u8, 7]));
+        let ccw = image::imageops::rotate270(&img);
+        let (back, h, w) = rotate_map_clockwise(ccw.as_raw(), ccw.height() as usize, ccw.width() as usize, 3);
+        assert_eq!((w, h), (5, 3));
+        assert_eq!(back, img.into_raw());
+        // The camera-frame rotation: the rotated view's x axis is the portrait's y axis.
+        assert_eq!(unrotate_vector([1.0, 0.0, 2.0]), [0.0, 1.0, 2.0]);
+    }
+
+    #[test]
+    fn tensor_is_normalised_chw() {
+        let img = DynamicImage::ImageRgb8(RgbImage::from_fn(32, 16, |x, _| {
+            image::Rgb([if x == 0 { 255 } else { 0 }, 128, 0])
+        }));
+        let p = preprocess(&img, 32, true).unwrap();
+        let t = p.tensor(&Device::default()).to_data();
+        assert_eq!(t.shape().to_vec(), vec![1, 3, 16, 32]);
+        let v = t.try_to_vec::<f32>().unwrap();
+        assert_eq!((v[0], v[1], v[16 * 32 * 2]), (1.0, -1.0, -1.0));
+    }
+}
