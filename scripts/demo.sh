@@ -20,3 +20,13 @@ $bin eval normals --from-depth "$out/room" "$out/room"
 $bin eval depth --align median data-samples/room data-samples/room
 # The re-rendered ground-truth mesh against the bundled one: Chamfer 0, F-score 1.
 $bin eval mesh "$out/orbit/gt_mesh.ply" data-samples/orbit/gt_mesh.ply --threshold 0.01
+# The backbone: parity with the official PyTorch code on a dumped case, then predict on the
+# bundled room images. The parity fixtures hold a tiny random-weight model: the predictions
+# exercise the pipeline only. With real weights: --weights dens3r.safetensors --size 512.
+fixture=../shared/fixtures/parity/A_shared_dec_48x64
+if [ -d "$fixture" ]; then
+  $bin verify "$fixture"
+  $bin predict --weights "$fixture/weights.safetensors" --config "$fixture/config.json" --size 160 \
+    data-samples/room/images/0000.png data-samples/room/images/0004.png -o "$out/predict"
+  $bin info "$out/predict"
+fi

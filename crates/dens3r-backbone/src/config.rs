@@ -181,3 +181,44 @@ impl ModelConfig {
         [0, l * 2 / 4, l * 3 / 4, l]
     }
 }
+
+impl ModelConfig {
+    /// The full-size Dens3R of the paper (ViT-L/16 encoder, 12-block ViT-B decoder shared by
+    /// both views, full DPT widths, conf, 24-d descriptors, normal head): for benchmarks and
+    /// synthetic weights.
+    pub fn dens3r_full() -> Self {
+        let dpt = |prefix: &str, out_channels: usize| DptConfig {
+            prefix: format!("{prefix}.dpt"),
+            layer_dims: [96, 192, 384, 768],
+            feature_dim: 256,
+            head_dim: 128,
+            last_dim: 128,
+            out_channels,
+            up: [4, 2],
+        };
+        let pts = |prefix: &str| PtsHeadConfig {
+            prefix: prefix.into(),
+            dpt: dpt(prefix, 4),
+            mlp_hidden: Some(4 * (1024 + 768)),
+        };
+        Self {
+            patch: 16,
+            enc_dim: 1024,
+            enc_depth: 24,
+            enc_heads: 16,
+            dec_dim: 768,
+            dec_depth: 12,
+            dec_heads: 12,
+            mlp_hidden: (4096, 3072),
+            shared_decoder: true,
+            rope_base: 100.0,
+            rope: RopeScaling::Interpolated,
+            head1: pts("ptsmatch_local_head"),
+            head2: pts("ptsmatch_global_head"),
+            normal_head: Some(dpt("normal_local_head", 3)),
+            has_conf: true,
+            desc_dim: 24,
+            desc_conf: false,
+        }
+    }
+}

@@ -29,12 +29,12 @@ impl Loader<'_> {
         }
     }
     fn conv(&self, p: &str, inp: usize, out: usize, k: usize, stride: usize, bias: bool) -> Conv {
-        Conv {
-            weight: self.w.get(&format!("{p}.weight"), [out, inp, k, k], self.device),
-            bias: bias.then(|| self.w.get(&format!("{p}.bias"), [out], self.device)),
+        Conv::new(
+            self.w.get(&format!("{p}.weight"), [out, inp, k, k], self.device),
+            bias.then(|| self.w.get(&format!("{p}.bias"), [out], self.device)),
             stride,
-            padding: k / 2,
-        }
+            k / 2,
+        )
     }
     fn conv_t(&self, p: &str, ch: usize, k: usize) -> ConvTranspose {
         ConvTranspose {
@@ -369,7 +369,7 @@ impl Dens3r {
         let l = Loader { w, device };
         let c = &config;
         let patch = l.conv("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, true);
-        let patch = Conv { padding: 0, ..patch };
+        let patch = Conv::new(patch.weight, patch.bias, c.patch, 0);
         let enc_blocks = (0..c.enc_depth)
             .map(|i| EncoderBlock::load(&l, &format!("enc_blocks.{i}"), c.enc_dim, c.enc_heads, c.mlp_hidden.0))
             .collect();

@@ -96,7 +96,7 @@ pub fn preprocess(img: &DynamicImage, size: u32, rotate_portrait: bool) -> Resul
     if w0 == 0 || h0 == 0 {
         return Err("image is empty".into());
     }
-    if size < 16 || size > 8192 {
+    if !(16..=8192).contains(&size) {
         return Err(format!("size {size} must be in 16..=8192"));
     }
     let rotated = rotate_portrait && w0 < h0;

@@ -17,13 +17,19 @@ pub struct WeightsError {
     pub message: String,
 }
 
+/// A tensor's shape and row-major f32 values.
+type Stored = (Vec<usize>, Vec<f32>);
+
 /// Named f32 tensors of a checkpoint.
 pub struct Weights {
     path: PathBuf,
-    tensors: BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    tensors: BTreeMap<String, Stored>,
     used: RefCell<BTreeSet<String>>,
     missing: RefCell<Vec<String>>,
     misshaped: RefCell<Vec<String>>,
+    /// Synthetic mode: `(rng state, std)`; missing keys are generated and recorded.
+    synthetic: Option<RefCell<(u64, f32)>>,
+    generated: RefCell<Vec<(String, Stored)>>,
 }
 
 impl Weights {
@@ -63,7 +69,69 @@ impl Weights {
             used: Default::default(),
             missing: Default::default(),
             misshaped: Default::default(),
+            synthetic: None,
+            generated: Default::default(),
         })
+    }
+
+    /// A store that invents every tensor it is asked for: LayerNorm weights 1 and biases 0,
+    /// everything else seeded N(0, std^2). Generated tensors are kept, so
+    /// [`Weights::save_safetensors`] exports exactly the model that was built (benchmarks,
+    /// tests of other implementations).
+    pub fn synthetic(seed: u64, std: f32) -> Self {
+        Self {
+            path: PathBuf::from("<synthetic>"),
+            tensors: BTreeMap::new(),
+            used: Default::default(),
+            missing: Default::default(),
+            misshaped: Default::default(),
+            synthetic: Some(RefCell::new((seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1, std))),
+            generated: Default::default(),
+        }
+    }
+
+    /// Writes every tensor (f32) to a safetensors file, atomically.
+    pub fn save_safetensors(&self, path: &Path) -> Result<(), WeightsError> {
+        let err = |m: String| WeightsError { path: path.to_path_buf(), message: m };
+        let generated = self.generated.borrow();
+        let all = self.tensors.iter().chain(generated.iter().map(|(k, t)| (k, t))).map(|(k, (s, v))| (k, s, v));
+        let bytes: Vec<(String, Vec<u8>, Vec<usize>)> =
+            all.map(|(k, s, v)| (k.clone(), v.iter().flat_map(|x| x.to_le_bytes()).collect(), s.clone())).collect();
+        let views = bytes
+            .iter()
+            .map(|(k, b, s)| {
+                let view = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, s.clone(), b);
+                Ok((k.clone(), view.map_err(|e| err(e.to_string()))?))
+            })
+            .collect::<Result<Vec<_>, WeightsError>>()?;
+        let data = safetensors::serialize(views, None).map_err(|e| err(e.to_string()))?;
+        dens3r_mesh::io::write_atomic(path, |w| std::io::Write::write_all(w, &data)).map_err(|e| err(e.to_string()))
+    }
+
+    fn generate(&self, name: &str, shape: &[usize]) -> Option<Vec<f32>> {
+        let cell = self.synthetic.as_ref()?;
+        let mut st = cell.borrow_mut();
+        let n: usize = shape.iter().product();
+        if name.split('.').any(|p| p.starts_with("norm") || p == "enc_norm" || p == "dec_norm") {
+            return Some(vec![if name.ends_with(".weight") { 1.0 } else { 0.0 }; n]);
+        }
+        let std = st.1 as f64;
+        let mut v = Vec::with_capacity(n + 1);
+        while v.len() < n {
+            // xorshift64* -> two uniforms -> Box-Muller
+            let mut next = || {
+                st.0 ^= st.0 >> 12;
+                st.0 ^= st.0 << 25;
+                st.0 ^= st.0 >> 27;
+                ((st.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+            };
+            let (u1, u2) = (next(), next());
+            let r = (-2.0 * u1.ln()).sqrt() * std;
+            v.push((r * (std::f64::consts::TAU * u2).cos()) as f32);
+            v.push((r * (std::f64::consts::TAU * u2).sin()) as f32);
+        }
+        v.truncate(n);
+        Some(v)
     }
 
     /// The checkpoint path.
@@ -90,6 +158,14 @@ impl Weights {
     /// recorded (see [`Weights::finish`]) and a zero tensor of the expected shape returned, so
     /// every problem is reported at once.
     pub fn get<const D: usize>(&self, name: &str, expect: [usize; D], device: &Device) -> Tensor<D> {
+        if self.resolve(name).is_none() {
+            if let Some(values) = self.generate(name, &expect) {
+                let t = Tensor::from_data(TensorData::new(values.clone(), expect), device);
+                self.generated.borrow_mut().push((name.to_string(), (expect.to_vec(), values)));
+                self.used.borrow_mut().insert(name.to_string());
+                return t;
+            }
+        }
         match self.resolve(name) {
             None => self.missing.borrow_mut().push(format!("{name} {expect:?}")),
             Some(key) => {

@@ -1,6 +1,7 @@
 //! `dens3r`: render ground-truth scenes, evaluate depth / normals / meshes, inspect scene
 //! folders. Errors print one line and exit with status 2.
 
+mod bench;
 mod eval;
 mod info;
 mod predict;
@@ -31,6 +32,9 @@ enum Command {
     Info(info::InfoArgs),
     /// Predict depth, normals, confidence and intrinsics for images into a scene folder.
     Predict(predict::PredictArgs),
+    /// Benchmarks against peers measured in the same run (PyTorch for the backbone).
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
     /// Check a checkpoint against arrays dumped from the PyTorch model (parity).
     Verify(verify::VerifyArgs),
 }
@@ -43,6 +47,7 @@ fn main() {
         Command::Info(a) => info::run(a),
         Command::Verify(a) => verify::run(a),
         Command::Predict(a) => predict::run(a),
+        Command::Bench(c) => bench::run(c),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -134,7 +134,7 @@ fn depth_viz(d: &Raster<f32>) -> image::RgbImage {
         [[158.0, 1.0, 66.0], [244.0, 109.0, 67.0], [255.0, 255.0, 191.0], [102.0, 194.0, 165.0], [94.0, 79.0, 162.0]];
     image::RgbImage::from_fn(d.width() as u32, d.height() as u32, |x, y| {
         let z = *d.get(x as usize, y as usize);
-        if !(z > 0.0) {
+        if z.is_nan() || z <= 0.0 {
             return image::Rgb([0, 0, 0]);
         }
         let t = ((z - lo) / (hi - lo)).clamp(0.0, 1.0) * 4.0;

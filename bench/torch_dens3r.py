@@ -1,0 +1,187 @@
+#!/usr/bin/env python3
+"""Dens3R forward in PyTorch, written from shared/docs/model-spec.md sections 1.2-1.6, for
+`dens3r bench backbone`: loads the same safetensors the Rust side uses, times one pair forward
+and prints JSON {"seconds", "peak_rss_mb", "max_abs_diff"?}.
+
+    python3 bench/torch_dens3r.py WEIGHTS.safetensors --size 512x384 --threads 2 \
+        [--heads 16,12] [--image img.npy --compare rust_pts3d.npy]
+"""
+import argparse
+import json
+import resource
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file
+
+
+def rope_tables(h, w, head_dim, base=100.0, interpolate=True):
+    pos = torch.cartesian_prod(torch.arange(h), torch.arange(w))  # (N, 2) = (row, col)
+    d = head_dim // 2
+    inv = 1.0 / (base ** (torch.arange(0, d, 2).float() / d))
+    s = int(pos.max()) + 1
+    t = torch.arange(s, dtype=torch.float32)
+    if interpolate:
+        t = t * 32 / s
+    freqs = torch.cat([torch.einsum("i,j->ij", t, inv)] * 2, dim=-1)
+    cos, sin = freqs.cos(), freqs.sin()
+    return cos[pos[:, 0]], sin[pos[:, 0]], cos[pos[:, 1]], sin[pos[:, 1]]
+
+
+def rope(x, tab):
+    cy, sy, cx, sx = tab
+    y, xx = x.chunk(2, dim=-1)
+
+    def rot(t, c, s):
+        a, b = t.chunk(2, dim=-1)
+        return t * c + torch.cat([-b, a], dim=-1) * s
+
+    return torch.cat([rot(y, cy, sy), rot(xx, cx, sx)], dim=-1)
+
+
+class Dens3r:
+    def __init__(self, w, enc_heads, dec_heads):
+        self.w, self.eh, self.dh = w, enc_heads, dec_heads
+        self.enc_depth = len({k.split(".")[1] for k in w if k.startswith("enc_blocks.")})
+        self.dec_depth = len({k.split(".")[1] for k in w if k.startswith("dec_blocks.")})
+        self.shared = not any(k.startswith("dec_blocks2.") for k in w)
+
+    def lin(self, x, p):
+        return F.linear(x, self.w[p + ".weight"], self.w.get(p + ".bias"))
+
+    def ln(self, x, p):
+        return F.layer_norm(x, x.shape[-1:], self.w[p + ".weight"], self.w[p + ".bias"], eps=1e-6)
+
+    def mlp(self, x, p):
+        return self.lin(F.gelu(self.lin(x, p + ".fc1")), p + ".fc2")
+
+    def self_attn(self, x, p, heads, tab):
+        b, n, d = x.shape
+        qkv = self.lin(x, p + ".qkv").reshape(b, n, 3, heads, d // heads).permute(2, 0, 3, 1, 4)
+        q, k, v = rope(qkv[0], tab), rope(qkv[1], tab), qkv[2]
+        o = F.scaled_dot_product_attention(q, k, v)
+        return self.lin(o.transpose(1, 2).reshape(b, n, d), p + ".proj")
+
+    def cross_attn(self, x, y, p, heads, tq, tk):
+        b, n, d = x.shape
+        split = lambda t: t.reshape(b, t.shape[1], heads, d // heads).transpose(1, 2)
+        q = rope(split(self.lin(x, p + ".projq")), tq)
+        k = rope(split(self.lin(y, p + ".projk")), tk)
+        v = split(self.lin(y, p + ".projv"))
+        o = F.scaled_dot_product_attention(q, k, v)
+        return self.lin(o.transpose(1, 2).reshape(b, n, d), p + ".proj")
+
+    def encode(self, img):
+        h, w = img.shape[2] // 16, img.shape[3] // 16
+        x = F.conv2d(img, self.w["patch_embed.proj.weight"], self.w["patch_embed.proj.bias"], stride=16)
+        x = x.flatten(2).transpose(1, 2)
+        tab = rope_tables(h, w, x.shape[-1] // self.eh)
+        for i in range(self.enc_depth):
+            p = f"enc_blocks.{i}"
+            x = x + self.self_attn(self.ln(x, p + ".norm1"), p + ".attn", self.eh, tab)
+            x = x + self.mlp(self.ln(x, p + ".norm2"), p + ".mlp")
+        return self.ln(x, "enc_norm"), (h, w)
+
+    def dec_block(self, x, y, p, tx, ty):
+        x = x + self.self_attn(self.ln(x, p + ".norm1"), p + ".attn", self.dh, tx)
+        yn = self.ln(y, p + ".norm_y")
+        x = x + self.cross_attn(self.ln(x, p + ".norm2"), yn, p + ".cross_attn", self.dh, tx, ty)
+        return x + self.mlp(self.ln(x, p + ".norm3"), p + ".mlp")
+
+    def conv(self, x, p, stride=1, bias=True):
+        wt = self.w[p + ".weight"]
+        return F.conv2d(x, wt, self.w[p + ".bias"] if bias else None, stride=stride, padding=wt.shape[-1] // 2)
+
+    def dpt(self, layers, grid, p):
+        h, w = grid
+        maps = []
+        for i, t in enumerate(layers):
+            x = t.transpose(1, 2).reshape(t.shape[0], t.shape[2], h, w)
+            x = self.conv(x, f"{p}.act_postprocess.{i}.0")
+            if i < 2:
+                wt = self.w[f"{p}.act_postprocess.{i}.1.weight"]
+                x = F.conv_transpose2d(x, wt, self.w[f"{p}.act_postprocess.{i}.1.bias"], stride=wt.shape[-1])
+            if i == 3:
+                x = self.conv(x, f"{p}.act_postprocess.3.1", stride=2)
+            maps.append(self.conv(x, f"{p}.scratch.layer{i + 1}_rn", bias=False))
+
+        def rcu(x, q):
+            return self.conv(F.relu(self.conv(F.relu(x), q + ".conv1")), q + ".conv2") + x
+
+        def fuse(i, x, skip=None):
+            q = f"{p}.scratch.refinenet{i}"
+            if skip is not None:
+                x = x + rcu(skip, q + ".resConfUnit1")
+            x = rcu(x, q + ".resConfUnit2")
+            x = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=True)
+            return self.conv(x, q + ".out_conv")
+
+        p4 = fuse(4, maps[3])[:, :, : maps[2].shape[2], : maps[2].shape[3]]
+        p3 = fuse(3, p4, maps[2])
+        p2 = fuse(2, p3, maps[1])
+        p1 = fuse(1, p2, maps[0])
+        x = F.interpolate(self.conv(p1, f"{p}.head.0"), scale_factor=2, mode="bilinear", align_corners=True)
+        return self.conv(F.relu(self.conv(x, f"{p}.head.2")), f"{p}.head.4")
+
+    def forward(self, img1, img2):
+        (e1, g1), (e2, g2) = self.encode(img1), self.encode(img2)
+        dd = self.w["decoder_embed.weight"].shape[0]
+        t1, t2 = rope_tables(*g1, dd // self.dh), rope_tables(*g2, dd // self.dh)
+        f1, f2 = self.lin(e1, "decoder_embed"), self.lin(e2, "decoder_embed")
+        out1, out2 = [], []
+        for i in range(self.dec_depth):
+            b2 = f"dec_blocks.{i}" if self.shared else f"dec_blocks2.{i}"
+            f1, f2 = self.dec_block(f1, f2, f"dec_blocks.{i}", t1, t2), self.dec_block(f2, f1, b2, t2, t1)
+            out1.append(f1)
+            out2.append(f2)
+        out1[-1], out2[-1] = self.ln(out1[-1], "dec_norm"), self.ln(out2[-1], "dec_norm")
+        L = self.dec_depth
+        hooks = [0, L * 2 // 4, L * 3 // 4, L]
+        res = []
+        for e, outs, g, head in [(e1, out1, g1, "ptsmatch_local_head"), (e2, out2, g2, "ptsmatch_global_head")]:
+            lay = [e] + outs
+            raw = self.dpt([lay[i] for i in hooks], g, head + ".dpt").permute(0, 2, 3, 1)
+            v = raw[..., :3]
+            d = v.norm(dim=-1, keepdim=True)
+            pts = v / d.clamp(min=1e-8) * torch.expm1(d)
+            conf = 1 + raw[..., 3].exp()
+            feat = self.mlp(torch.cat([e, outs[-1]], dim=-1), head + ".head_local_features")
+            feat = F.pixel_shuffle(feat.transpose(1, 2).reshape(feat.shape[0], -1, *g), 16).permute(0, 2, 3, 1)
+            desc = feat[..., :24] / feat[..., :24].norm(dim=-1, keepdim=True)
+            nrm = self.dpt([lay[i] for i in hooks], g, "normal_local_head.dpt").permute(0, 2, 3, 1).clamp(-1, 1)
+            nrm = nrm / nrm.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+            res.append((pts, conf, desc, nrm))
+        return res
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("weights")
+    ap.add_argument("--size", default="512x384")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--heads", default="16,12")
+    ap.add_argument("--image", help="(1, 3, H, W) input in [-1, 1]; random if absent")
+    ap.add_argument("--compare", help="view-1 pts3d (H, W, 3) from the Rust side")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    wd, ht = (int(v) for v in a.size.split("x"))
+    eh, dh = (int(v) for v in a.heads.split(","))
+    model = Dens3r(load_file(a.weights), eh, dh)
+    img = torch.from_numpy(np.load(a.image)) if a.image else torch.rand(1, 3, ht, wd) * 2 - 1
+    with torch.inference_mode():
+        t0 = time.perf_counter()
+        res = model.forward(img, img)
+        seconds = time.perf_counter() - t0
+    out = {"seconds": seconds, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "threads": a.threads, "torch": torch.__version__}
+    if a.compare:
+        ref = np.load(a.compare)
+        out["max_abs_diff_pts3d"] = float(np.abs(res[0][0].numpy() - ref).max())
+        out["max_abs_pts3d"] = float(np.abs(ref).max())
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,206 @@
+//! `dens3r bench backbone`: full-size Dens3R (random weights) one pair forward, Rust vs a
+//! PyTorch module written from the spec (`bench/torch_dens3r.py`), same weights, same input,
+//! same thread count, each in its own process so peak memory is its own.
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use dens3r_backbone::{Dens3r, ModelConfig, Tensor, TensorData, Weights};
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Rust vs PyTorch on the full-size Dens3R with random weights.
+    Backbone(BackboneArgs),
+    /// (internal) write random full-size weights.
+    #[command(hide = true)]
+    MakeWeights { out: PathBuf },
+    /// (internal) time one Rust forward.
+    #[command(hide = true)]
+    RunRust { weights: PathBuf, width: usize, height: usize, dir: PathBuf },
+}
+
+#[derive(Args)]
+pub struct BackboneArgs {
+    /// Input sizes, WIDTHxHEIGHT (comma separated).
+    #[arg(long, default_value = "512x384,1024x768")]
+    sizes: String,
+    /// Threads for both sides (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Python with torch, safetensors and numpy (default: .cache/bench-venv/bin/python3 made by
+    /// scripts/bench-setup.sh, else python3).
+    #[arg(long)]
+    python: Option<PathBuf>,
+    /// Working folder for the 2.4 GB weights (default: a temporary folder).
+    #[arg(long)]
+    workdir: Option<PathBuf>,
+}
+
+pub fn run(c: BenchCommand) -> Result<()> {
+    match c {
+        BenchCommand::Backbone(a) => backbone(a),
+        BenchCommand::MakeWeights { out } => {
+            let w = Weights::synthetic(7, 0.02);
+            Dens3r::load(&w, ModelConfig::dens3r_full(), &Default::default())?;
+            w.save_safetensors(&out)?;
+            Ok(())
+        }
+        BenchCommand::RunRust { weights, width, height, dir } => run_rust(&weights, width, height, &dir),
+    }
+}
+
+fn peak_rss_mb() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    s.lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+fn run_rust(weights: &Path, width: usize, height: usize, dir: &Path) -> Result<()> {
+    let device = dens3r_backbone::Device::default();
+    let t0 = Instant::now();
+    let (model, _) = dens3r_backbone::verify::load_model(weights, None, &device).map_err(anyhow::Error::msg)?;
+    let load_s = t0.elapsed().as_secs_f64();
+    // A seeded input in [-1, 1], shared with the PyTorch side through img.npy.
+    let n = 3 * width * height;
+    let mut state = 0x1234_5678_9abc_def1u64;
+    let img: Vec<f32> = (0..n)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
+        })
+        .collect();
+    dens3r_scene::npy::write_f32(&dir.join("img.npy"), &[1, 3, height, width], &img)?;
+    let x = Tensor::<4>::from_data(TensorData::new(img, [1, 3, height, width]), &device);
+    if std::env::var_os("DENS3R_PROFILE").is_some() {
+        let t = Instant::now();
+        let (e, _) = model.encode_image(x.clone());
+        let _ = e.to_data();
+        eprintln!("profile: encoder one view {:.2}s", t.elapsed().as_secs_f64());
+        let t = Instant::now();
+        let f = model.encode(x.clone(), x.clone());
+        let _ = f.views[1].dec.last().unwrap().to_data();
+        eprintln!("profile: encoder x2 + decoder {:.2}s", t.elapsed().as_secs_f64());
+        let t = Instant::now();
+        let p = model.heads(&f);
+        let _ = p.views[1].pts3d.to_data();
+        eprintln!("profile: heads {:.2}s", t.elapsed().as_secs_f64());
+    }
+    let t0 = Instant::now();
+    let pred = model.forward(x.clone(), x);
+    let pts = pred.views[0].pts3d.to_data().try_to_vec::<f32>().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let seconds = t0.elapsed().as_secs_f64();
+    dens3r_scene::npy::write_f32(&dir.join("pts3d.npy"), &[height, width, 3], &pts)?;
+    println!("{}", serde_json::json!({"seconds": seconds, "load_seconds": load_s, "peak_rss_mb": peak_rss_mb()}));
+    Ok(())
+}
+
+fn child_json(cmd: &mut Command, what: &str) -> Result<Value> {
+    let out = cmd.output().with_context(|| format!("cannot start the {what} run"))?;
+    if !out.status.success() {
+        bail!("{what} run failed: {}", String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or(""));
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    serde_json::from_str(text.lines().last().unwrap_or(""))
+        .with_context(|| format!("{what} run printed no JSON: {text}"))
+}
+
+fn backbone(a: BackboneArgs) -> Result<()> {
+    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let sizes: Vec<(usize, usize)> = a
+        .sizes
+        .split(',')
+        .map(|s| {
+            let (w, h) = s.trim().split_once('x').with_context(|| format!("size '{s}' is not WIDTHxHEIGHT"))?;
+            let (w, h): (usize, usize) = (w.parse()?, h.parse()?);
+            if w % 16 != 0 || h % 16 != 0 || w == 0 || h == 0 {
+                bail!("size {w}x{h}: both sides must be positive multiples of 16");
+            }
+            Ok((w, h))
+        })
+        .collect::<Result<_>>()?;
+    let tmp = tempfile::tempdir()?;
+    let dir = a.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
+    std::fs::create_dir_all(&dir)?;
+    let exe = std::env::current_exe()?;
+    let weights = dir.join("dens3r_full_random.safetensors");
+    eprintln!("writing random full-size Dens3R weights to {} ...", weights.display());
+    let st = Command::new(&exe).args(["bench", "make-weights"]).arg(&weights).status()?;
+    if !st.success() {
+        bail!("could not make the benchmark weights");
+    }
+    let python = a.python.clone().unwrap_or_else(|| {
+        let venv = PathBuf::from(".cache/bench-venv/bin/python3");
+        if venv.is_file() {
+            venv
+        } else {
+            PathBuf::from("python3")
+        }
+    });
+    let torch_ok = Command::new(&python)
+        .args(["-c", "import torch, safetensors, numpy"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !torch_ok {
+        eprintln!(
+            "note: {} has no torch/safetensors/numpy: run scripts/bench-setup.sh for the PyTorch peer; Rust only",
+            python.display()
+        );
+    }
+    println!("full-size Dens3R (ViT-L/16 encoder, 12-block ViT-B decoder, DPT 256), random weights, one pair forward, {threads} threads");
+    println!(
+        "{:<10} {:>9} {:>9} {:>14} {:>12} {:>12} {:>14}",
+        "size", "rust s", "torch s", "torch/rust", "rust MB", "torch MB", "max |diff|"
+    );
+    for (w, h) in sizes {
+        let r = child_json(
+            Command::new(&exe)
+                .args(["bench", "run-rust"])
+                .arg(&weights)
+                .args([w.to_string(), h.to_string()])
+                .arg(&dir)
+                .env("RAYON_NUM_THREADS", threads.to_string()),
+            "Rust",
+        )?;
+        let rs = r["seconds"].as_f64().unwrap_or(f64::NAN);
+        let rm = r["peak_rss_mb"].as_f64().unwrap_or(f64::NAN);
+        let (ts, tm, diff) = if torch_ok {
+            let t = child_json(
+                Command::new(&python)
+                    .arg("bench/torch_dens3r.py")
+                    .arg(&weights)
+                    .args(["--size", &format!("{w}x{h}"), "--threads", &threads.to_string(), "--heads", "16,12"])
+                    .arg("--image")
+                    .arg(dir.join("img.npy"))
+                    .arg("--compare")
+                    .arg(dir.join("pts3d.npy"))
+                    .env("OMP_NUM_THREADS", threads.to_string()),
+                "PyTorch",
+            )?;
+            (
+                t["seconds"].as_f64().unwrap_or(f64::NAN),
+                t["peak_rss_mb"].as_f64().unwrap_or(f64::NAN),
+                t["max_abs_diff_pts3d"].as_f64().unwrap_or(f64::NAN),
+            )
+        } else {
+            (f64::NAN, f64::NAN, f64::NAN)
+        };
+        println!(
+            "{:<10} {:>9.2} {:>9.2} {:>13.2}x {:>12.0} {:>12.0} {:>14.2e}",
+            format!("{w}x{h}"),
+            rs,
+            ts,
+            ts / rs,
+            rm,
+            tm,
+            diff
+        );
+    }
+    Ok(())
+}
