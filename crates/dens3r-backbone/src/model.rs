@@ -81,6 +81,10 @@ struct SelfAttention {
 }
 
 impl SelfAttention {
+    fn load(l: &Loader, p: &str, d: usize, heads: usize) -> Self {
+        Self { qkv: l.linear(&format!("{p}.qkv"), d, 3 * d), proj: l.linear(&format!("{p}.proj"), d, d), heads }
+    }
+
     fn forward(&self, x: Tensor<3>, rope: &Rope) -> Tensor<3> {
         let [b, n, d] = x.dims();
         let dh = d / self.heads;
@@ -120,11 +124,7 @@ impl EncoderBlock {
     fn load(l: &Loader, p: &str, d: usize, heads: usize, hidden: usize) -> Self {
         Self {
             norm1: l.norm(&format!("{p}.norm1"), d),
-            attn: SelfAttention {
-                qkv: l.linear(&format!("{p}.attn.qkv"), d, 3 * d),
-                proj: l.linear(&format!("{p}.attn.proj"), d, d),
-                heads,
-            },
+            attn: SelfAttention::load(l, &format!("{p}.attn"), d, heads),
             norm2: l.norm(&format!("{p}.norm2"), d),
             mlp: Mlp::load(l, &format!("{p}.mlp"), d, hidden, d),
         }
@@ -150,11 +150,7 @@ impl DecoderBlock {
         let lin = |n: &str| l.linear(&format!("{p}.cross_attn.{n}"), d, d);
         Self {
             norm1: l.norm(&format!("{p}.norm1"), d),
-            attn: SelfAttention {
-                qkv: l.linear(&format!("{p}.attn.qkv"), d, 3 * d),
-                proj: l.linear(&format!("{p}.attn.proj"), d, d),
-                heads,
-            },
+            attn: SelfAttention::load(l, &format!("{p}.attn"), d, heads),
             norm_y: l.norm(&format!("{p}.norm_y"), d),
             norm2: l.norm(&format!("{p}.norm2"), d),
             cross: CrossAttention { q: lin("projq"), k: lin("projk"), v: lin("projv"), proj: lin("proj"), heads },

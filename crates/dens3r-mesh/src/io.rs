@@ -73,6 +73,14 @@ pub fn write_atomic(
         let mut w = BufWriter::new(tmp.as_file_mut());
         f(&mut w).and_then(|_| w.flush()).map_err(|e| MeshError::new(path, format!("write failed: {e}")))?;
     }
+    // Temporary files are created owner-only (0600); finished outputs get the usual 0644.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        tmp.as_file()
+            .set_permissions(std::fs::Permissions::from_mode(0o644))
+            .map_err(|e| MeshError::new(path, format!("cannot set file permissions: {e}")))?;
+    }
     tmp.persist(path)
         .map_err(|e| MeshError::new(path, format!("cannot move the finished file into place: {}", e.error)))?;
     Ok(())

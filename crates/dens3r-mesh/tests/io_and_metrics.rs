@@ -25,6 +25,13 @@ fn ply_and_obj_round_trip_with_attributes() {
             }
         }
     }
+    // Outputs are world-readable like any normal file (temporary files are 0600).
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(dir.path().join("t.ply")).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o644);
+    }
     // No temporary files are left behind.
     let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert_eq!(names.len(), 2, "{names:?}");
