@@ -163,6 +163,8 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--heads", default="16,12")
     ap.add_argument("--image", help="(1, 3, H, W) input in [-1, 1]; random if absent")
+    ap.add_argument("--image2", help="second view (default: the first image again)")
+    ap.add_argument("--repeat", type=int, default=1, help="forward passes; the fastest is reported")
     ap.add_argument("--compare", help="view-1 pts3d (H, W, 3) from the Rust side")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args()
@@ -171,11 +173,14 @@ def main():
     eh, dh = (int(v) for v in a.heads.split(","))
     model = Dens3r(load_file(a.weights), eh, dh)
     img = torch.from_numpy(np.load(a.image)) if a.image else torch.rand(1, 3, ht, wd) * 2 - 1
+    img2 = torch.from_numpy(np.load(a.image2)) if a.image2 else img
+    times = []
     with torch.inference_mode():
-        t0 = time.perf_counter()
-        res = model.forward(img, img)
-        seconds = time.perf_counter() - t0
-    out = {"seconds": seconds, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "threads": a.threads, "torch": torch.__version__}
+        for _ in range(max(1, a.repeat)):
+            t0 = time.perf_counter()
+            res = model.forward(img, img2)
+            times.append(time.perf_counter() - t0)
+    out = {"seconds": min(times), "all_seconds": times, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "threads": a.threads, "torch": torch.__version__}
     if a.compare:
         ref = np.load(a.compare)
         out["max_abs_diff_pts3d"] = float(np.abs(res[0][0].numpy() - ref).max())

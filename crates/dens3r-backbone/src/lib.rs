@@ -8,6 +8,7 @@
 //! [`Predictions`].
 
 pub mod config;
+pub mod cpu;
 pub mod model;
 pub mod ops;
 pub mod predict;

@@ -1,9 +1,10 @@
 //! The network: config -> loader -> forward, in one file (candle-transformers style).
 
 use crate::config::{DptConfig, ModelConfig, PtsHeadConfig};
-use crate::ops::{gelu, grid_positions, pixel_shuffle, sdpa, upsample2x, Conv, ConvTranspose, LayerNorm, Linear, Rope};
+use crate::ops::{
+    gelu, grid_positions, pixel_shuffle, relu, sdpa, upsample2x, Conv, ConvTranspose, LayerNorm, Linear, Rope,
+};
 use crate::weights::{Weights, WeightsError};
-use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor};
 
 // ---------------------------------------------------------------------------------------------
@@ -16,10 +17,10 @@ struct Loader<'a> {
 
 impl Loader<'_> {
     fn linear(&self, p: &str, inp: usize, out: usize) -> Linear {
-        Linear {
-            weight: self.w.get(&format!("{p}.weight"), [out, inp], self.device).transpose(),
-            bias: Some(self.w.get(&format!("{p}.bias"), [out], self.device)),
-        }
+        Linear::new(
+            self.w.get(&format!("{p}.weight"), [out, inp], self.device),
+            Some(self.w.get(&format!("{p}.bias"), [out], self.device)),
+        )
     }
     fn norm(&self, p: &str, d: usize) -> LayerNorm {
         LayerNorm {

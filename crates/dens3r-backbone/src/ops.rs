@@ -2,25 +2,54 @@
 //! the crate calls these, so a backend quirk is fixed in one place.
 
 use crate::config::RopeScaling;
+use crate::cpu::{self, linear::LinearKernel, winograd::WinogradKernel};
 use burn::tensor::module::{attention, conv2d, conv_transpose2d, interpolate};
 use burn::tensor::ops::{
     AttentionModuleOptions, ConvOptions, ConvTransposeOptions, InterpolateMode, InterpolateOptions,
 };
 use burn::tensor::{Device, Tensor, TensorData};
+use std::sync::Arc;
 
-/// A linear layer with its weight stored transposed, `(in, out)`, as burn's `linear` wants.
+/// A linear layer: burn's `linear` with the weight stored `(in, out)`, or on the flex CPU
+/// device [`cpu::linear`] holding the same values as raw buffers (one copy of the weights).
 #[derive(Debug, Clone)]
-pub struct Linear {
-    /// `(in, out)`.
-    pub weight: Tensor<2>,
-    /// `(out)`.
-    pub bias: Option<Tensor<1>>,
+pub enum Linear {
+    /// Any backend: weight `(in, out)`, bias `(out)`.
+    Burn(Box<(Tensor<2>, Option<Tensor<1>>)>),
+    /// Flex CPU.
+    Cpu(Arc<LinearKernel>),
 }
 
 impl Linear {
+    /// From a PyTorch-layout `(out, in)` weight and optional `(out)` bias.
+    pub fn new(weight: Tensor<2>, bias: Option<Tensor<1>>) -> Self {
+        let [out, inp] = weight.dims();
+        if cpu::serves(&weight.device()) {
+            let w = cpu::to_vec(weight.transpose());
+            return Self::Cpu(Arc::new(LinearKernel::new(w, bias.map(cpu::to_vec), inp, out)));
+        }
+        Self::Burn(Box::new((weight.transpose(), bias)))
+    }
+
     /// `x @ W^T + b` over the last dimension.
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
-        burn::tensor::module::linear(x, self.weight.clone(), self.bias.clone())
+        match self {
+            Self::Cpu(k) if cpu::serves(&x.device()) => {
+                let mut shape = x.dims();
+                let rows = x.shape().num_elements() / k.inp;
+                let device = x.device();
+                let y = k.forward(&cpu::to_vec(x), rows);
+                shape[D - 1] = k.out;
+                cpu::from_vec(y, shape, &device)
+            }
+            Self::Cpu(k) => {
+                let device = x.device();
+                let w = cpu::from_vec(k.weight().to_vec(), [k.inp, k.out], &device);
+                let b = k.bias().map(|b| cpu::from_vec(b.to_vec(), [k.out], &device));
+                burn::tensor::module::linear(x, w, b)
+            }
+            Self::Burn(wb) => burn::tensor::module::linear(x, wb.0.clone(), wb.1.clone()),
+        }
     }
 }
 
@@ -58,16 +87,62 @@ pub struct Conv {
     pub stride: usize,
     /// Zero padding on every side.
     pub padding: usize,
+    /// Raw-buffer kernel for the flex CPU device, when the shape has one.
+    fast: Option<Arc<FastConv>>,
+}
+
+/// The CPU kernel chosen for a convolution's shape.
+#[derive(Debug)]
+enum FastConv {
+    /// 3x3 / stride 1 / pad 1 with many output channels.
+    Winograd(WinogradKernel, Option<Vec<f32>>),
+    /// 3x3 / stride 1 / pad 1 with few output channels: nine `(out, in)` taps.
+    Shifted(Vec<f32>, Option<Vec<f32>>),
+    /// 1x1 / stride 1: `(out, in)`.
+    Pointwise(Vec<f32>, Option<Vec<f32>>),
 }
 
 impl Conv {
     /// A convolution.
     pub fn new(weight: Tensor<4>, bias: Option<Tensor<1>>, stride: usize, padding: usize) -> Self {
-        Self { weight, bias, stride, padding }
+        let [out, inp, kh, kw] = weight.dims();
+        let fast = cpu::serves(&weight.device())
+            .then(|| {
+                let b = || bias.clone().map(cpu::to_vec);
+                let w = || cpu::to_vec(weight.clone());
+                match (kh, kw, stride, padding) {
+                    // Winograd's per-tile transforms cost ~ in + out channels per product of
+                    // in x out: worth it for wide outputs only (measured in `microbench`).
+                    (3, 3, 1, 1) if out >= 16 => Some(FastConv::Winograd(WinogradKernel::new(&w(), out, inp), b())),
+                    (3, 3, 1, 1) => Some(FastConv::Shifted(cpu::conv::taps_from_weight(&w(), out, inp), b())),
+                    (1, 1, 1, 0) => Some(FastConv::Pointwise(w(), b())),
+                    _ => None,
+                }
+            })
+            .flatten()
+            .map(Arc::new);
+        Self { weight, bias, stride, padding, fast }
     }
 
     /// Applies the convolution to `(B, C, H, W)`.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        if let Some(fast) = self.fast.as_ref().filter(|_| cpu::serves(&x.device())) {
+            let [b, c, h, w] = x.dims();
+            let out_ch = self.weight.dims()[0];
+            let device = x.device();
+            let data = cpu::to_vec(x);
+            let mut out = Vec::with_capacity(b * out_ch * h * w);
+            for img in data.chunks_exact(c * h * w) {
+                out.extend(match fast.as_ref() {
+                    FastConv::Winograd(k, bias) => k.forward(img, h, w, bias.as_deref()),
+                    FastConv::Shifted(taps, bias) => {
+                        cpu::conv::conv3x3_shifted(img, taps, bias.as_deref(), c, out_ch, h, w)
+                    }
+                    FastConv::Pointwise(wt, bias) => cpu::conv::conv1x1(img, wt, bias.as_deref(), c, out_ch, h * w),
+                });
+            }
+            return cpu::from_vec(out, [b, out_ch, h, w], &device);
+        }
         let opts = ConvOptions::new([self.stride; 2], [self.padding; 2], [1, 1], 1);
         conv2d(x, self.weight.clone(), self.bias.clone(), opts)
     }
@@ -94,7 +169,12 @@ impl ConvTranspose {
 
 /// Bilinear x2 upsampling with `align_corners=True` (DPT).
 pub fn upsample2x(x: Tensor<4>) -> Tensor<4> {
-    let [_, _, h, w] = x.dims();
+    let [b, c, h, w] = x.dims();
+    if cpu::serves(&x.device()) {
+        let device = x.device();
+        let y = cpu::resample::upsample2x(&cpu::to_vec(x), b * c, h, w);
+        return cpu::from_vec(y, [b, c, 2 * h, 2 * w], &device);
+    }
     let opts =
         InterpolateOptions::new(InterpolateMode::Bilinear).with_align_corners(true).with_output_size([2 * h, 2 * w]);
     interpolate(x, opts)
@@ -107,15 +187,36 @@ pub fn pixel_shuffle(x: Tensor<4>, r: usize) -> Tensor<4> {
     x.reshape([b, c_out, r, r, h, w]).permute([0, 1, 4, 2, 5, 3]).reshape([b, c_out, h * r, w * r])
 }
 
+/// `max(x, 0)`.
+pub fn relu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    if cpu::serves(&x.device()) {
+        let (shape, device) = (x.dims(), x.device());
+        let mut v = cpu::to_vec(x);
+        cpu::resample::relu_in_place(&mut v);
+        return cpu::from_vec(v, shape, &device);
+    }
+    burn::tensor::activation::relu(x)
+}
+
 /// Exact (erf) GELU.
 pub fn gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    if cpu::serves(&x.device()) {
+        let (shape, device) = (x.dims(), x.device());
+        let mut v = cpu::to_vec(x);
+        cpu::pointwise::gelu_in_place(&mut v);
+        return cpu::from_vec(v, shape, &device);
+    }
     burn::tensor::activation::gelu(x)
 }
 
-/// Softmax attention of `(B, heads, N, Dh)` queries, keys and values, scaled by `Dh^-1/2`
-/// (burn's fused op: on flex it beats two batched matmuls around a softmax, 63 vs 31
-/// GFLOP/s in the `microbench` example).
+/// Softmax attention of `(B, heads, N, Dh)` queries, keys and values, scaled by `Dh^-1/2`:
+/// [`cpu::attention`] on the flex CPU device, burn's fused op elsewhere.
 pub fn sdpa(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>) -> Tensor<4> {
+    if cpu::serves(&q.device()) {
+        let ([b, h, nq, dh], nk, device) = (q.dims(), k.dims()[2], q.device());
+        let out = cpu::attention::attention(&cpu::to_vec(q), &cpu::to_vec(k), &cpu::to_vec(v), b * h, nq, nk, dh);
+        return cpu::from_vec(out, [b, h, nq, dh], &device);
+    }
     attention(q, k, v, None, None, AttentionModuleOptions::default())
 }
 
@@ -126,6 +227,8 @@ pub struct Rope {
     sin_y: Tensor<2>,
     cos_x: Tensor<2>,
     sin_x: Tensor<2>,
+    /// The same four tables as raw `(N, Dh / 2)` buffers, for the flex CPU device.
+    raw: Option<Arc<[Vec<f32>; 4]>>,
 }
 
 impl Rope {
@@ -162,17 +265,22 @@ impl Rope {
             }
             Tensor::<2>::from_data(TensorData::new(v, [positions.len(), half]), device)
         };
-        Self {
-            cos_y: table(&|p| p.0, f32::cos),
-            sin_y: table(&|p| p.0, f32::sin),
-            cos_x: table(&|p| p.1, f32::cos),
-            sin_x: table(&|p| p.1, f32::sin),
-        }
+        let (cos_y, sin_y) = (table(&|p| p.0, f32::cos), table(&|p| p.0, f32::sin));
+        let (cos_x, sin_x) = (table(&|p| p.1, f32::cos), table(&|p| p.1, f32::sin));
+        let raw =
+            cpu::serves(device).then(|| Arc::new([&cos_y, &sin_y, &cos_x, &sin_x].map(|t| cpu::to_vec(t.clone()))));
+        Self { cos_y, sin_y, cos_x, sin_x, raw }
     }
 
     /// Rotates `(B, heads, N, Dh)` queries or keys.
     pub fn apply(&self, x: Tensor<4>) -> Tensor<4> {
         let [b, h, n, d] = x.dims();
+        if let Some(raw) = self.raw.as_ref().filter(|_| cpu::serves(&x.device())) {
+            let device = x.device();
+            let mut v = cpu::to_vec(x);
+            cpu::pointwise::rope_in_place(&mut v, n, d, [&raw[0], &raw[1], &raw[2], &raw[3]]);
+            return cpu::from_vec(v, [b, h, n, d], &device);
+        }
         let half = d / 2;
         let y_part = x.clone().narrow(3, 0, half);
         let x_part = x.narrow(3, half, half);

@@ -1,60 +1,106 @@
-//! Monocular prediction (an image paired with itself, spec section 2 "Single image"), mapped
-//! back to the un-rotated network-input frame, in our conventions.
+//! Single-image and pair prediction (spec section 2 "Single image" and 3.2), mapped back to
+//! the un-rotated image frame, optionally at the original resolution, in our conventions.
 
-use crate::model::Dens3r;
-use crate::preprocess::{rotate_map_clockwise, unrotate_vector, PrepInfo, Prepared};
+use crate::model::{Dens3r, ViewPrediction};
+use crate::preprocess::{rescale_to_original, rotate_map_clockwise, unrotate_vector, PrepInfo, Prepared};
 use burn::tensor::Tensor;
 use dens3r_geom::{NormalConvention, Raster, Vec3};
 use image::RgbImage;
 
-/// What one image yields, at network-input resolution, in the image's own orientation.
+/// Resolution of the returned maps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Resolution {
+    /// The network input (what the official code saves).
+    #[default]
+    Network,
+    /// The original image size, through `rescale_to_orig` (edge padding + nearest neighbour).
+    Original,
+}
+
+/// What one view yields, in the image's own orientation.
 #[derive(Debug, Clone)]
-pub struct MonoPrediction {
-    /// The network input as RGB (rotated back if the image was portrait).
+pub struct ViewMaps {
+    /// The network input as RGB (rotated back if the image was portrait); at
+    /// [`Resolution::Original`] it is resampled the same way as the maps, so callers that
+    /// have the original image may use that instead.
     pub rgb: RgbImage,
-    /// Pointmap in the OpenCV camera frame (model units).
+    /// Pointmap in the OpenCV frame of camera `frame` (model units).
     pub points: Raster<Vec3>,
-    /// z of `points`.
+    /// z of `points`: a depth map when `frame` is this view's own camera.
     pub depth: Raster<f32>,
-    /// Unit normals, OpenCV camera frame, facing the camera.
+    /// Unit normals in this view's OpenCV camera frame, facing the camera.
     pub normals: Option<Raster<Vec3>>,
     /// Confidence (`1 + exp(x)`).
     pub conf: Option<Raster<f32>>,
+    /// Index of the camera (0 = first view of the pair) whose frame `points` are in.
+    pub frame: usize,
     /// How the image was preprocessed.
     pub info: PrepInfo,
 }
+
+/// The single-image result (view 1 of the self-pair).
+pub type MonoPrediction = ViewMaps;
 
 fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
     t.to_data().try_to_vec::<f32>().expect("float tensor")
 }
 
-/// Runs the self-pair and reads view 1 (`pred1`), as the official pipeline does.
-pub fn predict_mono(model: &Dens3r, prep: &Prepared) -> MonoPrediction {
-    let x = prep.tensor(model.device());
-    let pred = model.forward(x.clone(), x);
-    let v = &pred.views[0];
+/// Maps one view's raw predictions back: the portrait rotation of this view's pixel grid,
+/// then the resolution (the official order), then the rotation of the vectors' frame (`frame_rotated`: the frame
+/// camera's image was rotated).
+fn view_maps(v: &ViewPrediction, prep: &Prepared, frame: usize, frame_rotated: bool, res: Resolution) -> ViewMaps {
     let [_, h, w, _] = v.pts3d.dims();
     let rotated = prep.info.rotated;
-    let vec_map = |flat: Vec<f32>, to_cv: &dyn Fn([f32; 3]) -> [f32; 3]| -> Raster<Vec3> {
-        let (flat, hh, ww) = if rotated { rotate_map_clockwise(&flat, h, w, 3) } else { (flat, h, w) };
+    let grid = |flat: Vec<f32>, c: usize| -> (Vec<f32>, usize, usize) {
+        let (flat, hh, ww) = if rotated { rotate_map_clockwise(&flat, h, w, c) } else { (flat, h, w) };
+        match res {
+            Resolution::Network => (flat, hh, ww),
+            Resolution::Original => rescale_to_original(&flat, &prep.info, c),
+        }
+    };
+    let vec_map = |flat: Vec<f32>, to_cv: &dyn Fn([f32; 3]) -> [f32; 3], vec_rotated: bool| -> Raster<Vec3> {
+        let (flat, hh, ww) = grid(flat, 3);
         let v: Vec<Vec3> = flat
             .chunks_exact(3)
             .map(|c| {
                 let p = to_cv([c[0], c[1], c[2]]);
-                Vec3::from_array(if rotated { unrotate_vector(p) } else { p })
+                Vec3::from_array(if vec_rotated { unrotate_vector(p) } else { p })
             })
             .collect();
         Raster::from_vec(ww, hh, v).expect("sizes follow the tensor")
     };
     let scalar_map = |flat: Vec<f32>| -> Raster<f32> {
-        let (flat, hh, ww) = if rotated { rotate_map_clockwise(&flat, h, w, 1) } else { (flat, h, w) };
+        let (flat, hh, ww) = grid(flat, 1);
         Raster::from_vec(ww, hh, flat).expect("sizes follow the tensor")
     };
-    let points = vec_map(values(&v.pts3d), &|p| p);
+    let points = vec_map(values(&v.pts3d), &|p| p, frame_rotated);
     let raw = NormalConvention::Dens3rRaw;
-    let normals = v.normal.as_ref().map(|n| vec_map(values(n), &|c| raw.to_opencv(Vec3::from_array(c)).to_array()));
+    let normals =
+        v.normal.as_ref().map(|n| vec_map(values(n), &|c| raw.to_opencv(Vec3::from_array(c)).to_array(), rotated));
     let conf = v.conf.as_ref().map(|c| scalar_map(values(c)));
     let depth = points.map(|p| if p.is_finite() && p.z > 0.0 { p.z } else { 0.0 });
-    let rgb = if rotated { image::imageops::rotate90(&prep.rgb) } else { prep.rgb.clone() };
-    MonoPrediction { rgb, points, depth, normals, conf, info: prep.info.clone() }
+    let rgb_flat: Vec<f32> = prep.rgb.as_raw().iter().map(|&b| b as f32).collect();
+    let (rgb_flat, _, _) = grid(rgb_flat, 3);
+    let rgb = RgbImage::from_raw(
+        points.width() as u32,
+        points.height() as u32,
+        rgb_flat.into_iter().map(|v| v as u8).collect(),
+    )
+    .expect("sizes follow the maps");
+    ViewMaps { rgb, points, depth, normals, conf, frame, info: prep.info.clone() }
+}
+
+/// Runs the self-pair and reads view 1 (`pred1`), as the official pipeline does.
+pub fn predict_mono(model: &Dens3r, prep: &Prepared, res: Resolution) -> MonoPrediction {
+    let x = prep.tensor(model.device());
+    let pred = model.forward(x.clone(), x);
+    view_maps(&pred.views[0], prep, 0, prep.info.rotated, res)
+}
+
+/// Runs the pair `(first, second)`: both pointmaps in the first camera's frame (`pred1`,
+/// `pred2.pts3d_in_other_view`), each view's normals in its own camera frame.
+pub fn predict_pair(model: &Dens3r, first: &Prepared, second: &Prepared, res: Resolution) -> [ViewMaps; 2] {
+    let pred = model.forward(first.tensor(model.device()), second.tensor(model.device()));
+    let r = first.info.rotated;
+    [view_maps(&pred.views[0], first, 0, r, res), view_maps(&pred.views[1], second, 0, r, res)]
 }

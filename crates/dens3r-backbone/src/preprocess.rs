@@ -129,6 +129,38 @@ pub fn rotate_map_clockwise<T: Copy>(data: &[T], h: usize, w: usize, c: usize) -
     (out, w, h)
 }
 
+/// `rescale_to_orig` (spec 3.3) of an `(H, W, C)` row-major map at network-input resolution
+/// **in the image's own orientation** (after [`rotate_map_clockwise`] for portrait images, as
+/// the official code runs `rotate_recover` first and then rescales with the permuted
+/// `size_info`): edge-pad the crop back to the resized size, then nearest-neighbour resize
+/// (OpenCV's `INTER_NEAREST`, source index `floor(dst * src_size / dst_size)`) to the original
+/// size. Returns the map and its `(H, W)`.
+pub fn rescale_to_original<T: Copy>(data: &[T], info: &PrepInfo, c: usize) -> (Vec<T>, usize, usize) {
+    let (iw, ih) = info.input_size();
+    let (mut rw, mut rh) = info.resized;
+    let (mut x0, mut y0) = (info.crop.0, info.crop.1);
+    let (mut iw, mut ih) = (iw as usize, ih as usize);
+    if info.rotated {
+        // size_info permuted as [1,0,3,2,5,4,7,6]
+        (rw, rh, x0, y0, iw, ih) = (rh, rw, y0, x0, ih, iw);
+    }
+    let (rw, rh, x0, y0) = (rw as usize, rh as usize, x0 as usize, y0 as usize);
+    assert_eq!(data.len(), iw * ih * c, "map does not have the network-input size");
+    let (ow, oh) = (info.original.0 as usize, info.original.1 as usize);
+    let mut out = Vec::with_capacity(ow * oh * c);
+    for y in 0..oh {
+        // resized-image row, then clamped into the crop (edge padding)
+        let ry = (y * rh / oh).min(rh - 1);
+        let cy = ry.clamp(y0, y0 + ih - 1) - y0;
+        for x in 0..ow {
+            let rx = (x * rw / ow).min(rw - 1);
+            let cx = rx.clamp(x0, x0 + iw - 1) - x0;
+            out.extend_from_slice(&data[(cy * iw + cx) * c..][..c]);
+        }
+    }
+    (out, oh, ow)
+}
+
 /// Rotation applied to OpenCV-frame vectors (points and normals) when undoing the portrait
 /// rotation: `R_z(+90)`, `(x, y, z) -> (-y, x, z)`.
 pub fn unrotate_vector(v: [f32; 3]) -> [f32; 3] {
@@ -160,6 +192,38 @@ mod tests {
         let p = preprocess(&DynamicImage::new_rgb8(3024, 4032), 512, false).unwrap();
         assert_eq!((p.info.rotated, p.info.input_size()), (false, (384, 512)));
         assert!(preprocess(&DynamicImage::new_rgb8(4, 2), 8, true).is_err());
+    }
+
+    #[test]
+    fn rescale_to_original_pads_edges_and_picks_nearest() {
+        // Original 40 x 24 resized to 20 x 12; a hand-made crop (2, 2)-(18, 10) exercises the
+        // edge padding on all four sides.
+        let info = PrepInfo { original: (40, 24), rotated: false, resized: (20, 12), crop: (2, 2, 18, 10) };
+        let (iw, ih) = (16usize, 8usize);
+        // Map value = crop-frame (x, y) encoded as x + 100 y.
+        let data: Vec<i32> = (0..ih).flat_map(|y| (0..iw).map(move |x| (x + 100 * y) as i32)).collect();
+        let (out, h, w) = rescale_to_original(&data, &info, 1);
+        assert_eq!((h, w), (24, 40));
+        for y in 0..24 {
+            for x in 0..40 {
+                // original pixel -> resized pixel (x/2, y/2) -> clamped into the crop
+                let (rx, ry) = (x / 2, y / 2);
+                let (cx, cy) = (rx.clamp(2, 17) - 2, ry.clamp(2, 9) - 2);
+                assert_eq!(out[y * 40 + x], (cx + 100 * cy) as i32, "pixel ({x}, {y})");
+            }
+        }
+        // Portrait: the same geometry transposed. The map arrives rotated back (8 wide, 16
+        // tall) and comes out at the portrait size, sampled with the permuted size info.
+        let info = PrepInfo { original: (24, 40), rotated: true, ..info };
+        let tdata: Vec<i32> = (0..iw).flat_map(|x| (0..ih).map(move |y| (x + 100 * y) as i32)).collect();
+        let (out, h, w) = rescale_to_original(&tdata, &info, 1);
+        assert_eq!((h, w), (40, 24));
+        for y in 0..40 {
+            for x in 0..24 {
+                let (cx, cy) = ((y / 2).clamp(2, 17) - 2, (x / 2).clamp(2, 9) - 2);
+                assert_eq!(out[y * 24 + x], (cx + 100 * cy) as i32, "portrait pixel ({x}, {y})");
+            }
+        }
     }
 
     #[test]

@@ -20,10 +20,23 @@ pub struct WeightsError {
 /// A tensor's shape and row-major f32 values.
 type Stored = (Vec<usize>, Vec<f32>);
 
-/// Named f32 tensors of a checkpoint.
+/// Where a checkpoint tensor's bytes are in the file.
+#[derive(Debug, Clone, Copy)]
+struct Extent {
+    dtype: safetensors::Dtype,
+    /// Absolute byte range in the file.
+    start: u64,
+    end: u64,
+}
+
+/// Named f32 tensors of a checkpoint. Only the header is read up front; each tensor is read
+/// and converted when the model asks for it, so loading never holds the file and the model
+/// in memory at once (peak = model + one tensor).
 pub struct Weights {
     path: PathBuf,
-    tensors: BTreeMap<String, Stored>,
+    file: Option<RefCell<std::fs::File>>,
+    tensors: BTreeMap<String, (Vec<usize>, Extent)>,
+    unreadable: RefCell<Vec<String>>,
     used: RefCell<BTreeSet<String>>,
     missing: RefCell<Vec<String>>,
     misshaped: RefCell<Vec<String>>,
@@ -33,44 +46,84 @@ pub struct Weights {
 }
 
 impl Weights {
-    /// Reads a `.safetensors` file.
+    /// Opens a `.safetensors` file and reads its header (tensor names, dtypes, shapes,
+    /// offsets), checking that every tensor lies inside the file.
     pub fn from_safetensors(path: &Path) -> Result<Self, WeightsError> {
+        use std::io::Read;
         let err = |m: String| WeightsError { path: path.to_path_buf(), message: m };
         if path.extension().is_some_and(|e| e == "pth" || e == "pt") {
             return Err(err("PyTorch .pth checkpoints are not read directly: convert once with `python3 scripts/pth_to_safetensors.py MODEL.pth` (see README)".into()));
         }
-        let bytes = std::fs::read(path).map_err(|e| err(format!("cannot read the checkpoint: {e}")))?;
-        let st = safetensors::SafeTensors::deserialize(&bytes)
-            .map_err(|e| err(format!("not a valid safetensors file ({e}); re-export the checkpoint")))?;
+        let corrupt = |m: &str| err(format!("not a valid safetensors file ({m}); re-export the checkpoint"));
+        let mut file = std::fs::File::open(path).map_err(|e| err(format!("cannot read the checkpoint: {e}")))?;
+        let file_len = file.metadata().map_err(|e| err(format!("cannot read the checkpoint: {e}")))?.len();
+        let mut n = [0u8; 8];
+        file.read_exact(&mut n).map_err(|_| corrupt("shorter than its 8-byte header length"))?;
+        let n = u64::from_le_bytes(n);
+        if n > 100_000_000 || 8 + n > file_len {
+            return Err(corrupt(&format!("header length {n} does not fit a {file_len}-byte file")));
+        }
+        let mut header = vec![0u8; n as usize];
+        file.read_exact(&mut header).map_err(|_| corrupt("truncated header"))?;
+        let header: BTreeMap<String, serde_json::Value> =
+            serde_json::from_slice(&header).map_err(|e| corrupt(&format!("header is not JSON: {e}")))?;
         let mut tensors = BTreeMap::new();
-        for (name, view) in st.tensors() {
-            let data = view.data();
-            let values: Vec<f32> = match view.dtype() {
-                safetensors::Dtype::F32 => {
-                    data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
-                }
-                safetensors::Dtype::F16 => {
-                    data.chunks_exact(2).map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32()).collect()
-                }
-                safetensors::Dtype::BF16 => {
-                    data.chunks_exact(2).map(|c| half::bf16::from_le_bytes([c[0], c[1]]).to_f32()).collect()
-                }
-                safetensors::Dtype::I64
-                | safetensors::Dtype::I32
-                | safetensors::Dtype::BOOL
-                | safetensors::Dtype::U8 => continue,
-                other => return Err(err(format!("tensor '{name}' has dtype {other:?}; store f32, f16 or bf16"))),
+        for (name, info) in header {
+            if name == "__metadata__" {
+                continue;
+            }
+            let bad = |m: &str| corrupt(&format!("tensor '{name}': {m}"));
+            let dtype = info["dtype"].as_str().ok_or_else(|| bad("no dtype"))?;
+            let shape: Vec<usize> = serde_json::from_value(info["shape"].clone()).map_err(|_| bad("bad shape"))?;
+            let offs: [u64; 2] =
+                serde_json::from_value(info["data_offsets"].clone()).map_err(|_| bad("bad offsets"))?;
+            let (dtype, size) = match dtype {
+                "F32" => (safetensors::Dtype::F32, 4),
+                "F16" => (safetensors::Dtype::F16, 2),
+                "BF16" => (safetensors::Dtype::BF16, 2),
+                "I64" | "I32" | "BOOL" | "U8" => continue,
+                other => return Err(err(format!("tensor '{name}' has dtype {other}; store f32, f16 or bf16"))),
             };
-            tensors.insert(name, (view.shape().to_vec(), values));
+            let count =
+                shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d as u64)).ok_or_else(|| bad("huge shape"))?;
+            let (start, end) = (8 + n + offs[0], 8 + n + offs[1]);
+            if offs[0] > offs[1] || end > file_len || end - start != count * size {
+                return Err(bad(&format!(
+                    "bytes {}..{} do not hold {shape:?} {dtype:?} in a {file_len}-byte file",
+                    offs[0], offs[1]
+                )));
+            }
+            tensors.insert(name, (shape, Extent { dtype, start, end }));
         }
         Ok(Self {
             path: path.to_path_buf(),
+            file: Some(RefCell::new(file)),
             tensors,
+            unreadable: Default::default(),
             used: Default::default(),
             missing: Default::default(),
             misshaped: Default::default(),
             synthetic: None,
             generated: Default::default(),
+        })
+    }
+
+    /// Reads and converts one stored tensor to f32.
+    fn read(&self, e: &Extent) -> std::io::Result<Vec<f32>> {
+        use std::io::{Read, Seek, SeekFrom};
+        let file = self.file.as_ref().ok_or_else(|| std::io::Error::other("no checkpoint file"))?;
+        let mut f = file.borrow_mut();
+        f.seek(SeekFrom::Start(e.start))?;
+        let mut data = vec![0u8; (e.end - e.start) as usize];
+        f.read_exact(&mut data)?;
+        Ok(match e.dtype {
+            safetensors::Dtype::F16 => {
+                data.chunks_exact(2).map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32()).collect()
+            }
+            safetensors::Dtype::BF16 => {
+                data.chunks_exact(2).map(|c| half::bf16::from_le_bytes([c[0], c[1]]).to_f32()).collect()
+            }
+            _ => data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect(),
         })
     }
 
@@ -81,7 +134,9 @@ impl Weights {
     pub fn synthetic(seed: u64, std: f32) -> Self {
         Self {
             path: PathBuf::from("<synthetic>"),
+            file: None,
             tensors: BTreeMap::new(),
+            unreadable: Default::default(),
             used: Default::default(),
             missing: Default::default(),
             misshaped: Default::default(),
@@ -94,9 +149,13 @@ impl Weights {
     pub fn save_safetensors(&self, path: &Path) -> Result<(), WeightsError> {
         let err = |m: String| WeightsError { path: path.to_path_buf(), message: m };
         let generated = self.generated.borrow();
-        let all = self.tensors.iter().chain(generated.iter().map(|(k, t)| (k, t))).map(|(k, (s, v))| (k, s, v));
+        let mut all: Vec<(String, Stored)> = Vec::new();
+        for (k, (shape, e)) in &self.tensors {
+            all.push((k.clone(), (shape.clone(), self.read(e).map_err(|e| err(format!("reading '{k}': {e}")))?)));
+        }
+        all.extend(generated.iter().cloned());
         let bytes: Vec<(String, Vec<u8>, Vec<usize>)> =
-            all.map(|(k, s, v)| (k.clone(), v.iter().flat_map(|x| x.to_le_bytes()).collect(), s.clone())).collect();
+            all.into_iter().map(|(k, (s, v))| (k, v.iter().flat_map(|x| x.to_le_bytes()).collect(), s)).collect();
         let views = bytes
             .iter()
             .map(|(k, b, s)| {
@@ -169,12 +228,16 @@ impl Weights {
         match self.resolve(name) {
             None => self.missing.borrow_mut().push(format!("{name} {expect:?}")),
             Some(key) => {
-                let (shape, values) = &self.tensors[key];
+                let (shape, extent) = &self.tensors[key];
                 self.mark_used(name, key);
                 if shape.as_slice() == expect {
-                    return Tensor::from_data(TensorData::new(values.clone(), expect), device);
+                    match self.read(extent) {
+                        Ok(values) => return Tensor::from_data(TensorData::new(values, expect), device),
+                        Err(e) => self.unreadable.borrow_mut().push(format!("{name}: {e}")),
+                    }
+                } else {
+                    self.misshaped.borrow_mut().push(format!("{name}: {shape:?}, expected {expect:?}"));
                 }
-                self.misshaped.borrow_mut().push(format!("{name}: {shape:?}, expected {expect:?}"));
             }
         }
         Tensor::zeros(expect, device)
@@ -185,6 +248,15 @@ impl Weights {
     /// `enc_pos_embed`, `dec_pos_embed`).
     pub fn finish(&self) -> Result<Vec<String>, WeightsError> {
         let (missing, misshaped) = (self.missing.borrow(), self.misshaped.borrow());
+        let unreadable = self.unreadable.borrow();
+        if !unreadable.is_empty() {
+            let m = format!(
+                "cannot read {} tensors ({}); check the file and re-copy it",
+                unreadable.len(),
+                preview(&unreadable)
+            );
+            return Err(WeightsError { path: self.path.clone(), message: m });
+        }
         if !missing.is_empty() || !misshaped.is_empty() {
             let mut m = String::from("checkpoint does not fit the model");
             if !missing.is_empty() {

@@ -96,6 +96,10 @@ fn partial_or_misshaped_checkpoint_lists_the_keys() {
     assert!(err.contains("broken.safetensors"), "{err}");
     assert!(err.contains("missing 1 keys: enc_blocks.1.mlp.fc2.bias"), "{err}");
     assert!(err.contains("dec_norm.weight: [7], expected [32]"), "{err}");
+    // A truncated download: the header promises bytes the file does not have.
+    std::fs::write(&path, &src[..src.len() - 100]).unwrap();
+    let err = Weights::from_safetensors(&path).err().unwrap().to_string();
+    assert!(err.contains("broken.safetensors") && err.contains("do not hold"), "{err}");
     // Not a checkpoint at all.
     std::fs::write(&path, b"garbage").unwrap();
     let err = Weights::from_safetensors(&path).err().unwrap().to_string();

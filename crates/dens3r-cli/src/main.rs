@@ -10,6 +10,10 @@ mod verify;
 
 use clap::{Parser, Subcommand};
 
+/// Freed activation buffers are reused instead of being page-faulted in again.
+#[global_allocator]
+static ALLOC: dens3r_backbone::cpu::alloc::BlockCache = dens3r_backbone::cpu::alloc::BlockCache;
+
 #[derive(Parser)]
 #[command(
     name = "dens3r",

@@ -3,7 +3,7 @@
 
 use anyhow::{bail, Result};
 use clap::Args;
-use dens3r_backbone::predict::predict_mono;
+use dens3r_backbone::predict::{predict_mono, Resolution};
 use dens3r_backbone::preprocess::{open_oriented, preprocess};
 use dens3r_backbone::verify::load_model;
 use dens3r_geom::{focal_from_pointmap, DMat4, FocalMode, Intrinsics, NormalConvention, PinholeCamera, Raster, Vec3};
@@ -27,6 +27,11 @@ pub struct PredictArgs {
     /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them.
     #[arg(long)]
     keep_portrait: bool,
+    /// Write every map at the original image size (the official `rescale_to_orig`: edge
+    /// padding, nearest neighbour) with the original pixels as colours, so depth, normals and
+    /// intrinsics line up with the input photos (COLMAP, nerfstudio). Default: network size.
+    #[arg(long)]
+    original_size: bool,
     /// Input images (PNG or JPEG).
     #[arg(required = true)]
     images: Vec<PathBuf>,
@@ -59,7 +64,8 @@ pub fn run(a: PredictArgs) -> Result<()> {
             name = format!("{stem}_{k}");
             k += 1;
         }
-        inputs.push((name, prep));
+        let source = a.original_size.then(|| img.to_rgb8());
+        inputs.push((name, prep, source));
     }
     let mut writer = SceneWriter::create(&a.output)?;
     writer.set_extra("generator", serde_json::json!("dens3r predict"));
@@ -67,8 +73,12 @@ pub fn run(a: PredictArgs) -> Result<()> {
         indicatif::ProgressStyle::with_template("predict {bar:30} {pos}/{len} images [{elapsed} < {eta}]")
             .expect("valid template"),
     );
-    for (name, prep) in &inputs {
-        let pred = predict_mono(&model, prep);
+    let res = if a.original_size { Resolution::Original } else { Resolution::Network };
+    for (name, prep, source) in &inputs {
+        let mut pred = predict_mono(&model, prep, res);
+        if let Some(src) = source {
+            pred.rgb = src.clone();
+        }
         let (w, h) = (pred.depth.width(), pred.depth.height());
         let pp = (w as f64 / 2.0, h as f64 / 2.0);
         let estimated =
@@ -106,10 +116,11 @@ pub fn run(a: PredictArgs) -> Result<()> {
     writer.finish()?;
     bar.finish_and_clear();
     println!(
-        "predicted {} images into {} (size {}, normals in the OpenCV camera frame)",
+        "predicted {} images into {} (network size {}, maps at {} size, normals in the OpenCV camera frame)",
         inputs.len(),
         a.output.display(),
-        a.size
+        a.size,
+        if a.original_size { "original" } else { "network" }
     );
     Ok(())
 }

@@ -195,6 +195,42 @@ fn predict_writes_a_valid_scene_and_rejects_bad_input() {
             assert_eq!(dp.get(x, y), d0.get(y, 47 - x), "({x},{y})");
         }
     }
+    // --original-size: maps at the photo's size, equal to the network-size maps sampled by
+    // nearest neighbour (160 x 120 -> 64 x 48 is a plain 2.5x resize, the crop is empty).
+    let full = dir.path().join("full");
+    ok(&[
+        "predict",
+        "--weights",
+        w,
+        "--config",
+        c,
+        "--size",
+        "64",
+        "--original-size",
+        img.to_str().unwrap(),
+        portrait.to_str().unwrap(),
+        "-o",
+        full.to_str().unwrap(),
+    ]);
+    let fs = dens3r_scene::Scene::open(&full).unwrap();
+    let sizes: Vec<_> = fs.frames().iter().map(|f| (f.width, f.height)).collect();
+    assert_eq!(sizes, [(160, 120), (120, 160)]);
+    for (i, (nw, nh)) in [(64usize, 48usize), (48, 64)].into_iter().enumerate() {
+        let small = scene.depth(&scene.frames()[i]).unwrap().unwrap();
+        let big = fs.depth(&fs.frames()[i]).unwrap().unwrap();
+        let (bw, bh) = (big.width(), big.height());
+        for y in 0..bh {
+            for x in 0..bw {
+                assert_eq!(big.get(x, y), small.get(x * nw / bw, y * nh / bh), "frame {i} ({x},{y})");
+            }
+        }
+        let n = fs.normals(&fs.frames()[i]).unwrap().unwrap();
+        assert_eq!((n.width(), n.height()), (bw, bh));
+    }
+    // The colours are the photo's own pixels.
+    let photo = image::open(&img).unwrap().to_rgb8();
+    assert_eq!(fs.image(&fs.frames()[0]).unwrap().as_raw(), photo.as_raw());
+
     let bad = dir.path().join("bad");
     let e = fails(&["predict", "--weights", w, "/no/such.png", "-o", bad.to_str().unwrap()]);
     assert!(e.contains("/no/such.png") && e.contains("not found"), "{e}");

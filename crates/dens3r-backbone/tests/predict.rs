@@ -1,0 +1,43 @@
+//! `predict_mono` / `predict_pair` on the fixture model: the self-pair is the pair of an image
+//! with itself, and each view's maps come back in that view's own orientation.
+
+use dens3r_backbone::predict::{predict_mono, predict_pair, Resolution};
+use dens3r_backbone::preprocess::preprocess;
+use dens3r_backbone::verify::load_model;
+use dens3r_backbone::Device;
+use std::path::PathBuf;
+
+#[test]
+fn pair_and_mono_agree_and_keep_orientations() {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let a = root.join("../../../shared/fixtures/parity/A_shared_dec_48x64");
+    let device = Device::default();
+    let (model, _) = load_model(&a.join("weights.safetensors"), Some(&a.join("config.json")), &device).unwrap();
+    let img = image::open(root.join("../../data-samples/room/images/0000.png")).unwrap();
+    let land = preprocess(&img, 64, true).unwrap();
+    let port = preprocess(&img.rotate90(), 64, true).unwrap();
+    assert!(port.info.rotated && !land.info.rotated);
+
+    let mono = predict_mono(&model, &land, Resolution::Network);
+    let [v1, v2] = predict_pair(&model, &land, &land, Resolution::Network);
+    assert_eq!(mono.points.data(), v1.points.data(), "the self-pair's first view is predict_mono");
+    assert_eq!((v1.frame, v2.frame), (0, 0));
+
+    // A portrait second view: its maps are portrait-shaped; the first view's are not.
+    let [w1, w2] = predict_pair(&model, &land, &port, Resolution::Network);
+    assert_eq!((w1.points.width(), w1.points.height()), (64, 48));
+    assert_eq!((w2.points.width(), w2.points.height()), (48, 64));
+    assert_eq!((w2.normals.as_ref().unwrap().width(), w2.conf.as_ref().unwrap().height()), (48, 64));
+    // Network inputs of a portrait image and of its landscape twin are the same pixels, so
+    // the two pairs see identical inputs: the rotated-back second view is the first pair's
+    // second view rotated clockwise (pixel (x, y) of the portrait map = (y, 47 - x)).
+    assert_eq!(port.rgb.as_raw(), land.rgb.as_raw());
+    for y in 0..64 {
+        for x in 0..48 {
+            assert_eq!(w2.depth.get(x, y), v2.depth.get(y, 47 - x), "({x},{y})");
+        }
+    }
+    // At the original size the maps have the photo's size in each orientation.
+    let [o1, o2] = predict_pair(&model, &land, &port, Resolution::Original);
+    assert_eq!((o1.depth.width(), o1.depth.height(), o2.depth.width(), o2.depth.height()), (160, 120, 120, 160));
+}
