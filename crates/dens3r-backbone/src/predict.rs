@@ -92,9 +92,8 @@ fn view_maps(v: &ViewPrediction, prep: &Prepared, frame: usize, frame_rotated: b
 
 /// Runs the self-pair and reads view 1 (`pred1`), as the official pipeline does.
 pub fn predict_mono(model: &Dens3r, prep: &Prepared, res: Resolution) -> MonoPrediction {
-    let x = prep.tensor(model.device());
-    let pred = model.forward(x.clone(), x);
-    view_maps(&pred.views[0], prep, 0, prep.info.rotated, res)
+    let pred = model.forward_mono(prep.tensor(model.device()));
+    view_maps(&pred, prep, 0, prep.info.rotated, res)
 }
 
 /// Runs the pair `(first, second)`: both pointmaps in the first camera's frame (`pred1`,

@@ -54,7 +54,10 @@ pub fn attention(q: &[f32], k: &[f32], v: &[f32], bh: usize, nq: usize, nk: usiz
                         Parallelism::None,
                     );
                 }
-                s.chunks_exact_mut(nk).for_each(softmax_row);
+                let mut sums = [0.0f32; BLOCK];
+                for (srow, sum) in s.chunks_exact_mut(nk).zip(sums.iter_mut()) {
+                    *sum = exp_row(srow);
+                }
                 let ob = &mut o[done * dh..][..rows * dh];
                 // SAFETY: row-major (rows x nk) * (nk x dh) -> (rows x dh).
                 unsafe {
@@ -80,6 +83,10 @@ pub fn attention(q: &[f32], k: &[f32], v: &[f32], bh: usize, nq: usize, nk: usiz
                         Parallelism::None,
                     );
                 }
+                for (orow, sum) in ob.chunks_exact_mut(dh).zip(&sums) {
+                    let inv = 1.0 / sum;
+                    orow.iter_mut().for_each(|x| *x *= inv);
+                }
                 done += rows;
             }
         },
@@ -87,28 +94,16 @@ pub fn attention(q: &[f32], k: &[f32], v: &[f32], bh: usize, nq: usize, nk: usiz
     out
 }
 
-/// In-place softmax of one row, on AVX2 + FMA when the CPU has them.
-fn softmax_row(row: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
-        // SAFETY: the features the function is compiled for were just detected.
-        unsafe { softmax_row_avx2(row) };
-        return;
-    }
-    softmax_row_lanes(row)
+/// `row <- exp(row - max(row))`, returning the sum (the softmax before normalisation, which
+/// is applied to the output rows instead); on AVX2 + FMA when the CPU has them.
+fn exp_row(row: &mut [f32]) -> f32 {
+    super::with_avx2(|| exp_row_lanes(row))
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn softmax_row_avx2(row: &mut [f32]) {
-    softmax_row_lanes(row)
-}
-
-/// Softmax written over 8 independent lanes so the compiler vectorises the max, the
-/// exponentials and the sum (a single running max or sum is a serial dependency it may not
-/// reorder).
+/// Written over 8 independent lanes so the compiler vectorises the max, the exponentials and
+/// the sum (a single running max or sum is a serial dependency it may not reorder).
 #[inline(always)]
-fn softmax_row_lanes(row: &mut [f32]) {
+fn exp_row_lanes(row: &mut [f32]) -> f32 {
     const L: usize = 8;
     let mut m = [f32::NEG_INFINITY; L];
     let mut chunks = row.chunks_exact(L);
@@ -132,8 +127,7 @@ fn softmax_row_lanes(row: &mut [f32]) {
         *x = exp_approx(*x - max);
         sum += *x;
     }
-    let inv = 1.0 / sum;
-    row.iter_mut().for_each(|x| *x *= inv);
+    sum
 }
 
 /// `e^x` for `x <= 0` to about 2 ulp, branch-free so the softmax loop vectorises
@@ -143,11 +137,14 @@ fn softmax_row_lanes(row: &mut [f32]) {
 pub(crate) fn exp_approx(x: f32) -> f32 {
     const ROUND: f32 = 12_582_912.0;
     let x = x.max(-87.0);
-    let n = (x * std::f32::consts::LOG2_E + ROUND) - ROUND;
+    let k = x * std::f32::consts::LOG2_E + ROUND;
+    let n = k - ROUND;
     let r = x - n * 0.693_145_75 - n * 1.428_606_8e-6;
     let p = 1.0
         + r * (1.0 + r * (0.5 + r * (0.166_666_67 + r * (0.041_666_668 + r * (0.008_333_334 + r * 0.001_388_889)))));
-    p * f32::from_bits(((n as i32 + 127) as u32) << 23)
+    // k's low mantissa bits hold n (two's complement): 2^n without a float-to-int conversion.
+    let n_bits = k.to_bits().wrapping_sub(ROUND.to_bits());
+    p * f32::from_bits(n_bits.wrapping_add(127) << 23)
 }
 
 #[cfg(test)]
