@@ -1,8 +1,18 @@
 #!/usr/bin/env bash
 # Installs the benchmark peers from PyPI into .cache/bench-venv (git-ignored): torch,
-# safetensors, numpy. Then: target/release/dens3r bench backbone
+# safetensors, numpy (backbone), open3d 0.20 and pillow (fusion, and the mesh-file cross-check
+# in the tests). Open3D's wheel needs libusb from Debian. Then:
+#   target/release/dens3r bench backbone
+#   target/release/dens3r bench fusion
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
+if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then
+    if [ "$(id -u)" = 0 ]; then
+        apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null
+    else
+        echo "note: install Debian's libusb-1.0-0 for open3d (sudo apt-get install libusb-1.0-0)" >&2
+    fi
+fi
 python3 -m venv .cache/bench-venv
-.cache/bench-venv/bin/pip install -q torch safetensors numpy
-.cache/bench-venv/bin/python3 -c "import torch; print('torch', torch.__version__)"
+.cache/bench-venv/bin/pip install -q torch safetensors numpy "open3d==0.20.*" pillow
+.cache/bench-venv/bin/python3 -c "import torch, open3d; print('torch', torch.__version__, 'open3d', open3d.__version__)"

@@ -16,6 +16,11 @@ use std::time::Instant;
 pub enum BenchCommand {
     /// Rust vs PyTorch on the full-size Dens3R with random weights.
     Backbone(BackboneArgs),
+    /// Rust vs Open3D TSDF fusion on rendered scenes (time, memory, mesh accuracy).
+    Fusion(FusionArgs),
+    /// (internal) fuse one scene and print timings as JSON.
+    #[command(hide = true)]
+    RunFuse { scene: PathBuf, voxel: f32, out: PathBuf },
     /// (internal) write random full-size weights.
     #[command(hide = true)]
     MakeWeights { out: PathBuf },
@@ -44,9 +49,33 @@ pub struct BackboneArgs {
     repeat: usize,
 }
 
+#[derive(Args)]
+pub struct FusionArgs {
+    /// Views per scene.
+    #[arg(long, default_value_t = 30)]
+    pub(crate) views: usize,
+    /// Image size WIDTHxHEIGHT.
+    #[arg(long, default_value = "640x480")]
+    pub(crate) size: String,
+    /// Voxel sizes (comma separated).
+    #[arg(long, default_value = "0.01,0.02")]
+    pub(crate) voxels: String,
+    /// Python with open3d (default: .cache/bench-venv/bin/python3, else python3).
+    #[arg(long)]
+    pub(crate) python: Option<PathBuf>,
+    /// Working folder for the rendered scenes (default: a temporary folder).
+    #[arg(long)]
+    pub(crate) workdir: Option<PathBuf>,
+    /// Points sampled per mesh for Chamfer / F-score.
+    #[arg(long, default_value_t = 200_000)]
+    pub(crate) samples: usize,
+}
+
 pub fn run(c: BenchCommand) -> Result<()> {
     match c {
         BenchCommand::Backbone(a) => backbone(a),
+        BenchCommand::Fusion(a) => crate::bench_fusion::fusion(a),
+        BenchCommand::RunFuse { scene, voxel, out } => crate::bench_fusion::run_fuse(&scene, voxel, &out),
         BenchCommand::MakeWeights { out } => {
             let w = Weights::synthetic(7, 0.02);
             Dens3r::load(&w, ModelConfig::dens3r_full(), &Default::default())?;
@@ -59,7 +88,7 @@ pub fn run(c: BenchCommand) -> Result<()> {
     }
 }
 
-fn peak_rss_mb() -> f64 {
+pub(crate) fn peak_rss_mb() -> f64 {
     let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     s.lines()
         .find_map(|l| l.strip_prefix("VmHWM:"))
@@ -131,7 +160,7 @@ fn run_rust(weights: &Path, width: usize, height: usize, dir: &Path, repeat: usi
     Ok(())
 }
 
-fn child_json(cmd: &mut Command, what: &str) -> Result<Value> {
+pub(crate) fn child_json(cmd: &mut Command, what: &str) -> Result<Value> {
     let out = cmd.output().with_context(|| format!("cannot start the {what} run"))?;
     if !out.status.success() {
         bail!("{what} run failed: {}", String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or(""));

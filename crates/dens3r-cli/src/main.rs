@@ -2,7 +2,9 @@
 //! folders. Errors print one line and exit with status 2.
 
 mod bench;
+mod bench_fusion;
 mod eval;
+mod fuse;
 mod info;
 mod predict;
 mod render;
@@ -36,6 +38,8 @@ enum Command {
     Info(info::InfoArgs),
     /// Predict depth, normals, confidence and intrinsics for images into a scene folder.
     Predict(predict::PredictArgs),
+    /// Fuse a scene folder's depth (+ colour, confidence, normals) into a mesh (TSDF).
+    Fuse(fuse::FuseArgs),
     /// Benchmarks against peers measured in the same run (PyTorch for the backbone).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -56,6 +60,7 @@ fn main() {
         Command::Info(a) => info::run(a),
         Command::Verify(a) => verify::run(a),
         Command::Predict(a) => predict::run(a),
+        Command::Fuse(a) => fuse::run(a),
         Command::Bench(c) => bench::run(c),
     };
     if let Err(e) = result {

@@ -242,3 +242,70 @@ fn predict_writes_a_valid_scene_and_rejects_bad_input() {
     assert!(e.contains("0000.png") && e.contains("safetensors"), "{e}");
     assert!(!bad.exists(), "failed runs leave no output folder");
 }
+
+#[test]
+fn fuse_writes_meshes_that_reopen_and_rejects_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples");
+    let orbit = samples.join("orbit");
+    let gt = dens3r_mesh::read_mesh(&orbit.join("gt_mesh.ply")).unwrap();
+    let mut counts = Vec::new();
+    for ext in ["ply", "obj", "glb"] {
+        let out = dir.path().join(format!("mesh.{ext}"));
+        let text = ok(&["fuse", orbit.to_str().unwrap(), "-o", out.to_str().unwrap(), "--voxel", "0.02"]);
+        assert!(text.contains("fused 8 frames") && text.contains("ms/frame"), "{text}");
+        let m = dens3r_mesh::read_mesh(&out).unwrap();
+        assert!(m.normals.is_some() && m.colors.is_some(), "{ext}: normals and colours");
+        counts.push(m.indices.len());
+        // The fused surface lies on the ground truth (8 low-resolution views: accuracy, not
+        // completeness, is what fusion controls).
+        let opts = dens3r_mesh::MeshMetricsOptions { samples: 20_000, thresholds: vec![0.02], seed: 0 };
+        let metrics = dens3r_mesh::mesh_metrics(&m, &gt, &opts).unwrap();
+        assert!(metrics.accuracy < 0.01, "{ext}: accuracy {}", metrics.accuracy);
+    }
+    assert!(counts.iter().all(|&c| c == counts[0] && c > 1000), "{counts:?}");
+    assert_no_temp_files(dir.path());
+
+    // Bad input: one line naming the problem, no output file left behind.
+    let out = dir.path().join("bad.ply");
+    let o = out.to_str().unwrap();
+    let e = fails(&["fuse", orbit.to_str().unwrap(), "-o", o, "--voxel", "0"]);
+    assert!(e.contains("voxel size"), "{e}");
+    let e = fails(&["fuse", orbit.to_str().unwrap(), "-o", o, "--voxel=-0.01"]);
+    assert!(e.contains("voxel size"), "{e}");
+    let e = fails(&["fuse", orbit.to_str().unwrap(), "-o", o, "--voxel", "0.002", "--budget-mb", "1"]);
+    assert!(e.contains("budget"), "{e}");
+    let e = fails(&["fuse", orbit.to_str().unwrap(), "-o", dir.path().join("m.stl").to_str().unwrap()]);
+    assert!(e.contains(".ply, .obj or .glb"), "{e}");
+    // A scene whose depth is all invalid.
+    let empty = dir.path().join("empty");
+    copy_tree(&orbit, &empty);
+    for f in std::fs::read_dir(empty.join("depth")).unwrap() {
+        let p = f.unwrap().path();
+        let (shape, d) = dens3r_scene::npy::read_f32(&p).unwrap();
+        dens3r_scene::npy::write_f32(&p, &shape, &vec![0.0; d.len()]).unwrap();
+    }
+    let e = fails(&["fuse", empty.to_str().unwrap(), "-o", o]);
+    assert!(e.contains("no frame has valid depth"), "{e}");
+    // No frames at all.
+    let cams = empty.join("cameras.json");
+    let mut j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&cams).unwrap()).unwrap();
+    j["frames"] = serde_json::json!([]);
+    std::fs::write(&cams, j.to_string()).unwrap();
+    let e = fails(&["fuse", empty.to_str().unwrap(), "-o", o]);
+    assert!(e.contains("frames") || e.contains("no frame"), "{e}");
+    assert!(!out.exists(), "failed runs leave no output");
+}
+
+fn copy_tree(src: &Path, dst: &Path) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        let to = dst.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_tree(&e.path(), &to);
+        } else {
+            std::fs::copy(e.path(), &to).unwrap();
+        }
+    }
+}

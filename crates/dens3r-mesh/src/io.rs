@@ -24,7 +24,7 @@ impl MeshError {
     }
 }
 
-/// Reads a triangle mesh by extension (`.ply`, `.obj`, `.off`). Polygons are fan-triangulated.
+/// Reads a triangle mesh by extension (`.ply`, `.obj`, `.off`, `.glb`). Polygons are fan-triangulated.
 pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshError> {
     if !path.is_file() {
         return Err(MeshError::new(path, "mesh file not found (check the path)"));
@@ -34,6 +34,10 @@ pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshError> {
         "ply" => read_ply(path)?,
         "obj" => read_obj(path)?,
         "off" => read_off(path)?,
+        "glb" | "gltf" => {
+            let bytes = std::fs::read(path).map_err(|e| MeshError::new(path, format!("cannot read: {e}")))?;
+            crate::glb::from_glb(&bytes).map_err(|m| MeshError::new(path, m))?
+        }
         _ => return Err(MeshError::new(path, "unknown mesh format: use .ply, .obj or .off")),
     };
     mesh.validate().map_err(|m| MeshError::new(path, format!("invalid mesh: {m}")))?;
@@ -43,13 +47,17 @@ pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshError> {
     Ok(mesh)
 }
 
-/// Writes a mesh by extension (`.ply` binary little-endian, `.obj`), atomically.
+/// Writes a mesh by extension (`.ply` binary little-endian, `.obj`, `.glb`), atomically.
 pub fn write_mesh(path: &Path, mesh: &TriMesh) -> Result<(), MeshError> {
     mesh.validate().map_err(|m| MeshError::new(path, format!("refusing to write an invalid mesh: {m}")))?;
     match extension(path).as_str() {
         "ply" => write_atomic(path, |w| write_ply(w, mesh)),
         "obj" => write_atomic(path, |w| write_obj(w, mesh)),
-        _ => Err(MeshError::new(path, "unknown output mesh format: use .ply or .obj")),
+        "glb" => {
+            let bytes = crate::glb::to_glb(mesh).map_err(|m| MeshError::new(path, m))?;
+            write_atomic(path, |w| w.write_all(&bytes))
+        }
+        _ => Err(MeshError::new(path, "unknown output mesh format: use .ply, .obj or .glb")),
     }
 }
 

@@ -2,6 +2,7 @@
 //! shapes ([`primitives`]), area-weighted surface sampling ([`sample`]) and mesh-to-mesh
 //! metrics ([`metrics`]: Chamfer-L1, F-score, normal consistency).
 
+pub mod glb;
 pub mod io;
 pub mod metrics;
 pub mod primitives;
@@ -10,7 +11,7 @@ pub mod sample;
 use glam::Vec3;
 
 pub use io::{read_mesh, write_mesh, MeshError};
-pub use metrics::{mesh_metrics, MeshMetrics, MeshMetricsOptions};
+pub use metrics::{mesh_metrics, mesh_metrics_where, MeshMetrics, MeshMetricsOptions};
 
 /// An indexed triangle mesh with optional per-vertex normals and colours.
 /// Triangles are counter-clockwise seen from outside (the normal side).

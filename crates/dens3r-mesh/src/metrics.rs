@@ -4,6 +4,7 @@
 
 use crate::sample::sample_surface;
 use crate::TriMesh;
+use glam::Vec3;
 use parry3d::query::PointQuery;
 use rayon::prelude::*;
 
@@ -55,14 +56,33 @@ pub struct MeshMetrics {
 
 /// Compares a predicted mesh with a ground-truth mesh.
 pub fn mesh_metrics(pred: &TriMesh, gt: &TriMesh, opts: &MeshMetricsOptions) -> Result<MeshMetrics, String> {
+    mesh_metrics_where(pred, gt, opts, &|_| true)
+}
+
+/// [`mesh_metrics`] with completeness and recall measured only from the ground-truth samples
+/// for which `gt_counts` holds (e.g. the parts of the truth some camera saw, so a
+/// reconstruction is not charged for surfaces nobody observed). Accuracy and precision still
+/// measure against the whole ground truth.
+pub fn mesh_metrics_where(
+    pred: &TriMesh,
+    gt: &TriMesh,
+    opts: &MeshMetricsOptions,
+    gt_counts: &(dyn Fn(Vec3) -> bool + Sync),
+) -> Result<MeshMetrics, String> {
     if opts.samples == 0 {
         return Err("the number of samples must be positive".into());
     }
-    let one_way = |from: &TriMesh, to: &TriMesh, seed: u64, name: &str| -> Result<(Vec<f64>, f64), String> {
+    let one_way = |from: &TriMesh,
+                   to: &TriMesh,
+                   seed: u64,
+                   name: &str,
+                   keep: &(dyn Fn(Vec3) -> bool + Sync)|
+     -> Result<(Vec<f64>, f64), String> {
         let target = to.to_parry().map_err(|e| format!("{name} target mesh: {e}"))?;
         let (pts, nrm) = sample_surface(from, opts.samples, seed);
+        let (pts, nrm): (Vec<_>, Vec<_>) = pts.into_iter().zip(nrm).filter(|(p, _)| keep(*p)).unzip();
         if pts.is_empty() {
-            return Err(format!("{name} mesh has no surface area to sample"));
+            return Err(format!("{name} mesh has no (selected) surface area to sample"));
         }
         let res: Vec<(f64, f64)> = pts
             .par_iter()
@@ -77,8 +97,8 @@ pub fn mesh_metrics(pred: &TriMesh, gt: &TriMesh, opts: &MeshMetricsOptions) -> 
         let nc = res.iter().map(|r| r.1).sum::<f64>() / res.len() as f64;
         Ok((res.into_iter().map(|r| r.0).collect(), nc))
     };
-    let (d_pg, nc_p) = one_way(pred, gt, opts.seed, "predicted")?;
-    let (d_gp, nc_g) = one_way(gt, pred, opts.seed.wrapping_add(1), "ground-truth")?;
+    let (d_pg, nc_p) = one_way(pred, gt, opts.seed, "predicted", &|_| true)?;
+    let (d_gp, nc_g) = one_way(gt, pred, opts.seed.wrapping_add(1), "ground-truth", gt_counts)?;
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     let frac = |v: &[f64], t: f64| v.iter().filter(|&&d| d < t).count() as f64 / v.len() as f64;
     let fscores = opts

@@ -24,6 +24,7 @@ mod cameras;
 mod error;
 pub mod npy;
 mod reader;
+pub mod visibility;
 mod writer;
 
 pub use cameras::{CamerasFile, Frame, MAX_IMAGE_SIDE};

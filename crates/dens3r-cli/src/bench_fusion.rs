@@ -1,0 +1,211 @@
+//! `dens3r bench fusion`: our TSDF fusion vs Open3D 0.20's `VoxelBlockGrid` (CPU) on the same
+//! rendered scenes (a 4 m room walk and an object orbit), with and without 1% depth noise, at
+//! each voxel size: integration time per frame, extraction time, peak RSS (each side in its own
+//! process) and both meshes' Chamfer-L1 / F-score against the ground-truth mesh, measured by the
+//! same code for both.
+
+use crate::bench::{child_json, peak_rss_mb, FusionArgs};
+use anyhow::{bail, Context, Result};
+use dens3r_fusion::scene::{fuse_scene, SceneFusion};
+use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
+use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetricsOptions};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+/// Fuses one scene (no component filtering, like Open3D) and prints a JSON line.
+pub fn run_fuse(scene: &Path, voxel: f32, out: &Path) -> Result<()> {
+    let scene = dens3r_scene::Scene::open(scene)?;
+    let mut params = TsdfParams::new(voxel);
+    params.depth_range = (0.0, 10.0);
+    let (tsdf, summary) = fuse_scene(&scene, &SceneFusion::new(params), |_, _| {}).map_err(anyhow::Error::msg)?;
+    let t = Instant::now();
+    let mesh = extract_mesh(&tsdf, &ExtractOptions::default());
+    let extract = t.elapsed().as_secs_f64();
+    dens3r_mesh::write_mesh(out, &mesh)?;
+    println!(
+        "{}",
+        serde_json::json!({
+            "frames": summary.frames,
+            "integrate_ms_per_frame": 1e3 * summary.integrate_seconds / summary.frames.max(1) as f64,
+            "extract_seconds": extract,
+            "vertices": mesh.positions.len(),
+            "triangles": mesh.indices.len(),
+            "peak_rss_mb": peak_rss_mb(),
+        })
+    );
+    Ok(())
+}
+
+/// A copy of `src` whose depth has seeded multiplicative Gaussian noise of `sigma`.
+fn noisy_copy(src: &Path, dst: &Path, sigma: f32, seed: u64) -> Result<()> {
+    if dst.exists() {
+        std::fs::remove_dir_all(dst)?;
+    }
+    copy_dir(src, dst)?;
+    let scene = dens3r_scene::Scene::open(dst)?;
+    let mut state = seed | 1;
+    let mut gauss = move || {
+        let mut u = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let (u1, u2) = (u(), u());
+        ((-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()) as f32
+    };
+    for f in scene.frames() {
+        let path = dst.join("depth").join(format!("{}.npy", f.name));
+        let (shape, mut d) = dens3r_scene::npy::read_f32(&path)?;
+        for v in d.iter_mut().filter(|v| **v > 0.0) {
+            *v *= 1.0 + sigma * gauss();
+        }
+        dens3r_scene::npy::write_f32(&path, &shape, &d)?;
+    }
+    Ok(())
+}
+
+fn copy_dir(src: &Path, dst: &Path) -> Result<()> {
+    std::fs::create_dir_all(dst)?;
+    for e in std::fs::read_dir(src)? {
+        let e = e?;
+        let to = dst.join(e.file_name());
+        if e.file_type()?.is_dir() {
+            copy_dir(&e.path(), &to)?;
+        } else {
+            std::fs::copy(e.path(), &to)?;
+        }
+    }
+    Ok(())
+}
+
+pub fn fusion(a: FusionArgs) -> Result<()> {
+    let (w, h) = a.size.split_once('x').context("--size is WIDTHxHEIGHT")?;
+    let (w, h): (usize, usize) = (w.parse()?, h.parse()?);
+    let voxels: Vec<f32> = a.voxels.split(',').map(|v| v.trim().parse::<f32>()).collect::<Result<_, _>>()?;
+    if voxels.iter().any(|v| v.is_nan() || *v <= 0.0) {
+        bail!("--voxels must be positive lengths");
+    }
+    let tmp = tempfile::tempdir()?;
+    let dir = a.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
+    std::fs::create_dir_all(&dir)?;
+    let exe = std::env::current_exe()?;
+    let python = a.python.clone().unwrap_or_else(|| {
+        let venv = PathBuf::from(".cache/bench-venv/bin/python3");
+        if venv.is_file() {
+            venv
+        } else {
+            PathBuf::from("python3")
+        }
+    });
+    let o3d_ok =
+        Command::new(&python).args(["-c", "import open3d, PIL, numpy"]).output().is_ok_and(|o| o.status.success());
+    if !o3d_ok {
+        eprintln!("note: {} lacks open3d / pillow / numpy: run scripts/bench-setup.sh; Rust only", python.display());
+    }
+    let mut scenes = Vec::new();
+    for (name, proc_) in [("room", "room"), ("object", "blob")] {
+        let out = dir.join(name);
+        if !out.join("cameras.json").is_file() {
+            eprintln!("rendering {name} ({} views, {w}x{h}) ...", a.views);
+            let st = Command::new(&exe)
+                .args(["render", "--procedural", proc_, "--views", &a.views.to_string()])
+                .args(["--width", &w.to_string(), "--height", &h.to_string(), "-o"])
+                .arg(&out)
+                .stdout(std::process::Stdio::null())
+                .status()?;
+            if !st.success() {
+                bail!("rendering the {name} scene failed");
+            }
+        }
+        let noisy = dir.join(format!("{name}_noise1"));
+        noisy_copy(&out, &noisy, 0.01, 42)?;
+        scenes.push((name.to_string(), out.clone(), out.clone()));
+        scenes.push((format!("{name}+1%"), noisy, out.clone()));
+    }
+    println!("TSDF fusion, {} views {w}x{h}, truncation 4 voxels, CPU, {} threads", a.views, rayon_threads());
+    println!(
+        "{:<12} {:>6} {:>9} {:>9} {:>7} {:>8} {:>8} {:>7} {:>7} {:>9} {:>9} {:>7} {:>7} {:>7} {:>7}",
+        "scene",
+        "voxel",
+        "ms/frame",
+        "o3d ms/f",
+        "speed",
+        "extr s",
+        "o3d s",
+        "MB",
+        "o3d MB",
+        "chamfer",
+        "o3d ch",
+        "F@1cm",
+        "o3d F1",
+        "F@2cm",
+        "o3d F2"
+    );
+    println!("  chamfer / F: Chamfer-L1 (m) and F-score against the ground-truth mesh, completeness and recall over");
+    println!("  the part of it the cameras saw (clean rendered depth, 2 cm tolerance); same evaluation for both");
+    for (name, scene, clean) in &scenes {
+        let gt = dens3r_mesh::read_mesh(&clean.join("gt_mesh.ply"))?;
+        let seen = dens3r_scene::visibility::Visibility::from_scene(&dens3r_scene::Scene::open(clean)?, 0.02)?;
+        let seen = |p: glam::Vec3| seen.visible(p);
+        for &voxel in &voxels {
+            let ours_path = dir.join(format!("{}_{voxel}_dens3r.ply", name.replace('+', "_")));
+            let o3d_path = dir.join(format!("{}_{voxel}_open3d.ply", name.replace('+', "_")));
+            let r = child_json(
+                Command::new(&exe).args(["bench", "run-fuse"]).arg(scene).arg(voxel.to_string()).arg(&ours_path),
+                "Rust fusion",
+            )?;
+            let o = if o3d_ok {
+                Some(child_json(
+                    Command::new(&python)
+                        .arg("bench/open3d_fusion.py")
+                        .arg(scene)
+                        .arg(voxel.to_string())
+                        .arg(&o3d_path)
+                        .env("OMP_NUM_THREADS", rayon_threads().to_string()),
+                    "Open3D fusion",
+                )?)
+            } else {
+                None
+            };
+            let opts = MeshMetricsOptions { samples: a.samples, thresholds: vec![0.01, 0.02], seed: 0 };
+            let ours = mesh_metrics_where(&dens3r_mesh::read_mesh(&ours_path)?, &gt, &opts, &seen)
+                .map_err(anyhow::Error::msg)?;
+            let theirs = match &o {
+                Some(_) => Some(
+                    mesh_metrics_where(&dens3r_mesh::read_mesh(&o3d_path)?, &gt, &opts, &seen)
+                        .map_err(anyhow::Error::msg)?,
+                ),
+                None => None,
+            };
+            let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(f64::NAN);
+            let of = |k: &str| o.as_ref().map_or(f64::NAN, |o| f(o, k));
+            let (rt, ot) = (f(&r, "integrate_ms_per_frame"), of("integrate_ms_per_frame"));
+            let tm = |i: usize| theirs.as_ref().map_or(f64::NAN, |m| m.fscores[i].fscore);
+            println!(
+                "{:<12} {:>6} {:>9.1} {:>9.1} {:>6.2}x {:>8.2} {:>8.2} {:>7.0} {:>7.0} {:>9.5} {:>9.5} {:>7.3} {:>7.3} {:>7.3} {:>7.3}",
+                name,
+                voxel,
+                rt,
+                ot,
+                ot / rt,
+                f(&r, "extract_seconds"),
+                of("extract_seconds"),
+                f(&r, "peak_rss_mb"),
+                of("peak_rss_mb"),
+                ours.chamfer_l1,
+                theirs.as_ref().map_or(f64::NAN, |m| m.chamfer_l1),
+                ours.fscores[0].fscore,
+                tm(0),
+                ours.fscores[1].fscore,
+                tm(1),
+            );
+        }
+    }
+    Ok(())
+}
+
+fn rayon_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}

@@ -1,0 +1,117 @@
+//! `dens3r fuse`: scene folder -> mesh (sparse TSDF + marching cubes), PLY / OBJ / GLB.
+
+use anyhow::{bail, Result};
+use clap::Args;
+use dens3r_fusion::scene::{fuse_scene, SceneFusion};
+use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Args)]
+pub struct FuseArgs {
+    /// Scene folder with cameras.json and depth/ (images/ for colour).
+    scene: PathBuf,
+    /// Output mesh: .ply (binary), .obj or .glb.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Voxel size in scene units (metres for rendered scenes).
+    #[arg(long, default_value_t = 0.01)]
+    voxel: f32,
+    /// Truncation distance in voxels.
+    #[arg(long, default_value_t = 4.0)]
+    trunc: f32,
+    /// Ignore depth beyond this.
+    #[arg(long, default_value_t = 10.0)]
+    max_depth: f32,
+    /// Ignore depth below this.
+    #[arg(long, default_value_t = 0.05)]
+    min_depth: f32,
+    /// Stop with an error before the voxel grid exceeds this many MB.
+    #[arg(long, default_value_t = 8192.0)]
+    budget_mb: f64,
+    /// Weight pixels by confidence (conf/), dropping those below --min-conf.
+    #[arg(long)]
+    conf_weight: bool,
+    /// With --conf-weight: confidence below which pixels are dropped.
+    #[arg(long, default_value_t = 0.0)]
+    min_conf: f32,
+    /// Weight pixels by |cos| of the angle between normal (normals/) and ray.
+    #[arg(long)]
+    normal_weight: bool,
+    /// Skip colour integration.
+    #[arg(long)]
+    no_color: bool,
+    /// Drop connected pieces with fewer triangles than this.
+    #[arg(long, default_value_t = 100)]
+    min_component: usize,
+    /// Keep only the box xmin,ymin,zmin,xmax,ymax,zmax.
+    #[arg(long, value_delimiter = ',', num_args = 6)]
+    crop: Option<Vec<f32>>,
+}
+
+pub fn run(a: FuseArgs) -> Result<()> {
+    let ext = a.output.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    if !["ply", "obj", "glb"].contains(&ext.as_str()) {
+        bail!("{}: unknown mesh format: use .ply, .obj or .glb", a.output.display());
+    }
+    if a.trunc.is_nan() || a.trunc < 1.0 {
+        bail!("--trunc {} must be at least 1 voxel", a.trunc);
+    }
+    if a.budget_mb.is_nan() || a.budget_mb <= 0.0 {
+        bail!("--budget-mb must be positive");
+    }
+    let crop = match &a.crop {
+        Some(c) if c.len() == 6 && c[0] < c[3] && c[1] < c[4] && c[2] < c[5] => {
+            Some((glam::Vec3::new(c[0], c[1], c[2]), glam::Vec3::new(c[3], c[4], c[5])))
+        }
+        Some(_) => bail!("--crop needs xmin,ymin,zmin,xmax,ymax,zmax with min < max"),
+        None => None,
+    };
+    let scene = dens3r_scene::Scene::open(&a.scene)?;
+    let mut params = TsdfParams::new(a.voxel);
+    params.trunc = a.trunc * a.voxel;
+    params.depth_range = (a.min_depth, a.max_depth);
+    params.color = !a.no_color;
+    params.budget_bytes = Some((a.budget_mb * 1e6) as usize);
+    let opts = SceneFusion { params, use_conf: a.conf_weight, min_conf: a.min_conf, use_normals: a.normal_weight };
+    let bar = indicatif::ProgressBar::new(scene.frames().len() as u64).with_style(
+        indicatif::ProgressStyle::with_template("fuse {bar:30} {pos}/{len} frames [{elapsed} < {eta}]")
+            .expect("valid template"),
+    );
+    let t0 = Instant::now();
+    let (tsdf, summary) =
+        fuse_scene(&scene, &opts, |done, _| bar.set_position(done as u64)).map_err(anyhow::Error::msg)?;
+    bar.finish_and_clear();
+    let t = Instant::now();
+    let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: a.min_component, crop });
+    let extract_s = t.elapsed().as_secs_f64();
+    if mesh.indices.is_empty() {
+        bail!(
+            "{}: the fused volume has no surface (too few views, or depth outside [{}, {}])",
+            a.scene.display(),
+            a.min_depth,
+            a.max_depth
+        );
+    }
+    dens3r_mesh::write_mesh(&a.output, &mesh)?;
+    println!(
+        "fused {} frames ({} without valid depth) into {} blocks ({:.0} MB) at voxel {}: {} vertices, {} triangles -> {}",
+        summary.frames,
+        summary.empty_frames,
+        summary.blocks,
+        summary.memory_bytes as f64 / 1e6,
+        a.voxel,
+        mesh.positions.len(),
+        mesh.indices.len(),
+        a.output.display()
+    );
+    println!(
+        "time: read {:.2}s, integrate {:.2}s ({:.1} ms/frame), extract {:.2}s, total {:.2}s",
+        summary.read_seconds,
+        summary.integrate_seconds,
+        1e3 * summary.integrate_seconds / summary.frames.max(1) as f64,
+        extract_s,
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}

@@ -1,0 +1,401 @@
+//! Sparse voxel-block TSDF integration (Open3D's `VoxelBlockGrid` / KinectFusion scheme):
+//! a hash map of 8^3-voxel blocks allocated only around observed surfaces, projective
+//! truncated signed distances averaged with weights, optional colour. Integration of one frame
+//! is rayon-parallel over the blocks it touches.
+
+use dens3r_geom::{PinholeCamera, Raster, Vec3};
+use glam::{IVec3, Mat4};
+use rayon::prelude::*;
+use std::collections::{HashMap, HashSet};
+
+/// A fast hasher for integer keys (block coordinates, grid-edge keys): a multiply-rotate per
+/// word and a splitmix64 finish instead of SipHash, which dominated block lookups and vertex
+/// de-duplication.
+#[derive(Default, Clone, Copy)]
+pub struct IntHasher(u64);
+
+impl std::hash::Hasher for IntHasher {
+    fn finish(&self) -> u64 {
+        // splitmix64's finaliser: every input bit reaches the low bits the table indexes by.
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(b as u64);
+        }
+    }
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+    fn write_u32(&mut self, v: u32) {
+        self.write_u64(v as u64);
+    }
+    fn write_i32(&mut self, v: i32) {
+        self.write_u64(v as u32 as u64);
+    }
+}
+
+/// `HashMap` with [`IntHasher`].
+pub type IntMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<IntHasher>>;
+
+/// Voxels per block side.
+pub const BLOCK: i32 = 8;
+/// Voxels per block.
+pub const BLOCK_VOXELS: usize = (BLOCK * BLOCK * BLOCK) as usize;
+
+/// What can go wrong while fusing.
+#[derive(Debug, thiserror::Error)]
+pub enum FusionError {
+    /// A parameter is out of range.
+    #[error("invalid fusion parameter: {0}")]
+    Param(String),
+    /// The next frame would take the grid past its memory budget.
+    #[error(
+        "the voxel grid would need {needed_mb:.0} MB ({blocks} blocks), over the {budget_mb:.0} MB budget: use a larger --voxel, a smaller --max-depth, or raise --budget-mb"
+    )]
+    Budget {
+        /// Blocks the grid would hold.
+        blocks: usize,
+        /// Memory they would take.
+        needed_mb: f64,
+        /// The budget.
+        budget_mb: f64,
+    },
+    /// A frame's layers do not fit its camera.
+    #[error("frame '{0}': {1}")]
+    Frame(String, String),
+}
+
+/// Fusion parameters (lengths in scene units, metres for our rendered scenes).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TsdfParams {
+    /// Voxel edge length.
+    pub voxel: f32,
+    /// Truncation distance (Open3D's `sdf_trunc`); default 4 voxels.
+    pub trunc: f32,
+    /// Largest accumulated weight per voxel (running-average window).
+    pub max_weight: f32,
+    /// Depth range kept, `[min, max]`; pixels outside are ignored.
+    pub depth_range: (f32, f32),
+    /// Integrate colour.
+    pub color: bool,
+    /// Memory budget for the grid, bytes; `None` = unlimited.
+    pub budget_bytes: Option<usize>,
+}
+
+impl TsdfParams {
+    /// Defaults for a voxel size: truncation 4 voxels, max weight 1000 (effectively a plain
+    /// average), depth in `[0.05, 10]`, colour on, no budget.
+    pub fn new(voxel: f32) -> Self {
+        Self {
+            voxel,
+            trunc: 4.0 * voxel,
+            max_weight: 1000.0,
+            depth_range: (0.05, 10.0),
+            color: true,
+            budget_bytes: None,
+        }
+    }
+
+    fn check(&self) -> Result<(), FusionError> {
+        let bad = |m: String| Err(FusionError::Param(m));
+        if !(self.voxel.is_finite() && self.voxel > 0.0) {
+            return bad(format!("voxel size {} must be a positive length", self.voxel));
+        }
+        if !(self.trunc.is_finite() && self.trunc >= self.voxel) {
+            return bad(format!("truncation {} must be at least one voxel ({})", self.trunc, self.voxel));
+        }
+        if self.max_weight.is_nan() || self.max_weight <= 0.0 {
+            return bad(format!("max weight {} must be positive", self.max_weight));
+        }
+        let (a, b) = self.depth_range;
+        if !(a.is_finite() && b.is_finite() && 0.0 <= a && a < b) {
+            return bad(format!("depth range [{a}, {b}] must satisfy 0 <= min < max"));
+        }
+        Ok(())
+    }
+
+    /// Bytes one block takes.
+    pub fn block_bytes(&self) -> usize {
+        BLOCK_VOXELS * (8 + if self.color { 12 } else { 0 }) + 64
+    }
+}
+
+/// One 8^3 block: TSDF in `[-1, 1]` (units of `trunc`), weights and colours (0..255 floats),
+/// voxel `(x, y, z)` at index `x + 8 y + 64 z`.
+#[derive(Debug, Clone)]
+pub struct Block {
+    /// Normalised truncated signed distance (positive in front of the surface).
+    pub tsdf: Vec<f32>,
+    /// Accumulated weight; 0 = never observed.
+    pub weight: Vec<f32>,
+    /// Average colour, empty when colour is off.
+    pub color: Vec<[f32; 3]>,
+}
+
+impl Block {
+    fn new(color: bool) -> Self {
+        Self {
+            tsdf: vec![1.0; BLOCK_VOXELS],
+            weight: vec![0.0; BLOCK_VOXELS],
+            color: if color { vec![[0.0; 3]; BLOCK_VOXELS] } else { Vec::new() },
+        }
+    }
+}
+
+/// One frame to integrate: depth (z, 0 or NaN = invalid) with its camera, and optional colour
+/// and per-pixel weights (e.g. from confidence or the angle between normal and ray).
+pub struct FrameInput<'a> {
+    /// Frame name (for errors).
+    pub name: &'a str,
+    /// Camera (OpenCV frame, camera-to-world pose).
+    pub camera: &'a PinholeCamera,
+    /// Depth map.
+    pub depth: &'a Raster<f32>,
+    /// Colour image of the same size.
+    pub color: Option<&'a image::RgbImage>,
+    /// Per-pixel observation weights in `[0, inf)`; 0 skips the pixel.
+    pub weight: Option<&'a Raster<f32>>,
+}
+
+/// The sparse TSDF volume.
+pub struct SparseTsdf {
+    params: TsdfParams,
+    blocks: Vec<Block>,
+    keys: Vec<IVec3>,
+    index: IntMap<IVec3, u32>,
+    frames: usize,
+}
+
+/// Per-pixel weights that favour surfaces seen head-on: `cos^2` of the angle between the
+/// camera-frame normal and the viewing ray (0 where the normal is invalid). The projective
+/// distance `depth - z` overstates the true distance by `1 / cos` at grazing angles, which
+/// biases the fused surface and its normals; on a fused sphere this weighting takes the median
+/// vertex-normal error from 4.4 to 1.6 deg and the mean position error from 0.08 to 0.03 voxels
+/// (`tests/fusion.rs`).
+pub fn angle_weights(normals: &Raster<Vec3>, camera: &PinholeCamera) -> Raster<f32> {
+    let k = camera.intrinsics;
+    Raster::from_fn(normals.width(), normals.height(), |x, y| {
+        let n = *normals.get(x, y);
+        if !n.is_finite() || n.length_squared() < 0.5 {
+            return 0.0;
+        }
+        let ray = Vec3::new(((x as f64 - k.cx) / k.fx) as f32, ((y as f64 - k.cy) / k.fy) as f32, 1.0).normalize();
+        n.dot(ray).powi(2)
+    })
+}
+
+impl SparseTsdf {
+    /// An empty volume.
+    pub fn new(params: TsdfParams) -> Result<Self, FusionError> {
+        params.check()?;
+        Ok(Self { params, blocks: Vec::new(), keys: Vec::new(), index: IntMap::default(), frames: 0 })
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &TsdfParams {
+        &self.params
+    }
+
+    /// Allocated blocks.
+    pub fn block_count(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// Frames integrated.
+    pub fn frame_count(&self) -> usize {
+        self.frames
+    }
+
+    /// Bytes held by the blocks.
+    pub fn memory_bytes(&self) -> usize {
+        self.blocks.len() * self.params.block_bytes()
+    }
+
+    /// The block at a block coordinate.
+    pub fn block(&self, key: IVec3) -> Option<&Block> {
+        self.index.get(&key).map(|&i| &self.blocks[i as usize])
+    }
+
+    /// All blocks with their block coordinates.
+    pub fn blocks(&self) -> impl Iterator<Item = (IVec3, &Block)> {
+        self.keys.iter().copied().zip(&self.blocks)
+    }
+
+    /// World position of the centre of global voxel `v`.
+    pub fn voxel_center(&self, v: IVec3) -> Vec3 {
+        (v.as_vec3() + 0.5) * self.params.voxel
+    }
+
+    /// Integrates one frame.
+    pub fn integrate(&mut self, f: &FrameInput) -> Result<(), FusionError> {
+        let (w, h) = (f.depth.width(), f.depth.height());
+        let ferr = |m: String| FusionError::Frame(f.name.to_string(), m);
+        if (w, h) != (f.camera.width, f.camera.height) {
+            return Err(ferr(format!("depth is {w}x{h} but the camera is {}x{}", f.camera.width, f.camera.height)));
+        }
+        if let Some(c) = f.color {
+            if c.dimensions() != (w as u32, h as u32) {
+                return Err(ferr(format!("colour image is {}x{}, depth {w}x{h}", c.width(), c.height())));
+            }
+        }
+        if let Some(wt) = f.weight {
+            if (wt.width(), wt.height()) != (w, h) {
+                return Err(ferr("weight map size differs from the depth".into()));
+            }
+        }
+        let p = &self.params;
+        let k = f.camera.intrinsics;
+        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
+        let c2w = f.camera.cam_to_world.as_mat4();
+        let w2c: Mat4 = dens3r_geom::camera::rigid_inverse(&f.camera.cam_to_world).as_mat4();
+        let (dmin, dmax) = p.depth_range;
+        let valid = |d: f32| d.is_finite() && d >= dmin && d <= dmax;
+
+        // 1. Blocks touched by the truncation band of every (sub-sampled) valid pixel.
+        let block_len = p.voxel * BLOCK as f32;
+        let far = f.depth.data().iter().copied().filter(|&d| valid(d)).fold(0.0f32, f32::max);
+        if far == 0.0 {
+            return Ok(()); // nothing valid in this frame
+        }
+        // A pixel step that keeps neighbouring samples under half a block apart at the
+        // farthest depth, so no block crossed by the band is missed.
+        let stride = ((0.5 * block_len * fx.min(fy) / far).floor() as usize).clamp(1, 8);
+        let step = p.trunc.min(0.25 * block_len);
+        let n_steps = (2.0 * p.trunc / step).ceil() as i32;
+        let inv_block = 1.0 / block_len;
+        type IntSet = HashSet<IVec3, std::hash::BuildHasherDefault<IntHasher>>;
+        let touched: IntSet = (0..h)
+            .into_par_iter()
+            .step_by(stride)
+            .fold(IntSet::default, |mut set, y| {
+                for x in (0..w).step_by(stride) {
+                    let d = *f.depth.get(x, y);
+                    if !valid(d) || f.weight.is_some_and(|wt| *wt.get(x, y) <= 0.0) {
+                        continue;
+                    }
+                    let ray = Vec3::new((x as f32 - cx) / fx, (y as f32 - cy) / fy, 1.0);
+                    for s in 0..=n_steps {
+                        let z = d - p.trunc + s as f32 * step;
+                        if z <= 0.0 {
+                            continue;
+                        }
+                        let pw = c2w.transform_point3(ray * z);
+                        set.insert((pw * inv_block).floor().as_ivec3());
+                    }
+                }
+                set
+            })
+            .reduce(IntSet::default, |mut a, b| {
+                if a.len() < b.len() {
+                    return b.into_iter().fold(a, |mut acc, k| {
+                        acc.insert(k);
+                        acc
+                    });
+                }
+                a.extend(b);
+                a
+            });
+
+        // 2. Allocate, within the budget.
+        let new: Vec<IVec3> = touched.iter().copied().filter(|k| !self.index.contains_key(k)).collect();
+        if let Some(budget) = p.budget_bytes {
+            let blocks = self.blocks.len() + new.len();
+            let needed = blocks * p.block_bytes();
+            if needed > budget {
+                return Err(FusionError::Budget {
+                    blocks,
+                    needed_mb: needed as f64 / 1e6,
+                    budget_mb: budget as f64 / 1e6,
+                });
+            }
+        }
+        for key in new {
+            self.index.insert(key, self.blocks.len() as u32);
+            self.keys.push(key);
+            self.blocks.push(Block::new(p.color));
+        }
+        let mut mask = vec![false; self.blocks.len()];
+        for key in &touched {
+            mask[self.index[key] as usize] = true;
+        }
+
+        // 3. Update every voxel of the touched blocks.
+        let (voxel, trunc, max_w) = (p.voxel, p.trunc, p.max_weight);
+        let depth = f.depth.data();
+        let weights = f.weight.map(|wt| wt.data());
+        let colors = f.color.map(|c| c.as_raw().as_slice());
+        // Camera-frame steps of one voxel along x, y, z: positions are updated incrementally.
+        let (ax, ay, az) = (
+            w2c.transform_vector3(Vec3::X * voxel),
+            w2c.transform_vector3(Vec3::Y * voxel),
+            w2c.transform_vector3(Vec3::Z * voxel),
+        );
+        let (wf, hf) = (w as f32 - 0.5, h as f32 - 0.5);
+        self.blocks.par_iter_mut().zip(&self.keys).zip(&mask).filter(|(_, &m)| m).for_each(|((block, key), _)| {
+            let origin = *key * BLOCK;
+            let base = w2c.transform_point3((origin.as_vec3() + 0.5) * voxel);
+            let mut i = 0;
+            for z in 0..BLOCK {
+                for y in 0..BLOCK {
+                    let row = base + az * z as f32 + ay * y as f32;
+                    for x in 0..BLOCK {
+                        let vi = i;
+                        i += 1;
+                        let pc = row + ax * x as f32;
+                        if pc.z <= 0.0 {
+                            continue;
+                        }
+                        let inv_z = 1.0 / pc.z;
+                        let u = fx * pc.x * inv_z + cx;
+                        let v = fy * pc.y * inv_z + cy;
+                        // Nearest pixel; the range test keeps the truncating casts exact rounding.
+                        if !(u >= -0.5 && v >= -0.5 && u < wf && v < hf) {
+                            continue;
+                        }
+                        let idx = (v + 0.5) as usize * w + (u + 0.5) as usize;
+                        let d = depth[idx];
+                        if !valid(d) {
+                            continue;
+                        }
+                        let sdf = d - pc.z;
+                        if sdf < -trunc {
+                            continue;
+                        }
+                        let obs_w = weights.map_or(1.0, |wt| wt[idx]);
+                        if !(obs_w > 0.0 && obs_w.is_finite()) {
+                            continue;
+                        }
+                        let obs = (sdf / trunc).min(1.0);
+                        let w0 = block.weight[vi];
+                        let wn = w0 + obs_w;
+                        let inv = 1.0 / wn;
+                        block.tsdf[vi] = (block.tsdf[vi] * w0 + obs * obs_w) * inv;
+                        if let (Some(px), false) = (colors, block.color.is_empty()) {
+                            let c = &px[3 * idx..3 * idx + 3];
+                            let bc = &mut block.color[vi];
+                            for ch in 0..3 {
+                                bc[ch] = (bc[ch] * w0 + c[ch] as f32 * obs_w) * inv;
+                            }
+                        }
+                        block.weight[vi] = wn.min(max_w);
+                    }
+                }
+            }
+        });
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// Normalised TSDF, weight and colour of global voxel `v`, if its block exists.
+    pub fn voxel(&self, v: IVec3) -> Option<(f32, f32, [f32; 3])> {
+        let key = v.div_euclid(IVec3::splat(BLOCK));
+        let b = self.block(key)?;
+        let l = v - key * BLOCK;
+        let i = (l.x + BLOCK * (l.y + BLOCK * l.z)) as usize;
+        Some((b.tsdf[i], b.weight[i], b.color.get(i).copied().unwrap_or([0.0; 3])))
+    }
+}
