@@ -88,6 +88,19 @@ pub fn run(c: BenchCommand) -> Result<()> {
     }
 }
 
+/// The Python for benchmark peers: the given one, else .cache/bench-venv's
+/// (scripts/bench-setup.sh), else `python3`.
+pub(crate) fn bench_python(given: Option<PathBuf>) -> PathBuf {
+    given.unwrap_or_else(|| {
+        let venv = PathBuf::from(".cache/bench-venv/bin/python3");
+        if venv.is_file() {
+            venv
+        } else {
+            PathBuf::from("python3")
+        }
+    })
+}
+
 pub(crate) fn peak_rss_mb() -> f64 {
     let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     s.lines()
@@ -194,14 +207,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
     if !st.success() {
         bail!("could not make the benchmark weights");
     }
-    let python = a.python.clone().unwrap_or_else(|| {
-        let venv = PathBuf::from(".cache/bench-venv/bin/python3");
-        if venv.is_file() {
-            venv
-        } else {
-            PathBuf::from("python3")
-        }
-    });
+    let python = bench_python(a.python.clone());
     let torch_ok = Command::new(&python)
         .args(["-c", "import torch, safetensors, numpy"])
         .output()

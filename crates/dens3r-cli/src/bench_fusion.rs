@@ -4,12 +4,12 @@
 //! process) and both meshes' Chamfer-L1 / F-score against the ground-truth mesh, measured by the
 //! same code for both.
 
-use crate::bench::{child_json, peak_rss_mb, FusionArgs};
+use crate::bench::{bench_python, child_json, peak_rss_mb, FusionArgs};
 use anyhow::{bail, Context, Result};
 use dens3r_fusion::scene::{fuse_scene, SceneFusion};
 use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
 use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetricsOptions};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
@@ -91,14 +91,7 @@ pub fn fusion(a: FusionArgs) -> Result<()> {
     let dir = a.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
     std::fs::create_dir_all(&dir)?;
     let exe = std::env::current_exe()?;
-    let python = a.python.clone().unwrap_or_else(|| {
-        let venv = PathBuf::from(".cache/bench-venv/bin/python3");
-        if venv.is_file() {
-            venv
-        } else {
-            PathBuf::from("python3")
-        }
-    });
+    let python = bench_python(a.python.clone());
     let o3d_ok =
         Command::new(&python).args(["-c", "import open3d, PIL, numpy"]).output().is_ok_and(|o| o.status.success());
     if !o3d_ok {

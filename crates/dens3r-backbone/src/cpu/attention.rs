@@ -162,14 +162,10 @@ mod tests {
 
     #[test]
     fn matches_naive_attention() {
-        let mut s = 42u64;
-        let mut rnd = |n: usize| -> Vec<f32> {
-            (0..n)
-                .map(|_| {
-                    s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                    ((s >> 40) as f32 / (1u64 << 24) as f32) * 6.0 - 3.0
-                })
-                .collect()
+        let mut seed = 0u64;
+        let mut rnd = |n: usize| {
+            seed += 1;
+            crate::cpu::test_values(n, seed, 3.0)
         };
         // nq not a multiple of the block, nq != nk (cross-attention), several heads.
         for &(bh, nq, nk, dh) in &[(3, 70, 50, 8), (2, 128, 128, 16), (1, 5, 200, 4)] {

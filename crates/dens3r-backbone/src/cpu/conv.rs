@@ -2,11 +2,9 @@
 //! with few output channels where Winograd's transforms dominate, 3x3 as nine products over
 //! shifted views of the zero-padded input. Output columns are split across rayon workers.
 
-use gemm::Parallelism;
 use rayon::prelude::*;
 
-/// `y (cout x n) = w (cout x cin) * x (cin x n)` with row strides `x_rs` / `y_rs`, plus the
-/// product into `y` (`accumulate`) or over it; columns split across workers.
+/// `y (cout x n) [+]= w (cout x cin) * x (cin x n)` with row strides `x_rs` / `y_rs`.
 #[allow(clippy::too_many_arguments)]
 fn product(
     w: &[f32],
@@ -17,46 +15,10 @@ fn product(
     cout: usize,
     cin: usize,
     n: usize,
-    accumulate: bool,
+    acc: bool,
 ) {
-    let parts = (4 * rayon::current_num_threads()).min(n.div_ceil(256)).max(1);
-    let width = n.div_ceil(parts);
-    let dst = SendPtr(y.as_mut_ptr());
-    (0..n.div_ceil(width)).into_par_iter().for_each(|p| {
-        let n0 = p * width;
-        let nn = width.min(n - n0);
-        let dst = &dst;
-        // SAFETY: part p touches only columns n0..n0+nn of y; the caller sized w, x and y for
-        // (cout x cin), (cin x n) and (cout x n) matrices with the given row strides.
-        unsafe {
-            gemm::gemm(
-                cout,
-                nn,
-                cin,
-                dst.0.add(n0),
-                1,
-                y_rs as isize,
-                accumulate,
-                w.as_ptr(),
-                1,
-                cin as isize,
-                x.as_ptr().add(n0),
-                1,
-                x_rs as isize,
-                1.0,
-                1.0,
-                false,
-                false,
-                false,
-                Parallelism::None,
-            );
-        }
-    });
+    super::gemm_by_columns(w, x, x_rs, y, y_rs, (cout, cin, n), acc, 256);
 }
-
-struct SendPtr(*mut f32);
-// SAFETY: used only to hand disjoint column ranges of one buffer to rayon workers.
-unsafe impl Sync for SendPtr {}
 
 fn fill_bias(y: &mut [f32], bias: Option<&[f32]>, plane: usize) {
     if let Some(b) = bias {
@@ -133,13 +95,7 @@ mod tests {
     use super::*;
 
     fn rnd(n: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed;
-        (0..n)
-            .map(|_| {
-                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-            })
-            .collect()
+        crate::cpu::test_values(n, seed, 1.0)
     }
 
     #[test]

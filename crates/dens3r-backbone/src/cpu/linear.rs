@@ -2,9 +2,6 @@
 //! single-threaded `gemm` calls run on rayon: on the backbone's shapes (768 tokens x 1024..4096)
 //! this keeps both cores busy where one multithreaded call often does not.
 
-use gemm::Parallelism;
-use rayon::prelude::*;
-
 /// A linear layer's weight as `(in, out)` row-major, with its bias.
 #[derive(Debug, Clone)]
 pub struct LinearKernel {
@@ -42,46 +39,10 @@ impl LinearKernel {
         if let Some(b) = &self.b {
             y.chunks_exact_mut(n).for_each(|r| r.copy_from_slice(b));
         }
-        let parts = (4 * rayon::current_num_threads()).min(n.div_ceil(64)).max(1);
-        let width = n.div_ceil(parts).next_multiple_of(16);
-        let dst = SendPtr(y.as_mut_ptr());
-        (0..n.div_ceil(width)).into_par_iter().for_each(|p| {
-            let n0 = p * width;
-            let nn = width.min(n - n0);
-            let dst = &dst;
-            // SAFETY: part p writes only columns n0..n0+nn of the (rows x n) output, disjoint
-            // from every other part; the inputs are (rows x k) and (k x n) row-major.
-            unsafe {
-                gemm::gemm(
-                    rows,
-                    nn,
-                    k,
-                    dst.0.add(n0),
-                    1,
-                    n as isize,
-                    self.b.is_some(),
-                    x.as_ptr(),
-                    1,
-                    k as isize,
-                    self.w.as_ptr().add(n0),
-                    1,
-                    n as isize,
-                    1.0,
-                    1.0,
-                    false,
-                    false,
-                    false,
-                    Parallelism::None,
-                );
-            }
-        });
+        super::gemm_by_columns(x, &self.w, n, &mut y, n, (rows, k, n), self.b.is_some(), 64);
         y
     }
 }
-
-struct SendPtr(*mut f32);
-// SAFETY: used only to hand disjoint column ranges of one buffer to rayon workers.
-unsafe impl Sync for SendPtr {}
 
 #[cfg(test)]
 mod tests {
@@ -89,14 +50,10 @@ mod tests {
 
     #[test]
     fn matches_naive_product() {
-        let mut s = 9u64;
-        let mut rnd = |n: usize| -> Vec<f32> {
-            (0..n)
-                .map(|_| {
-                    s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                    ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-                })
-                .collect()
+        let mut seed = 0u64;
+        let mut rnd = |n: usize| {
+            seed += 1;
+            crate::cpu::test_values(n, seed, 1.0)
         };
         for &(rows, k, n, bias) in &[(5, 7, 3, true), (33, 64, 200, false), (1, 16, 1000, true)] {
             let (x, w) = (rnd(rows * k), rnd(k * n));

@@ -12,6 +12,7 @@ pub mod resample;
 pub mod winograd;
 
 use burn::tensor::{Device, Tensor, TensorData};
+use rayon::prelude::*;
 
 /// Runs `f` compiled for AVX2 + FMA when the CPU has them: kernels written over plain loops
 /// or lane arrays are then vectorised at that width (the crate is built for baseline x86-64).
@@ -27,6 +28,75 @@ pub(crate) fn with_avx2<R>(f: impl FnOnce() -> R) -> R {
         return unsafe { avx2(f) };
     }
     f()
+}
+
+/// `dst (m x n) [+]= lhs (m x k) * rhs (k x n)`, row-major with row strides `rhs_rs` and
+/// `dst_rs` (lhs is dense), split over output columns into single-threaded `gemm` calls on
+/// rayon (parts of at least `min_cols` columns): on this backbone's shapes that keeps every
+/// core busy where one multithreaded call often does not.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn gemm_by_columns(
+    lhs: &[f32],
+    rhs: &[f32],
+    rhs_rs: usize,
+    dst: &mut [f32],
+    dst_rs: usize,
+    (m, k, n): (usize, usize, usize),
+    accumulate: bool,
+    min_cols: usize,
+) {
+    assert!(lhs.len() >= m * k, "gemm lhs too small");
+    assert!(k == 0 || rhs.len() >= (k - 1) * rhs_rs + n, "gemm rhs too small");
+    assert!(m == 0 || dst.len() >= (m - 1) * dst_rs + n, "gemm dst too small");
+    let parts = (4 * rayon::current_num_threads()).min(n.div_ceil(min_cols)).max(1);
+    let width = n.div_ceil(parts).next_multiple_of(16);
+    let dst_ptr = SendPtr(dst.as_mut_ptr());
+    (0..n.div_ceil(width)).into_par_iter().for_each(|p| {
+        let n0 = p * width;
+        let nn = width.min(n - n0);
+        let dst_ptr = &dst_ptr;
+        // SAFETY: part p touches only columns n0..n0+nn of dst, disjoint from every other
+        // part; the asserts above keep every matrix access inside its slice.
+        unsafe {
+            gemm::gemm(
+                m,
+                nn,
+                k,
+                dst_ptr.0.add(n0),
+                1,
+                dst_rs as isize,
+                accumulate,
+                lhs.as_ptr(),
+                1,
+                k as isize,
+                rhs.as_ptr().add(n0),
+                1,
+                rhs_rs as isize,
+                1.0,
+                1.0,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
+        }
+    });
+}
+
+struct SendPtr(*mut f32);
+// SAFETY: used only to hand disjoint column ranges of one buffer to rayon workers.
+unsafe impl Sync for SendPtr {}
+
+/// Seeded values in `[-scale, scale]` for the kernels' tests.
+#[cfg(test)]
+pub(crate) fn test_values(n: usize, seed: u64, scale: f32) -> Vec<f32> {
+    let mut s = seed;
+    (0..n)
+        .map(|_| {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((s >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * scale
+        })
+        .collect()
 }
 
 /// Whether `device` is the plain (non-autodiff) flex CPU device these kernels serve.
