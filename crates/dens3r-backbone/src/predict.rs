@@ -45,19 +45,29 @@ fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
     t.to_data().try_to_vec::<f32>().expect("float tensor")
 }
 
+/// An `(H, W, C)` network-frame map in the image's own orientation (rotated back if the image
+/// was portrait) and at the requested resolution; returns it with its `(H, W)`.
+fn to_image_grid<T: Copy>(
+    flat: Vec<T>,
+    c: usize,
+    (h, w): (usize, usize),
+    info: &PrepInfo,
+    res: Resolution,
+) -> (Vec<T>, usize, usize) {
+    let (flat, hh, ww) = if info.rotated { rotate_map_clockwise(&flat, h, w, c) } else { (flat, h, w) };
+    match res {
+        Resolution::Network => (flat, hh, ww),
+        Resolution::Original => rescale_to_original(&flat, info, c),
+    }
+}
+
 /// Maps one view's raw predictions back: the portrait rotation of this view's pixel grid,
 /// then the resolution (the official order), then the rotation of the vectors' frame (`frame_rotated`: the frame
 /// camera's image was rotated).
 fn view_maps(v: &ViewPrediction, prep: &Prepared, frame: usize, frame_rotated: bool, res: Resolution) -> ViewMaps {
     let [_, h, w, _] = v.pts3d.dims();
     let rotated = prep.info.rotated;
-    let grid = |flat: Vec<f32>, c: usize| -> (Vec<f32>, usize, usize) {
-        let (flat, hh, ww) = if rotated { rotate_map_clockwise(&flat, h, w, c) } else { (flat, h, w) };
-        match res {
-            Resolution::Network => (flat, hh, ww),
-            Resolution::Original => rescale_to_original(&flat, &prep.info, c),
-        }
-    };
+    let grid = |flat: Vec<f32>, c: usize| to_image_grid(flat, c, (h, w), &prep.info, res);
     let vec_map = |flat: Vec<f32>, to_cv: &dyn Fn([f32; 3]) -> [f32; 3], vec_rotated: bool| -> Raster<Vec3> {
         let (flat, hh, ww) = grid(flat, 3);
         let v: Vec<Vec3> = flat
@@ -79,14 +89,8 @@ fn view_maps(v: &ViewPrediction, prep: &Prepared, frame: usize, frame_rotated: b
         v.normal.as_ref().map(|n| vec_map(values(n), &|c| raw.to_opencv(Vec3::from_array(c)).to_array(), rotated));
     let conf = v.conf.as_ref().map(|c| scalar_map(values(c)));
     let depth = points.map(|p| if p.is_finite() && p.z > 0.0 { p.z } else { 0.0 });
-    let rgb_flat: Vec<f32> = prep.rgb.as_raw().iter().map(|&b| b as f32).collect();
-    let (rgb_flat, _, _) = grid(rgb_flat, 3);
-    let rgb = RgbImage::from_raw(
-        points.width() as u32,
-        points.height() as u32,
-        rgb_flat.into_iter().map(|v| v as u8).collect(),
-    )
-    .expect("sizes follow the maps");
+    let (rgb, _, _) = to_image_grid(prep.rgb.as_raw().clone(), 3, (h, w), &prep.info, res);
+    let rgb = RgbImage::from_raw(points.width() as u32, points.height() as u32, rgb).expect("sizes follow the maps");
     ViewMaps { rgb, points, depth, normals, conf, frame, info: prep.info.clone() }
 }
 

@@ -162,21 +162,15 @@ fn predict_writes_a_valid_scene_and_rejects_bad_input() {
     // A portrait copy of the same image.
     let portrait = dir.path().join("portrait.png");
     image::imageops::rotate90(&image::open(&img).unwrap().to_rgb8()).save(&portrait).unwrap();
+    // Both images at network size 64, plus any extra flags, into `out`.
+    let predict = |extra: &[&str], out: &Path| {
+        let mut args = vec!["predict", "--weights", w, "--config", c, "--size", "64"];
+        args.extend_from_slice(extra);
+        args.extend([img.to_str().unwrap(), portrait.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+        ok(&args)
+    };
     let out = dir.path().join("pred");
-    let o = out.to_str().unwrap();
-    ok(&[
-        "predict",
-        "--weights",
-        w,
-        "--config",
-        c,
-        "--size",
-        "64",
-        img.to_str().unwrap(),
-        portrait.to_str().unwrap(),
-        "-o",
-        o,
-    ]);
+    predict(&[], &out);
     let scene = dens3r_scene::Scene::open(&out).unwrap();
     let sizes: Vec<_> = scene.frames().iter().map(|f| (f.name.clone(), f.width, f.height)).collect();
     assert_eq!(sizes, [("0000".to_string(), 64, 48), ("portrait".to_string(), 48, 64)]);
@@ -198,20 +192,7 @@ fn predict_writes_a_valid_scene_and_rejects_bad_input() {
     // --original-size: maps at the photo's size, equal to the network-size maps sampled by
     // nearest neighbour (160 x 120 -> 64 x 48 is a plain 2.5x resize, the crop is empty).
     let full = dir.path().join("full");
-    ok(&[
-        "predict",
-        "--weights",
-        w,
-        "--config",
-        c,
-        "--size",
-        "64",
-        "--original-size",
-        img.to_str().unwrap(),
-        portrait.to_str().unwrap(),
-        "-o",
-        full.to_str().unwrap(),
-    ]);
+    predict(&["--original-size"], &full);
     let fs = dens3r_scene::Scene::open(&full).unwrap();
     let sizes: Vec<_> = fs.frames().iter().map(|f| (f.width, f.height)).collect();
     assert_eq!(sizes, [(160, 120), (120, 160)]);

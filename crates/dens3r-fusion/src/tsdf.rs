@@ -289,12 +289,10 @@ impl SparseTsdf {
                 }
                 set
             })
-            .reduce(IntSet::default, |mut a, b| {
+            .reduce(IntSet::default, |mut a, mut b| {
+                // Insert the smaller set into the larger.
                 if a.len() < b.len() {
-                    return b.into_iter().fold(a, |mut acc, k| {
-                        acc.insert(k);
-                        acc
-                    });
+                    std::mem::swap(&mut a, &mut b);
                 }
                 a.extend(b);
                 a

@@ -103,23 +103,9 @@ mod tests {
         for &(cin, cout, h, w) in &[(3, 2, 5, 7), (8, 4, 1, 1), (5, 3, 17, 600)] {
             let (x, wt, b) = (rnd(cin * h * w, 1), rnd(cout * cin * 9, 2), rnd(cout, 3));
             let got = conv3x3_shifted(&x, &taps_from_weight(&wt, cout, cin), Some(&b), cin, cout, h, w);
-            for o in 0..cout {
-                for r in 0..h {
-                    for c in 0..w {
-                        let mut acc = b[o] as f64;
-                        for i in 0..cin {
-                            for t in 0..9 {
-                                let (sr, sc) = (r as isize + (t / 3) as isize - 1, c as isize + (t % 3) as isize - 1);
-                                if sr >= 0 && sc >= 0 && sr < h as isize && sc < w as isize {
-                                    acc += wt[(o * cin + i) * 9 + t] as f64
-                                        * x[(i * h + sr as usize) * w + sc as usize] as f64;
-                                }
-                            }
-                        }
-                        let g = got[(o * h + r) * w + c] as f64;
-                        assert!((g - acc).abs() < 1e-5, "({cin},{cout},{h},{w}) [{o},{r},{c}]: {g} vs {acc}");
-                    }
-                }
+            let want = crate::cpu::direct_conv3x3(&x, &wt, cin, cout, h, w, &b);
+            for (i, (g, acc)) in got.iter().zip(&want).enumerate() {
+                assert!((*g as f64 - acc).abs() < 1e-5, "({cin},{cout},{h},{w}) [{i}]: {g} vs {acc}");
             }
         }
     }

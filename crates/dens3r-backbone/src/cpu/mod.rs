@@ -99,6 +99,42 @@ pub(crate) fn test_values(n: usize, seed: u64, scale: f32) -> Vec<f32> {
         .collect()
 }
 
+/// Reference 3x3 / stride 1 / pad 1 convolution of one image in f64, for the kernels' tests.
+#[cfg(test)]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn direct_conv3x3(
+    x: &[f32],
+    wt: &[f32],
+    cin: usize,
+    cout: usize,
+    h: usize,
+    w: usize,
+    bias: &[f32],
+) -> Vec<f64> {
+    let mut y = vec![0.0f64; cout * h * w];
+    for o in 0..cout {
+        for yy in 0..h {
+            for xx in 0..w {
+                let mut acc = bias[o] as f64;
+                for i in 0..cin {
+                    for ky in 0..3 {
+                        for kx in 0..3 {
+                            let (sy, sx) = (yy as isize + ky as isize - 1, xx as isize + kx as isize - 1);
+                            if sy < 0 || sx < 0 || sy >= h as isize || sx >= w as isize {
+                                continue;
+                            }
+                            acc += wt[((o * cin + i) * 3 + ky) * 3 + kx] as f64
+                                * x[(i * h + sy as usize) * w + sx as usize] as f64;
+                        }
+                    }
+                }
+                y[(o * h + yy) * w + xx] = acc;
+            }
+        }
+    }
+    y
+}
+
 /// Whether `device` is the plain (non-autodiff) flex CPU device these kernels serve.
 pub fn serves(device: &Device) -> bool {
     *device == Device::flex()

@@ -74,7 +74,7 @@ impl WinogradKernel {
                 let nt = nr * tw;
                 let mut v = vec![0.0f32; 16 * cin * nt];
                 let band = Band { h, w, r0, nr, tw };
-                dispatch(|| input_transform(x, cin, &band, &mut v));
+                super::with_avx2(|| input_transform(x, cin, &band, &mut v));
                 let mut m = vec![0.0f32; 16 * cout * nt];
                 for xi in 0..16 {
                     let lhs = &self.u[xi * cout * cin..][..cout * cin];
@@ -108,7 +108,7 @@ impl WinogradKernel {
                 }
                 let rows = (2 * (r0 + nr)).min(h) - 2 * r0;
                 let mut y = vec![0.0f32; cout * rows * w];
-                dispatch(|| output_transform(&m, cout, &band, bias, &mut y));
+                super::with_avx2(|| output_transform(&m, cout, &band, bias, &mut y));
                 y
             })
             .collect();
@@ -135,22 +135,6 @@ struct Band {
     r0: usize,
     nr: usize,
     tw: usize,
-}
-
-/// Runs `f` compiled for AVX2 + FMA when the CPU has them (the transforms are written over
-/// lane arrays so that the compiler vectorises them at that width).
-fn dispatch(f: impl FnOnce()) {
-    #[cfg(target_arch = "x86_64")]
-    if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
-        #[target_feature(enable = "avx2,fma")]
-        unsafe fn avx2(f: impl FnOnce()) {
-            f()
-        }
-        // SAFETY: the features were just detected.
-        unsafe { avx2(f) };
-        return;
-    }
-    f()
 }
 
 /// `B^T d B` for every channel and tile of a band, into `v[16][cin][nr * tw]`.
@@ -265,31 +249,6 @@ fn output_transform(m: &[f32], cout: usize, b: &Band, bias: Option<&[f32]>, y: &
 mod tests {
     use super::*;
 
-    fn direct(x: &[f32], wt: &[f32], cin: usize, cout: usize, h: usize, w: usize, bias: &[f32]) -> Vec<f64> {
-        let mut y = vec![0.0f64; cout * h * w];
-        for o in 0..cout {
-            for yy in 0..h {
-                for xx in 0..w {
-                    let mut acc = bias[o] as f64;
-                    for i in 0..cin {
-                        for ky in 0..3 {
-                            for kx in 0..3 {
-                                let (sy, sx) = (yy as isize + ky as isize - 1, xx as isize + kx as isize - 1);
-                                if sy < 0 || sx < 0 || sy >= h as isize || sx >= w as isize {
-                                    continue;
-                                }
-                                acc += wt[((o * cin + i) * 3 + ky) * 3 + kx] as f64
-                                    * x[(i * h + sy as usize) * w + sx as usize] as f64;
-                            }
-                        }
-                    }
-                    y[(o * h + yy) * w + xx] = acc;
-                }
-            }
-        }
-        y
-    }
-
     fn lcg(n: usize, seed: u64) -> Vec<f32> {
         crate::cpu::test_values(n, seed, 1.0)
     }
@@ -302,7 +261,7 @@ mod tests {
             let wt = lcg(cout * cin * 9, 7 + w as u64);
             let bias = lcg(cout, 3);
             let got = WinogradKernel::new(&wt, cout, cin).forward(&x, h, w, Some(&bias));
-            let want = direct(&x, &wt, cin, cout, h, w, &bias);
+            let want = crate::cpu::direct_conv3x3(&x, &wt, cin, cout, h, w, &bias);
             let err = got.iter().zip(&want).map(|(&a, &b)| (a as f64 - b).abs()).fold(0.0, f64::max);
             assert!(err < 1e-5 * (cin as f64).sqrt() * 3.0, "{cin}x{cout}x{h}x{w}: max err {err}");
         }
