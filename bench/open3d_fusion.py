@@ -1,8 +1,10 @@
 """Open3D 0.20 peer for `dens3r bench fusion`: TSDF-fuse a dens3r scene folder on the CPU with
 Open3D's VoxelBlockGrid (8^3 blocks, tsdf/weight/color, truncation = 4 voxels, same depth
-range), extract the mesh and print one JSON line with the timings and peak RSS.
+range), extract the mesh and print one JSON line with the timings and peak RSS. With
+--device CUDA:0 the grid lives on the GPU (the PyPI wheel's CUDA build); when CUDA is not
+available it prints {"error": ...} instead.
 
-usage: open3d_fusion.py SCENE_DIR VOXEL OUT.ply [--max-depth 10] [--trunc-voxels 4] [--threads N]
+usage: open3d_fusion.py SCENE_DIR VOXEL OUT.ply [--max-depth 10] [--trunc-voxels 4] [--device CPU:0]
 """
 import argparse
 import json
@@ -20,10 +22,17 @@ def main():
     ap.add_argument("out")
     ap.add_argument("--max-depth", type=float, default=10.0)
     ap.add_argument("--trunc-voxels", type=float, default=4.0)
+    ap.add_argument("--device", default="CPU:0")
     a = ap.parse_args()
     import open3d as o3d
     import open3d.core as o3c
     from PIL import Image
+
+    cuda = a.device.upper().startswith("CUDA")
+    if cuda and not o3c.cuda.is_available():
+        print(json.dumps({"error": f"Open3D {o3d.__version__} has no CUDA device here"}))
+        return
+    device = o3c.Device(a.device)
 
     cams = json.load(open(os.path.join(a.scene, "cameras.json")))
     frames = cams["frames"]
@@ -35,8 +44,8 @@ def main():
         k = np.array(f["K"], dtype=np.float64)
         c2w = np.array(f["cam_to_world"], dtype=np.float64)
         w2c = np.linalg.inv(c2w)
-        data.append((o3d.t.geometry.Image(depth), o3d.t.geometry.Image(rgb), o3c.Tensor(k), o3c.Tensor(w2c)))
-    device = o3c.Device("CPU:0")
+        data.append((o3d.t.geometry.Image(depth).to(device), o3d.t.geometry.Image(rgb).to(device),
+                     o3c.Tensor(k), o3c.Tensor(w2c)))
     vbg = o3d.t.geometry.VoxelBlockGrid(
         attr_names=("tsdf", "weight", "color"),
         attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
@@ -53,6 +62,8 @@ def main():
         )
         vbg.integrate(coords, depth, color, k, k, w2c, depth_scale=1.0, depth_max=a.max_depth,
                       trunc_voxel_multiplier=a.trunc_voxels)
+    if cuda:
+        o3c.cuda.synchronize()
     integrate = time.perf_counter() - t0
     t0 = time.perf_counter()
     # weight_threshold 0.5: keep every voxel observed at least once, as dens3r does (the

@@ -4,4 +4,9 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 bash scripts/fetch-data.sh || echo "warning: some test data could not be fetched; the tests that need it will say so"
+# GPU tests (wgpu) run on any Vulkan driver, lavapipe included: with one present they must run,
+# not skip.
+if bash scripts/gpu-setup.sh; then
+  export DENS3R_REQUIRE_GPU="${DENS3R_REQUIRE_GPU:-1}"
+fi
 cargo test --workspace --locked

@@ -20,7 +20,13 @@ pub enum BenchCommand {
     Fusion(FusionArgs),
     /// (internal) fuse one scene and print timings as JSON.
     #[command(hide = true)]
-    RunFuse { scene: PathBuf, voxel: f32, out: PathBuf },
+    RunFuse {
+        scene: PathBuf,
+        voxel: f32,
+        out: PathBuf,
+        #[arg(long)]
+        gpu: bool,
+    },
     /// (internal) write random full-size weights.
     #[command(hide = true)]
     MakeWeights { out: PathBuf },
@@ -69,13 +75,17 @@ pub struct FusionArgs {
     /// Points sampled per mesh for Chamfer / F-score.
     #[arg(long, default_value_t = 200_000)]
     pub(crate) samples: usize,
+    /// Also fuse on the GPU (ours through wgpu, Open3D on CUDA:0 where its wheel has CUDA) and
+    /// print those rows.
+    #[arg(long)]
+    pub(crate) gpu: bool,
 }
 
 pub fn run(c: BenchCommand) -> Result<()> {
     match c {
         BenchCommand::Backbone(a) => backbone(a),
         BenchCommand::Fusion(a) => crate::bench_fusion::fusion(a),
-        BenchCommand::RunFuse { scene, voxel, out } => crate::bench_fusion::run_fuse(&scene, voxel, &out),
+        BenchCommand::RunFuse { scene, voxel, out, gpu } => crate::bench_fusion::run_fuse(&scene, voxel, &out, gpu),
         BenchCommand::MakeWeights { out } => {
             let w = Weights::synthetic(7, 0.02);
             Dens3r::load(&w, ModelConfig::dens3r_full(), &Default::default())?;

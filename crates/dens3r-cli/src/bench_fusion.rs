@@ -14,11 +14,12 @@ use std::process::Command;
 use std::time::Instant;
 
 /// Fuses one scene (no component filtering, like Open3D) and prints a JSON line.
-pub fn run_fuse(scene: &Path, voxel: f32, out: &Path) -> Result<()> {
+pub fn run_fuse(scene: &Path, voxel: f32, out: &Path, gpu: bool) -> Result<()> {
     let scene = dens3r_scene::Scene::open(scene)?;
     let mut params = TsdfParams::new(voxel);
     params.depth_range = (0.0, 10.0);
-    let (tsdf, summary) = fuse_scene(&scene, &SceneFusion::new(params), |_, _| {}).map_err(anyhow::Error::msg)?;
+    let opts = SceneFusion { gpu, ..SceneFusion::new(params) };
+    let (tsdf, summary) = fuse_scene(&scene, &opts, |_, _| {}).map_err(anyhow::Error::msg)?;
     let t = Instant::now();
     let mesh = extract_mesh(&tsdf, &ExtractOptions::default());
     let extract = t.elapsed().as_secs_f64();
@@ -32,6 +33,7 @@ pub fn run_fuse(scene: &Path, voxel: f32, out: &Path) -> Result<()> {
             "vertices": mesh.positions.len(),
             "triangles": mesh.indices.len(),
             "peak_rss_mb": peak_rss_mb(),
+            "device": summary.gpu_adapter.unwrap_or_else(|| "CPU".into()),
         })
     );
     Ok(())
@@ -117,7 +119,13 @@ pub fn fusion(a: FusionArgs) -> Result<()> {
         scenes.push((name.to_string(), out.clone(), out.clone()));
         scenes.push((format!("{name}+1%"), noisy, out.clone()));
     }
-    println!("TSDF fusion, {} views {w}x{h}, truncation 4 voxels, CPU, {} threads", a.views, rayon_threads());
+    let devices: Vec<bool> = if a.gpu { vec![false, true] } else { vec![false] };
+    println!(
+        "TSDF fusion, {} views {w}x{h}, truncation 4 voxels, CPU ({} threads){}",
+        a.views,
+        rayon_threads(),
+        if a.gpu { " and GPU rows (ours: wgpu; Open3D: CUDA:0)" } else { "" }
+    );
     println!(
         "{:<12} {:>6} {:>9} {:>9} {:>7} {:>8} {:>8} {:>7} {:>7} {:>9} {:>9} {:>7} {:>7} {:>7} {:>7}",
         "scene",
@@ -142,26 +150,47 @@ pub fn fusion(a: FusionArgs) -> Result<()> {
         let gt = dens3r_mesh::read_mesh(&clean.join("gt_mesh.ply"))?;
         let seen = dens3r_scene::visibility::Visibility::from_scene(&dens3r_scene::Scene::open(clean)?, 0.02)?;
         let seen = |p: glam::Vec3| seen.visible(p);
-        for &voxel in &voxels {
-            let ours_path = dir.join(format!("{}_{voxel}_dens3r.ply", name.replace('+', "_")));
-            let o3d_path = dir.join(format!("{}_{voxel}_open3d.ply", name.replace('+', "_")));
-            let r = child_json(
-                Command::new(&exe).args(["bench", "run-fuse"]).arg(scene).arg(voxel.to_string()).arg(&ours_path),
-                "Rust fusion",
-            )?;
+        for (&voxel, gpu) in voxels.iter().flat_map(|v| devices.iter().map(move |&g| (v, g))) {
+            let tag = format!("{}_{voxel}{}", name.replace('+', "_"), if gpu { "_gpu" } else { "" });
+            let ours_path = dir.join(format!("{tag}_dens3r.ply"));
+            let o3d_path = dir.join(format!("{tag}_open3d.ply"));
+            let mut cmd = Command::new(&exe);
+            cmd.args(["bench", "run-fuse"]).arg(scene).arg(voxel.to_string()).arg(&ours_path);
+            if gpu {
+                cmd.arg("--gpu");
+            }
+            let r = match child_json(&mut cmd, "Rust fusion") {
+                Ok(r) => r,
+                Err(e) if gpu => {
+                    println!("{:<12} {:>6} GPU: {e:#}", name, voxel);
+                    continue;
+                }
+                Err(e) => return Err(e),
+            };
             let o = if o3d_ok {
-                Some(child_json(
+                let o = child_json(
                     Command::new(&python)
                         .arg("bench/open3d_fusion.py")
                         .arg(scene)
                         .arg(voxel.to_string())
                         .arg(&o3d_path)
+                        .args(["--device", if gpu { "CUDA:0" } else { "CPU:0" }])
                         .env("OMP_NUM_THREADS", rayon_threads().to_string()),
                     "Open3D fusion",
-                )?)
+                )?;
+                match o.get("error") {
+                    Some(e) => {
+                        println!("  (Open3D {}: {e})", if gpu { "GPU" } else { "CPU" });
+                        None
+                    }
+                    None => Some(o),
+                }
             } else {
                 None
             };
+            if gpu {
+                println!("  GPU row: ours on {}", r["device"].as_str().unwrap_or("?"));
+            }
             let opts = MeshMetricsOptions { samples: a.samples, thresholds: vec![0.01, 0.02], seed: 0 };
             let ours = mesh_metrics_where(&dens3r_mesh::read_mesh(&ours_path)?, &gt, &opts, &seen)
                 .map_err(anyhow::Error::msg)?;
@@ -178,7 +207,7 @@ pub fn fusion(a: FusionArgs) -> Result<()> {
             let tm = |i: usize| theirs.as_ref().map_or(f64::NAN, |m| m.fscores[i].fscore);
             println!(
                 "{:<12} {:>6} {:>9.1} {:>9.1} {:>6.2}x {:>8.2} {:>8.2} {:>7.0} {:>7.0} {:>9.5} {:>9.5} {:>7.3} {:>7.3} {:>7.3} {:>7.3}",
-                name,
+                if gpu { format!("{name} gpu") } else { name.clone() },
                 voxel,
                 rt,
                 ot,

@@ -47,6 +47,9 @@ pub struct FuseArgs {
     /// Keep only the box xmin,ymin,zmin,xmax,ymax,zmax.
     #[arg(long, value_delimiter = ',', num_args = 6)]
     crop: Option<Vec<f32>>,
+    /// Integrate on the GPU (wgpu: Vulkan, Metal or DX12); extraction stays on the CPU.
+    #[arg(long)]
+    gpu: bool,
 }
 
 pub fn run(a: FuseArgs) -> Result<()> {
@@ -73,7 +76,8 @@ pub fn run(a: FuseArgs) -> Result<()> {
     params.depth_range = (a.min_depth, a.max_depth);
     params.color = !a.no_color;
     params.budget_bytes = Some((a.budget_mb * 1e6) as usize);
-    let opts = SceneFusion { params, use_conf: a.conf_weight, min_conf: a.min_conf, use_normals: a.normal_weight };
+    let opts =
+        SceneFusion { params, use_conf: a.conf_weight, min_conf: a.min_conf, use_normals: a.normal_weight, gpu: a.gpu };
     let bar = indicatif::ProgressBar::new(scene.frames().len() as u64).with_style(
         indicatif::ProgressStyle::with_template("fuse {bar:30} {pos}/{len} frames [{elapsed} < {eta}]")
             .expect("valid template"),
@@ -106,10 +110,11 @@ pub fn run(a: FuseArgs) -> Result<()> {
         a.output.display()
     );
     println!(
-        "time: read {:.2}s, integrate {:.2}s ({:.1} ms/frame), extract {:.2}s, total {:.2}s",
+        "time: read {:.2}s, integrate {:.2}s ({:.1} ms/frame, {}), extract {:.2}s, total {:.2}s",
         summary.read_seconds,
         summary.integrate_seconds,
         1e3 * summary.integrate_seconds / summary.frames.max(1) as f64,
+        summary.gpu_adapter.as_deref().map_or("CPU".to_string(), |a| format!("GPU: {a}")),
         extract_s,
         t0.elapsed().as_secs_f64()
     );

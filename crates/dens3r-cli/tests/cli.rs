@@ -247,6 +247,21 @@ fn fuse_writes_meshes_that_reopen_and_rejects_bad_input() {
     assert!(counts.iter().all(|&c| c == counts[0] && c > 1000), "{counts:?}");
     assert_no_temp_files(dir.path());
 
+    // --gpu gives the same mesh (when the machine has a wgpu adapter; see tests/gpu.rs in
+    // dens3r-fusion for the voxel-level comparison).
+    let out = dir.path().join("gpu.ply");
+    let o = dens3r(&["fuse", orbit.to_str().unwrap(), "-o", out.to_str().unwrap(), "--voxel", "0.02", "--gpu"]);
+    if o.status.success() {
+        let text = String::from_utf8_lossy(&o.stdout);
+        assert!(text.contains("GPU: "), "{text}");
+        assert_eq!(dens3r_mesh::read_mesh(&out).unwrap().indices.len(), counts[0]);
+    } else {
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains("no GPU adapter"), "{e}");
+        assert!(std::env::var("DENS3R_REQUIRE_GPU").as_deref() != Ok("1"), "DENS3R_REQUIRE_GPU=1 but {e}");
+        eprintln!("SKIPPED fuse --gpu: {e}");
+    }
+
     // Bad input: one line naming the problem, no output file left behind.
     let out = dir.path().join("bad.ply");
     let o = out.to_str().unwrap();

@@ -2,7 +2,7 @@
 //! its image, and optional per-pixel weights from `conf/` and from the angle between `normals/`
 //! and the viewing ray.
 
-use crate::tsdf::{angle_weights, FrameInput, SparseTsdf, TsdfParams};
+use crate::tsdf::{angle_weights, FrameInput, FusionError, SparseTsdf, TsdfParams};
 use dens3r_geom::Raster;
 use dens3r_scene::Scene;
 use std::time::Instant;
@@ -18,12 +18,14 @@ pub struct SceneFusion {
     pub min_conf: f32,
     /// Weight each pixel by `|cos|` of the normal-to-ray angle (`normals/`).
     pub use_normals: bool,
+    /// Integrate on the GPU (needs the `gpu` feature and a wgpu adapter).
+    pub gpu: bool,
 }
 
 impl SceneFusion {
     /// Plain depth (+ colour) fusion with these volume parameters.
     pub fn new(params: TsdfParams) -> Self {
-        Self { params, use_conf: false, min_conf: 0.0, use_normals: false }
+        Self { params, use_conf: false, min_conf: 0.0, use_normals: false, gpu: false }
     }
 }
 
@@ -42,6 +44,54 @@ pub struct FusionSummary {
     pub integrate_seconds: f64,
     /// Seconds spent reading the scene.
     pub read_seconds: f64,
+    /// The GPU adapter used, `None` on the CPU path.
+    pub gpu_adapter: Option<String>,
+}
+
+/// The volume being integrated into: on the CPU, or on the GPU with the host grid kept in step.
+enum Volume {
+    Cpu(SparseTsdf),
+    #[cfg(feature = "gpu")]
+    Gpu(Box<crate::gpu::GpuTsdf>),
+}
+
+impl Volume {
+    fn new(opts: &SceneFusion) -> Result<Self, FusionError> {
+        if !opts.gpu {
+            return SparseTsdf::new(opts.params.clone()).map(Volume::Cpu);
+        }
+        #[cfg(feature = "gpu")]
+        return crate::gpu::GpuTsdf::new(opts.params.clone()).map(|g| Volume::Gpu(Box::new(g)));
+        #[cfg(not(feature = "gpu"))]
+        Err(FusionError::Gpu(
+            "this build has no GPU support: rebuild with `--features gpu` or fuse without --gpu".into(),
+        ))
+    }
+
+    fn integrate(&mut self, f: &FrameInput) -> Result<(), FusionError> {
+        match self {
+            Volume::Cpu(t) => t.integrate(f),
+            #[cfg(feature = "gpu")]
+            Volume::Gpu(g) => g.integrate(f),
+        }
+    }
+
+    fn adapter(&self) -> Option<String> {
+        match self {
+            Volume::Cpu(_) => None,
+            #[cfg(feature = "gpu")]
+            Volume::Gpu(g) => Some(g.adapter().to_string()),
+        }
+    }
+
+    /// The finished grid (waits for the GPU and copies its voxels back).
+    fn finish(self) -> Result<SparseTsdf, FusionError> {
+        match self {
+            Volume::Cpu(t) => Ok(t),
+            #[cfg(feature = "gpu")]
+            Volume::Gpu(g) => g.finish(),
+        }
+    }
 }
 
 /// Integrates every frame of `scene`; `progress(done, total)` is called after each.
@@ -54,8 +104,8 @@ pub fn fuse_scene(
     if frames.is_empty() {
         return Err(format!("{}: the scene has no frames", scene.root().display()));
     }
-    let mut tsdf = SparseTsdf::new(opts.params.clone()).map_err(|e| e.to_string())?;
-    let mut summary = FusionSummary::default();
+    let mut volume = Volume::new(opts).map_err(|e| e.to_string())?;
+    let mut summary = FusionSummary { gpu_adapter: volume.adapter(), ..Default::default() };
     let mut any_depth = false;
     for (i, f) in frames.iter().enumerate() {
         let t = Instant::now();
@@ -103,7 +153,7 @@ pub fn fuse_scene(
             color: color.as_ref(),
             weight: weight.as_ref(),
         };
-        tsdf.integrate(&input).map_err(|e| e.to_string())?;
+        volume.integrate(&input).map_err(|e| e.to_string())?;
         summary.integrate_seconds += t.elapsed().as_secs_f64();
         progress(i + 1, frames.len());
     }
@@ -115,6 +165,10 @@ pub fn fuse_scene(
             opts.params.depth_range.1
         ));
     }
+    // The GPU runs asynchronously: its time ends when the voxels are back.
+    let t = Instant::now();
+    let tsdf = volume.finish().map_err(|e| e.to_string())?;
+    summary.integrate_seconds += t.elapsed().as_secs_f64();
     summary.frames = tsdf.frame_count();
     summary.blocks = tsdf.block_count();
     summary.memory_bytes = tsdf.memory_bytes();

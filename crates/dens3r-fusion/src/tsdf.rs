@@ -64,6 +64,9 @@ pub enum FusionError {
         /// The budget.
         budget_mb: f64,
     },
+    /// The GPU path could not run (no adapter, buffer limits, device lost).
+    #[error("GPU fusion: {0}")]
+    Gpu(String),
     /// A frame's layers do not fit its camera.
     #[error("frame '{0}': {1}")]
     Frame(String, String),
@@ -232,96 +235,22 @@ impl SparseTsdf {
 
     /// Integrates one frame.
     pub fn integrate(&mut self, f: &FrameInput) -> Result<(), FusionError> {
-        let (w, h) = (f.depth.width(), f.depth.height());
-        let ferr = |m: String| FusionError::Frame(f.name.to_string(), m);
-        if (w, h) != (f.camera.width, f.camera.height) {
-            return Err(ferr(format!("depth is {w}x{h} but the camera is {}x{}", f.camera.width, f.camera.height)));
-        }
-        if let Some(c) = f.color {
-            if c.dimensions() != (w as u32, h as u32) {
-                return Err(ferr(format!("colour image is {}x{}, depth {w}x{h}", c.width(), c.height())));
-            }
-        }
-        if let Some(wt) = f.weight {
-            if (wt.width(), wt.height()) != (w, h) {
-                return Err(ferr("weight map size differs from the depth".into()));
-            }
+        let Some(touched) = self.allocate_frame(f)? else {
+            return Ok(()); // nothing valid in this frame
+        };
+        let mut mask = vec![false; self.blocks.len()];
+        for &slot in &touched {
+            mask[slot as usize] = true;
         }
         let p = &self.params;
         let k = f.camera.intrinsics;
         let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
-        let c2w = f.camera.cam_to_world.as_mat4();
         let w2c: Mat4 = dens3r_geom::camera::rigid_inverse(&f.camera.cam_to_world).as_mat4();
         let (dmin, dmax) = p.depth_range;
         let valid = |d: f32| d.is_finite() && d >= dmin && d <= dmax;
+        let (w, h) = (f.depth.width(), f.depth.height());
 
-        // 1. Blocks touched by the truncation band of every (sub-sampled) valid pixel.
-        let block_len = p.voxel * BLOCK as f32;
-        let far = f.depth.data().iter().copied().filter(|&d| valid(d)).fold(0.0f32, f32::max);
-        if far == 0.0 {
-            return Ok(()); // nothing valid in this frame
-        }
-        // A pixel step that keeps neighbouring samples under half a block apart at the
-        // farthest depth, so no block crossed by the band is missed.
-        let stride = ((0.5 * block_len * fx.min(fy) / far).floor() as usize).clamp(1, 8);
-        let step = p.trunc.min(0.25 * block_len);
-        let n_steps = (2.0 * p.trunc / step).ceil() as i32;
-        let inv_block = 1.0 / block_len;
-        type IntSet = HashSet<IVec3, std::hash::BuildHasherDefault<IntHasher>>;
-        let touched: IntSet = (0..h)
-            .into_par_iter()
-            .step_by(stride)
-            .fold(IntSet::default, |mut set, y| {
-                for x in (0..w).step_by(stride) {
-                    let d = *f.depth.get(x, y);
-                    if !valid(d) || f.weight.is_some_and(|wt| *wt.get(x, y) <= 0.0) {
-                        continue;
-                    }
-                    let ray = Vec3::new((x as f32 - cx) / fx, (y as f32 - cy) / fy, 1.0);
-                    for s in 0..=n_steps {
-                        let z = d - p.trunc + s as f32 * step;
-                        if z <= 0.0 {
-                            continue;
-                        }
-                        let pw = c2w.transform_point3(ray * z);
-                        set.insert((pw * inv_block).floor().as_ivec3());
-                    }
-                }
-                set
-            })
-            .reduce(IntSet::default, |mut a, mut b| {
-                // Insert the smaller set into the larger.
-                if a.len() < b.len() {
-                    std::mem::swap(&mut a, &mut b);
-                }
-                a.extend(b);
-                a
-            });
-
-        // 2. Allocate, within the budget.
-        let new: Vec<IVec3> = touched.iter().copied().filter(|k| !self.index.contains_key(k)).collect();
-        if let Some(budget) = p.budget_bytes {
-            let blocks = self.blocks.len() + new.len();
-            let needed = blocks * p.block_bytes();
-            if needed > budget {
-                return Err(FusionError::Budget {
-                    blocks,
-                    needed_mb: needed as f64 / 1e6,
-                    budget_mb: budget as f64 / 1e6,
-                });
-            }
-        }
-        for key in new {
-            self.index.insert(key, self.blocks.len() as u32);
-            self.keys.push(key);
-            self.blocks.push(Block::new(p.color));
-        }
-        let mut mask = vec![false; self.blocks.len()];
-        for key in &touched {
-            mask[self.index[key] as usize] = true;
-        }
-
-        // 3. Update every voxel of the touched blocks.
+        // Update every voxel of the touched blocks.
         let (voxel, trunc, max_w) = (p.voxel, p.trunc, p.max_weight);
         let depth = f.depth.data();
         let weights = f.weight.map(|wt| wt.data());
@@ -386,6 +315,118 @@ impl SparseTsdf {
         });
         self.frames += 1;
         Ok(())
+    }
+
+    /// Checks that a frame's layers fit its camera.
+    fn check_frame(f: &FrameInput) -> Result<(), FusionError> {
+        let (w, h) = (f.depth.width(), f.depth.height());
+        let ferr = |m: String| FusionError::Frame(f.name.to_string(), m);
+        if (w, h) != (f.camera.width, f.camera.height) {
+            return Err(ferr(format!("depth is {w}x{h} but the camera is {}x{}", f.camera.width, f.camera.height)));
+        }
+        if let Some(c) = f.color {
+            if c.dimensions() != (w as u32, h as u32) {
+                return Err(ferr(format!("colour image is {}x{}, depth {w}x{h}", c.width(), c.height())));
+            }
+        }
+        if let Some(wt) = f.weight {
+            if (wt.width(), wt.height()) != (w, h) {
+                return Err(ferr("weight map size differs from the depth".into()));
+            }
+        }
+        Ok(())
+    }
+
+    /// Validates a frame, allocates (within the budget) every block its truncation band
+    /// touches, and returns the touched blocks' slots in ascending order; `None` when the frame
+    /// has no valid depth. Shared by the CPU update and the GPU path.
+    pub(crate) fn allocate_frame(&mut self, f: &FrameInput) -> Result<Option<Vec<u32>>, FusionError> {
+        Self::check_frame(f)?;
+        let (w, h) = (f.depth.width(), f.depth.height());
+        let p = &self.params;
+        let k = f.camera.intrinsics;
+        let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
+        let c2w = f.camera.cam_to_world.as_mat4();
+        let (dmin, dmax) = p.depth_range;
+        let valid = |d: f32| d.is_finite() && d >= dmin && d <= dmax;
+
+        // 1. Blocks touched by the truncation band of every (sub-sampled) valid pixel.
+        let block_len = p.voxel * BLOCK as f32;
+        let far = f.depth.data().iter().copied().filter(|&d| valid(d)).fold(0.0f32, f32::max);
+        if far == 0.0 {
+            return Ok(None);
+        }
+        // A pixel step that keeps neighbouring samples under half a block apart at the
+        // farthest depth, so no block crossed by the band is missed.
+        let stride = ((0.5 * block_len * fx.min(fy) / far).floor() as usize).clamp(1, 8);
+        let step = p.trunc.min(0.25 * block_len);
+        let n_steps = (2.0 * p.trunc / step).ceil() as i32;
+        let inv_block = 1.0 / block_len;
+        type IntSet = HashSet<IVec3, std::hash::BuildHasherDefault<IntHasher>>;
+        let touched: IntSet = (0..h)
+            .into_par_iter()
+            .step_by(stride)
+            .fold(IntSet::default, |mut set, y| {
+                for x in (0..w).step_by(stride) {
+                    let d = *f.depth.get(x, y);
+                    if !valid(d) || f.weight.is_some_and(|wt| *wt.get(x, y) <= 0.0) {
+                        continue;
+                    }
+                    let ray = Vec3::new((x as f32 - cx) / fx, (y as f32 - cy) / fy, 1.0);
+                    for s in 0..=n_steps {
+                        let z = d - p.trunc + s as f32 * step;
+                        if z <= 0.0 {
+                            continue;
+                        }
+                        let pw = c2w.transform_point3(ray * z);
+                        set.insert((pw * inv_block).floor().as_ivec3());
+                    }
+                }
+                set
+            })
+            .reduce(IntSet::default, |mut a, mut b| {
+                // Insert the smaller set into the larger.
+                if a.len() < b.len() {
+                    std::mem::swap(&mut a, &mut b);
+                }
+                a.extend(b);
+                a
+            });
+
+        // 2. Allocate, within the budget.
+        let new: Vec<IVec3> = touched.iter().copied().filter(|k| !self.index.contains_key(k)).collect();
+        if let Some(budget) = p.budget_bytes {
+            let blocks = self.blocks.len() + new.len();
+            let needed = blocks * p.block_bytes();
+            if needed > budget {
+                return Err(FusionError::Budget {
+                    blocks,
+                    needed_mb: needed as f64 / 1e6,
+                    budget_mb: budget as f64 / 1e6,
+                });
+            }
+        }
+        let color = p.color;
+        for key in new {
+            self.index.insert(key, self.blocks.len() as u32);
+            self.keys.push(key);
+            self.blocks.push(Block::new(color));
+        }
+        let mut slots: Vec<u32> = touched.iter().map(|key| self.index[key]).collect();
+        slots.sort_unstable();
+        Ok(Some(slots))
+    }
+
+    /// Counts a frame integrated elsewhere (the GPU path).
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn count_frame(&mut self) {
+        self.frames += 1;
+    }
+
+    /// Mutable blocks (the GPU path's download).
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn blocks_mut(&mut self) -> &mut [Block] {
+        &mut self.blocks
     }
 
     /// Normalised TSDF, weight and colour of global voxel `v`, if its block exists.
