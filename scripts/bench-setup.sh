@@ -14,5 +14,5 @@ if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then
     fi
 fi
 python3 -m venv .cache/bench-venv
-.cache/bench-venv/bin/pip install -q torch safetensors numpy "open3d==0.20.*" pillow
+.cache/bench-venv/bin/pip install -q torch safetensors numpy "open3d==0.20.*" pillow pycolmap
 .cache/bench-venv/bin/python3 -c "import torch, open3d; print('torch', torch.__version__, 'open3d', open3d.__version__)"

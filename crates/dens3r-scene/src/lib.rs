@@ -22,6 +22,7 @@
 
 mod cameras;
 mod error;
+pub mod export;
 pub mod npy;
 mod reader;
 pub mod visibility;

@@ -1,0 +1,13 @@
+//! Multi-view (spec sections 3.5 and 6): [`pairs`] builds the image pairs the network runs on,
+//! [`global`] aligns the pairwise pointmaps into one scene (cameras, focal, depth: DUSt3R's
+//! `PointCloudOptimizer` with the minimum-spanning-tree initialisation, written natively), and
+//! [`matching`] finds MASt3R fast reciprocal nearest-neighbour correspondences between
+//! descriptor maps and joins them into tracks.
+
+pub mod global;
+pub mod matching;
+pub mod pairs;
+pub mod resection;
+
+pub use global::{global_align, AlignOptions, AlignedView, Alignment, ConfTransform, GlobalAlignError, PairPrediction};
+pub use pairs::{make_pairs, PairGraph};

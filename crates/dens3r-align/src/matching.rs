@@ -1,0 +1,262 @@
+//! MASt3R fast reciprocal nearest neighbours on dense descriptors (spec 6.4) with Dens3R's
+//! filters (spec 3.5: confidence >= 1.001, 3 px border), and tracks across pairs by union-find.
+
+use rayon::prelude::*;
+
+/// A dense descriptor map: `dim` floats per pixel, row-major.
+#[derive(Debug, Clone, Copy)]
+pub struct Descriptors<'a> {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Floats per pixel (24 for Dens3R).
+    pub dim: usize,
+    /// `width * height * dim` values.
+    pub data: &'a [f32],
+}
+
+impl Descriptors<'_> {
+    fn len(&self) -> usize {
+        self.width * self.height
+    }
+    fn at(&self, i: usize) -> &[f32] {
+        &self.data[i * self.dim..(i + 1) * self.dim]
+    }
+    fn xy(&self, i: usize) -> (usize, usize) {
+        (i % self.width, i / self.width)
+    }
+}
+
+/// Matching options (Dens3R's defaults).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatchOptions {
+    /// Seed grid step in pixels (8).
+    pub subsample: usize,
+    /// A seed is kept when its round trip lands within this many pixels of it (5).
+    pub pixel_tol: f32,
+    /// Minimum of the two descriptor confidences (1.001).
+    pub min_conf: f32,
+    /// Matches within this many pixels of either image's border are dropped (3).
+    pub border: usize,
+}
+
+impl Default for MatchOptions {
+    fn default() -> Self {
+        Self { subsample: 8, pixel_tol: 5.0, min_conf: 1.001, border: 3 }
+    }
+}
+
+/// One correspondence: pixel `(x, y)` in each image and its confidence.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Match {
+    /// Pixel in image A.
+    pub a: (usize, usize),
+    /// Pixel in image B.
+    pub b: (usize, usize),
+    /// `min(confA, confB)`.
+    pub conf: f32,
+}
+
+/// Index of the pixel of `db` whose descriptor has the largest dot product with `q`.
+fn nearest(q: &[f32], db: &Descriptors) -> usize {
+    let (mut best, mut arg) = (f32::NEG_INFINITY, 0);
+    for i in 0..db.len() {
+        let d = db.at(i);
+        let mut s = 0.0;
+        for k in 0..q.len() {
+            s += q[k] * d[k];
+        }
+        if s > best {
+            best = s;
+            arg = i;
+        }
+    }
+    arg
+}
+
+/// Seeds on a `subsample` grid of `from`; a seed `x` matches `y = NN(x)` in `to` when
+/// `NN(y)` back in `from` lies within `tol` pixels of `x`. Returns `(x, y)` flat indices.
+fn one_way(from: &Descriptors, to: &Descriptors, sub: usize, tol: f32) -> Vec<(usize, usize)> {
+    let mut seeds = Vec::new();
+    let mut y = sub / 2;
+    while y < from.height {
+        let mut x = sub / 2;
+        while x < from.width {
+            seeds.push(y * from.width + x);
+            x += sub;
+        }
+        y += sub;
+    }
+    seeds
+        .into_par_iter()
+        .filter_map(|s| {
+            let t = nearest(from.at(s), to);
+            let back = nearest(to.at(t), from);
+            let ((x0, y0), (x1, y1)) = (from.xy(s), from.xy(back));
+            let d = ((x0 as f32 - x1 as f32).powi(2) + (y0 as f32 - y1 as f32).powi(2)).sqrt();
+            (d < tol).then_some((s, t))
+        })
+        .collect()
+}
+
+/// Non-symmetric reciprocal matching (`extract_correspondences_nonsym`): A->B and B->A seeds,
+/// merged and de-duplicated (sorted by A index, then B index), filtered by confidence and
+/// border. `conf_a` / `conf_b` are per-pixel descriptor confidences.
+pub fn reciprocal_matches(
+    a: &Descriptors,
+    b: &Descriptors,
+    conf_a: &[f32],
+    conf_b: &[f32],
+    opts: &MatchOptions,
+) -> Result<Vec<Match>, String> {
+    for (name, d, c) in [("A", a, conf_a), ("B", b, conf_b)] {
+        if d.data.len() != d.len() * d.dim || c.len() != d.len() || d.dim == 0 {
+            return Err(format!(
+                "matching: image {name} has {} descriptor values and {} confidences for {}x{}x{}",
+                d.data.len(),
+                c.len(),
+                d.width,
+                d.height,
+                d.dim
+            ));
+        }
+    }
+    if a.dim != b.dim {
+        return Err(format!("matching: descriptor sizes differ ({} vs {})", a.dim, b.dim));
+    }
+    let sub = opts.subsample.max(1);
+    let mut pairs = one_way(a, b, sub, opts.pixel_tol);
+    pairs.extend(one_way(b, a, sub, opts.pixel_tol).into_iter().map(|(y, x)| (x, y)));
+    pairs.sort_unstable();
+    pairs.dedup();
+    let inside = |d: &Descriptors, (x, y): (usize, usize)| {
+        x >= opts.border && y >= opts.border && x + opts.border < d.width && y + opts.border < d.height
+    };
+    Ok(pairs
+        .into_iter()
+        .filter_map(|(i, j)| {
+            let m = Match { a: a.xy(i), b: b.xy(j), conf: conf_a[i].min(conf_b[j]) };
+            (m.conf >= opts.min_conf && inside(a, m.a) && inside(b, m.b)).then_some(m)
+        })
+        .collect())
+}
+
+/// A keypoint: image index and pixel `(x, y)`.
+pub type Keypoint = (usize, (usize, usize));
+
+/// Keypoint tracks across images: matches of every pair joined by union-find over
+/// `(image, pixel)`; tracks seen in fewer than `min_len` keypoints are dropped (Dens3R: 3).
+/// Each track lists its `(image, (x, y))` keypoints, sorted.
+pub fn tracks(matches: &[(usize, usize, Vec<Match>)], min_len: usize) -> Vec<Vec<(usize, (usize, usize))>> {
+    use std::collections::HashMap;
+    let mut id: HashMap<Keypoint, usize> = HashMap::new();
+    let mut parent: Vec<usize> = Vec::new();
+    let mut key = |k: Keypoint, parent: &mut Vec<usize>| {
+        *id.entry(k).or_insert_with(|| {
+            parent.push(parent.len());
+            parent.len() - 1
+        })
+    };
+    fn find(p: &mut [usize], mut a: usize) -> usize {
+        while p[a] != a {
+            p[a] = p[p[a]];
+            a = p[a];
+        }
+        a
+    }
+    for (ia, ib, ms) in matches {
+        for m in ms {
+            let (u, v) = (key((*ia, m.a), &mut parent), key((*ib, m.b), &mut parent));
+            let (ru, rv) = (find(&mut parent, u), find(&mut parent, v));
+            if ru != rv {
+                parent[ru.max(rv)] = ru.min(rv);
+            }
+        }
+    }
+    let mut groups: HashMap<usize, Vec<Keypoint>> = HashMap::new();
+    let keys: Vec<_> = id.into_iter().collect();
+    for (k, i) in keys {
+        let r = find(&mut parent, i);
+        groups.entry(r).or_default().push(k);
+    }
+    let mut out: Vec<_> = groups
+        .into_values()
+        .filter(|g| g.len() >= min_len)
+        .map(|mut g| {
+            g.sort_unstable();
+            g
+        })
+        .collect();
+    out.sort_unstable();
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// Descriptors that are a known function of a scene coordinate: unit-norm random Fourier
+    /// features, so the dot product peaks where the coordinates agree.
+    fn features(coords: &[(f32, f32)], dim: usize, seed: u64) -> Vec<f32> {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let freqs: Vec<(f32, f32, f32)> = (0..dim / 2)
+            .map(|_| (rng.gen_range(-0.3..0.3), rng.gen_range(-0.3..0.3), rng.gen_range(0.0..std::f32::consts::TAU)))
+            .collect();
+        let mut out = Vec::with_capacity(coords.len() * dim);
+        for &(x, y) in coords {
+            for &(fx, fy, ph) in &freqs {
+                let a = fx * x + fy * y + ph;
+                out.push(a.cos());
+                out.push(a.sin());
+            }
+        }
+        let norm = ((dim / 2) as f32).sqrt();
+        out.iter_mut().for_each(|v| *v /= norm);
+        out
+    }
+
+    #[test]
+    fn reciprocal_matches_find_true_correspondences() {
+        // Image B sees the scene shifted by (+11, -6) pixels and scaled by 1.1 about the origin:
+        // B pixel (x, y) shows scene point ((x + 11) / 1.1, (y - 6) / 1.1), image A pixel (x, y)
+        // shows scene point (x, y).
+        let (w, h, dim) = (96, 72, 24);
+        let to_scene_b = |x: f32, y: f32| ((x + 11.0) / 1.1, (y - 6.0) / 1.1);
+        let ca: Vec<(f32, f32)> = (0..w * h).map(|i| ((i % w) as f32, (i / w) as f32)).collect();
+        let cb: Vec<(f32, f32)> = (0..w * h).map(|i| to_scene_b((i % w) as f32, (i / w) as f32)).collect();
+        let (da, db) = (features(&ca, dim, 5), features(&cb, dim, 5));
+        let a = Descriptors { width: w, height: h, dim, data: &da };
+        let b = Descriptors { width: w, height: h, dim, data: &db };
+        let conf = vec![2.0f32; w * h];
+        let ms = reciprocal_matches(&a, &b, &conf, &conf, &MatchOptions::default()).unwrap();
+        assert!(ms.len() > 60, "{} matches", ms.len());
+        for m in &ms {
+            let (sx, sy) = to_scene_b(m.b.0 as f32, m.b.1 as f32);
+            let err = ((sx - m.a.0 as f32).powi(2) + (sy - m.a.1 as f32).powi(2)).sqrt();
+            assert!(err <= 1.0, "match {m:?} is {err} px off the true correspondence");
+            assert!(m.a.0 >= 3 && m.a.1 >= 3 && m.a.0 + 3 < w && m.a.1 + 3 < h);
+        }
+        // Sorted by A, de-duplicated.
+        assert!(ms.windows(2).all(|p| (p[0].a.1, p[0].a.0) <= (p[1].a.1, p[1].a.0)));
+        // Low confidence removes matches.
+        let low = vec![1.0f32; w * h];
+        assert!(reciprocal_matches(&a, &b, &low, &conf, &MatchOptions::default()).unwrap().is_empty());
+        // Wrong sizes are errors, not panics.
+        assert!(reciprocal_matches(&a, &b, &conf[1..], &conf, &MatchOptions::default()).is_err());
+    }
+
+    #[test]
+    fn tracks_join_matches_across_pairs() {
+        let m = |a: (usize, usize), b: (usize, usize)| Match { a, b, conf: 2.0 };
+        let matches = vec![
+            (0, 1, vec![m((1, 1), (2, 2)), m((5, 5), (6, 6))]),
+            (1, 2, vec![m((2, 2), (3, 3))]),
+            (2, 3, vec![m((3, 3), (4, 4)), m((9, 9), (8, 8))]),
+        ];
+        let t = tracks(&matches, 3);
+        assert_eq!(t, vec![vec![(0, (1, 1)), (1, (2, 2)), (2, (3, 3)), (3, (4, 4))]]);
+        assert_eq!(tracks(&matches, 2).len(), 3);
+    }
+}

@@ -1,0 +1,167 @@
+//! Camera resection from a dense pointmap: the pose (and focal) of the camera that saw pixel
+//! `(x, y)` at 3-D point `X` in an arbitrary frame, by the normalised DLT with the principal
+//! point known and square pixels. Global alignment uses it so pair predictions may come in any
+//! similarity frame, not only their first camera's.
+
+use glam::{DMat3, DVec3};
+use glamx::DSvd3;
+
+/// A resected camera: `x_cam = rotation * X + translation` (world-to-camera, in the pointmap's
+/// units) and the focal in pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Resection {
+    /// World-to-camera rotation.
+    pub rotation: DMat3,
+    /// World-to-camera translation.
+    pub translation: DVec3,
+    /// Focal length (pixels), `fx = fy`.
+    pub focal: f64,
+}
+
+/// Eigen-decomposition of a symmetric matrix by cyclic Jacobi rotations: eigenvalues and
+/// eigenvectors (columns of the returned row-major `n x n` matrix).
+fn jacobi_eigen(mut a: Vec<f64>, n: usize) -> (Vec<f64>, Vec<f64>) {
+    let mut v = vec![0.0; n * n];
+    for i in 0..n {
+        v[i * n + i] = 1.0;
+    }
+    for _sweep in 0..100 {
+        let off: f64 = (0..n)
+            .flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j)))
+            .map(|(i, j)| a[i * n + j].powi(2))
+            .sum();
+        let diag: f64 = (0..n).map(|i| a[i * n + i].powi(2)).sum();
+        if off <= 1e-30 * diag.max(1e-300) {
+            break;
+        }
+        for p in 0..n {
+            for q in p + 1..n {
+                let apq = a[p * n + q];
+                if apq.abs() < 1e-300 {
+                    continue;
+                }
+                let theta = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for k in 0..n {
+                    let (akp, akq) = (a[k * n + p], a[k * n + q]);
+                    a[k * n + p] = c * akp - s * akq;
+                    a[k * n + q] = s * akp + c * akq;
+                }
+                for k in 0..n {
+                    let (apk, aqk) = (a[p * n + k], a[q * n + k]);
+                    a[p * n + k] = c * apk - s * aqk;
+                    a[q * n + k] = s * apk + c * aqk;
+                }
+                for k in 0..n {
+                    let (vkp, vkq) = (v[k * n + p], v[k * n + q]);
+                    v[k * n + p] = c * vkp - s * vkq;
+                    v[k * n + q] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    ((0..n).map(|i| a[i * n + i]).collect(), v)
+}
+
+/// Resects a camera from `(pixel offset from the principal point, 3-D point, weight)` samples.
+/// `None` when fewer than 6 samples or the configuration is degenerate.
+pub fn resect(samples: &[((f64, f64), DVec3, f64)]) -> Option<Resection> {
+    if samples.len() < 6 {
+        return None;
+    }
+    // Hartley normalisation: 3-D centred, unit mean distance; 2-D unit mean radius (the
+    // principal point stays at the origin).
+    let wsum: f64 = samples.iter().map(|s| s.2).sum();
+    if wsum.is_nan() || wsum <= 0.0 {
+        return None;
+    }
+    let c = samples.iter().map(|s| s.1 * s.2).sum::<DVec3>() / wsum;
+    let s3 = samples.iter().map(|s| (s.1 - c).length() * s.2).sum::<f64>() / wsum;
+    let s2 = samples.iter().map(|s| (s.0 .0.hypot(s.0 .1)) * s.2).sum::<f64>() / wsum;
+    if !(s3 > 0.0 && s2 > 0.0) {
+        return None;
+    }
+    let mut m = vec![0.0f64; 144];
+    for &((u, v), x, w) in samples {
+        let p = (x - c) / s3;
+        let (u, v) = (u / s2, v / s2);
+        let rows = [
+            [p.x, p.y, p.z, 1.0, 0.0, 0.0, 0.0, 0.0, -u * p.x, -u * p.y, -u * p.z, -u],
+            [0.0, 0.0, 0.0, 0.0, p.x, p.y, p.z, 1.0, -v * p.x, -v * p.y, -v * p.z, -v],
+        ];
+        for r in &rows {
+            for i in 0..12 {
+                for j in 0..12 {
+                    m[i * 12 + j] += w * r[i] * r[j];
+                }
+            }
+        }
+    }
+    let (vals, vecs) = jacobi_eigen(m, 12);
+    let k = (0..12).min_by(|&a, &b| vals[a].total_cmp(&vals[b]))?;
+    let p: Vec<f64> = (0..12).map(|i| vecs[i * 12 + k]).collect();
+    // Undo the normalisation: P = diag(s2, s2, 1) * P~ * [I/s3, -c/s3; 0, 1].
+    let row = |r: usize, sc: f64| {
+        let a = DVec3::new(p[4 * r], p[4 * r + 1], p[4 * r + 2]) * (sc / s3);
+        let b = (p[4 * r + 3] - DVec3::new(p[4 * r], p[4 * r + 1], p[4 * r + 2]).dot(c) / s3) * sc;
+        (a, b)
+    };
+    let (mut r0, mut r1, mut r2) = (row(0, s2), row(1, s2), row(2, 1.0));
+    let norm = r2.0.length();
+    if norm.is_nan() || norm <= 0.0 {
+        return None;
+    }
+    // Points must lie in front of the camera.
+    let sign = if r2.0.dot(c) + r2.1 < 0.0 { -1.0 } else { 1.0 } / norm;
+    for r in [&mut r0, &mut r1, &mut r2] {
+        r.0 *= sign;
+        r.1 *= sign;
+    }
+    let (f0, f1) = (r0.0.length(), r1.0.length());
+    let focal = 0.5 * (f0 + f1);
+    if !(focal.is_finite() && focal > 0.0) {
+        return None;
+    }
+    // Nearest rotation to the rows (r0 / f, r1 / f, r2).
+    let m = DMat3::from_cols(r0.0 / f0, r1.0 / f1, r2.0).transpose();
+    let svd = DSvd3::from_matrix(m);
+    let mut rot = svd.u * svd.vt;
+    if rot.determinant() < 0.0 {
+        rot = svd.u * DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0)) * svd.vt;
+    }
+    let translation = DVec3::new(r0.1 / focal, r1.1 / focal, r2.1);
+    Some(Resection { rotation: rot, translation, focal })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dens3r_geom::transform::axis_angle;
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn recovers_a_random_camera() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..20 {
+            let rot = axis_angle(DVec3::new(rng.gen(), rng.gen(), rng.gen::<f64>() + 0.1), rng.gen_range(0.0..3.0));
+            let t = DVec3::new(rng.gen_range(-2.0..2.0), rng.gen_range(-2.0..2.0), rng.gen_range(-2.0..2.0));
+            let f = rng.gen_range(100.0..800.0);
+            // Points in front of the camera, expressed in the world frame.
+            let samples: Vec<_> = (0..500)
+                .map(|_| {
+                    let pc = DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(1.0..4.0));
+                    let pw = rot.transpose() * (pc - t);
+                    ((f * pc.x / pc.z, f * pc.y / pc.z), pw, 1.0)
+                })
+                .collect();
+            let r = resect(&samples).unwrap();
+            assert!((r.focal / f - 1.0).abs() < 1e-6, "{} vs {f}", r.focal);
+            assert!((r.rotation - rot).abs_diff_eq(DMat3::ZERO, 1e-6), "{:?} vs {rot:?}", r.rotation);
+            assert!((r.translation - t).length() < 1e-6);
+        }
+        assert!(resect(&[]).is_none());
+    }
+}
