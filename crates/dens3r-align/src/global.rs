@@ -15,9 +15,10 @@
 //!   every aligned pair prediction of it, seen from its optimised camera.
 
 use crate::resection;
+use crate::union_find::UnionFind;
 use dens3r_geom::align::umeyama;
 use dens3r_geom::focal::{focal_from_pointmap, FocalMode};
-use dens3r_geom::transform::{axis_angle, Sim3};
+use dens3r_geom::transform::{axis_angle, nearest_rotation, Sim3};
 use dens3r_geom::{Intrinsics, PinholeCamera, Raster, Vec3};
 use glam::{DMat3, DMat4, DVec3};
 use rayon::prelude::*;
@@ -184,21 +185,14 @@ impl Pose {
         let s = self.adam.step(&[g.0.x, g.0.y, g.0.z, g.1.x, g.1.y, g.1.z], lr, it);
         let d = DVec3::new(-s[0], -s[1], -s[2]);
         if d.length() > 0.0 {
-            self.r = axis_angle(d, d.length()) * self.r;
-            self.r = orthonormalize(self.r);
+            self.r = nearest_rotation(axis_angle(d, d.length()) * self.r);
         }
         self.t -= DVec3::new(s[3], s[4], s[5]);
     }
 }
 
-fn orthonormalize(r: DMat3) -> DMat3 {
-    let x = r.x_axis.normalize();
-    let y = (r.y_axis - x * x.dot(r.y_axis)).normalize();
-    DMat3::from_cols(x, y, x.cross(y))
-}
-
 /// The grid pixels optimised in a `w x h` image.
-fn grid(w: usize, h: usize, points: usize) -> (usize, Vec<(usize, usize)>) {
+fn grid(w: usize, h: usize, points: usize) -> Vec<(usize, usize)> {
     let stride = (((w * h) as f64 / points.max(1) as f64).sqrt().ceil() as usize).max(1);
     let mut px = Vec::new();
     let mut y = stride / 2;
@@ -210,7 +204,7 @@ fn grid(w: usize, h: usize, points: usize) -> (usize, Vec<(usize, usize)>) {
         }
         y += stride;
     }
-    (stride, px)
+    px
 }
 
 fn dv(p: Vec3) -> DVec3 {
@@ -274,24 +268,10 @@ pub fn global_align(
     // 1. Maximum spanning tree (Kruskal) and propagation from the strongest pair.
     let mut order: Vec<usize> = (0..pairs.len()).collect();
     order.sort_by(|&a, &b| score[b].total_cmp(&score[a]));
-    let mut uf: Vec<usize> = (0..n).collect();
-    fn find(uf: &mut [usize], mut a: usize) -> usize {
-        while uf[a] != a {
-            uf[a] = uf[uf[a]];
-            a = uf[a];
-        }
-        a
-    }
-    let mut tree = Vec::new();
-    for &e in &order {
-        let (a, b) = (find(&mut uf, pairs[e].i), find(&mut uf, pairs[e].j));
-        if a != b {
-            uf[a] = b;
-            tree.push(e);
-        }
-    }
-    let root = find(&mut uf, 0);
-    let lost: Vec<usize> = (0..n).filter(|&k| find(&mut uf, k) != root).collect();
+    let mut uf = UnionFind::new(n);
+    let tree: Vec<usize> = order.into_iter().filter(|&e| uf.union(pairs[e].i, pairs[e].j)).collect();
+    let root = uf.find(0);
+    let lost: Vec<usize> = (0..n).filter(|&k| uf.find(k) != root).collect();
     if !lost.is_empty() {
         return Err(GlobalAlignError::Disconnected(lost));
     }
@@ -345,11 +325,9 @@ pub fn global_align(
     let mut focal = vec![0.0f64; n];
     let mut poses: Vec<Pose> = Vec::with_capacity(n);
     let mut scale = vec![1.0f64; n];
-    let mut own: Vec<usize> = vec![0; n];
     let mut cam_pts: Vec<Raster<Vec3>> = Vec::with_capacity(n);
     for k in 0..n {
         let e = (0..pairs.len()).filter(|&e| pairs[e].i == k).max_by(|&a, &b| score[a].total_cmp(&score[b])).unwrap();
-        own[k] = e;
         let (wk, hk) = sizes[k];
         let (cx, cy) = (wk as f64 / 2.0, hk as f64 / 2.0);
         let pts = &pairs[e].pts_i;
@@ -379,13 +357,11 @@ pub fn global_align(
     drop(world);
 
     // 3. Grids, initial depths, and a global scale that makes the median depth 1.
-    let grids: Vec<(usize, Vec<(usize, usize)>)> =
-        sizes.iter().map(|&(wk, hk)| grid(wk, hk, opts.grid_points)).collect();
+    let grids: Vec<Vec<(usize, usize)>> = sizes.iter().map(|&(wk, hk)| grid(wk, hk, opts.grid_points)).collect();
     let mut logd: Vec<Vec<f64>> = (0..n)
         .map(|k| {
             let p = &cam_pts[k];
             grids[k]
-                .1
                 .iter()
                 .map(|&(x, y)| {
                     let q = *p.get(x, y);
@@ -416,7 +392,7 @@ pub fn global_align(
     let offsets: Vec<Vec<(f64, f64)>> = (0..n)
         .map(|k| {
             let (wk, hk) = sizes[k];
-            grids[k].1.iter().map(|&(x, y)| (x as f64 - wk as f64 / 2.0, y as f64 - hk as f64 / 2.0)).collect()
+            grids[k].iter().map(|&(x, y)| (x as f64 - wk as f64 / 2.0, y as f64 - hk as f64 / 2.0)).collect()
         })
         .collect();
     let camera_points = |k: usize, logd: &[Vec<f64>], logf: &[f64]| -> Vec<DVec3> {
@@ -434,7 +410,6 @@ pub fn global_align(
         .map(|(p, w)| {
             let side = |pts: &Raster<Vec3>, ws: &[f64], k: usize| {
                 grids[k]
-                    .1
                     .iter()
                     .enumerate()
                     .filter_map(|(gi, &(x, y))| {
@@ -464,7 +439,12 @@ pub fn global_align(
             log_s.push(t.scale.ln());
         }
     }
+    // Pair scales with their geometric mean held at the initial one (the gauge of scale).
     let mean_log_s0 = log_s.iter().sum::<f64>() / log_s.len() as f64;
+    let pair_scales = |log_s: &[f64]| -> Vec<f64> {
+        let mean = log_s.iter().sum::<f64>() / log_s.len() as f64;
+        log_s.iter().map(|l| (l - mean + mean_log_s0).exp()).collect()
+    };
     let mut adam_s = Adam::new(pairs.len());
     let mut adam_d: Vec<Adam> = logd.iter().map(|d| Adam::new(d.len())).collect();
     let mut adam_f = Adam::new(n);
@@ -485,8 +465,7 @@ pub fn global_align(
         pairs: Vec<(usize, Grad, f64)>, // (pair, pose grad, log-scale grad)
     }
     let eval = |logd: &[Vec<f64>], logf: &[f64], poses: &[Pose], pair_pose: &[Pose], log_s: &[f64]| {
-        let mean = log_s.iter().sum::<f64>() / log_s.len() as f64;
-        let s: Vec<f64> = log_s.iter().map(|l| (l - mean + mean_log_s0).exp()).collect();
+        let s = pair_scales(log_s);
         (0..n)
             .into_par_iter()
             .map(|k| {
@@ -585,11 +564,10 @@ pub fn global_align(
 
     // 5. Outputs: cameras in the input scale (undo g), full-resolution depth from every aligned
     // pair prediction of each image.
-    let mean = log_s.iter().sum::<f64>() / log_s.len() as f64;
     let pair_transforms: Vec<Sim3> = pair_pose
         .iter()
-        .zip(&log_s)
-        .map(|(p, l)| Sim3 { scale: (l - mean + mean_log_s0).exp() / g, rotation: p.r, translation: p.t / g })
+        .zip(pair_scales(&log_s))
+        .map(|(p, s)| Sim3 { scale: s / g, rotation: p.r, translation: p.t / g })
         .collect();
     let views = (0..n)
         .into_par_iter()
@@ -601,6 +579,7 @@ pub fn global_align(
             let mut num = vec![0.0f64; wk * hk];
             let mut den = vec![0.0f64; wk * hk];
             let mut conf = Raster::filled(wk, hk, 0.0f32);
+            let cc = conf.data_mut();
             for &(e, side) in &sides_of[k] {
                 let p = &pairs[e];
                 let (pts, cf) = if side == 0 { (&p.pts_i, &p.conf_i) } else { (&p.pts_j, &p.conf_j) };
@@ -613,7 +592,6 @@ pub fn global_align(
                             den[idx] += wq;
                         }
                     }
-                    let cc = conf.data_mut();
                     if c.is_finite() && c > cc[idx] {
                         cc[idx] = c;
                     }

@@ -8,6 +8,7 @@ pub mod global;
 pub mod matching;
 pub mod pairs;
 pub mod resection;
+mod union_find;
 
 pub use global::{global_align, AlignOptions, AlignedView, Alignment, ConfTransform, GlobalAlignError, PairPrediction};
 pub use pairs::{make_pairs, PairGraph};

@@ -1,6 +1,7 @@
 //! MASt3R fast reciprocal nearest neighbours on dense descriptors (spec 6.4) with Dens3R's
 //! filters (spec 3.5: confidence >= 1.001, 3 px border), and tracks across pairs by union-find.
 
+use crate::union_find::UnionFind;
 use rayon::prelude::*;
 
 /// A dense descriptor map: `dim` floats per pixel, row-major.
@@ -148,37 +149,20 @@ pub type Keypoint = (usize, (usize, usize));
 /// Keypoint tracks across images: matches of every pair joined by union-find over
 /// `(image, pixel)`; tracks seen in fewer than `min_len` keypoints are dropped (Dens3R: 3).
 /// Each track lists its `(image, (x, y))` keypoints, sorted.
-pub fn tracks(matches: &[(usize, usize, Vec<Match>)], min_len: usize) -> Vec<Vec<(usize, (usize, usize))>> {
+pub fn tracks(matches: &[(usize, usize, Vec<Match>)], min_len: usize) -> Vec<Vec<Keypoint>> {
     use std::collections::HashMap;
     let mut id: HashMap<Keypoint, usize> = HashMap::new();
-    let mut parent: Vec<usize> = Vec::new();
-    let mut key = |k: Keypoint, parent: &mut Vec<usize>| {
-        *id.entry(k).or_insert_with(|| {
-            parent.push(parent.len());
-            parent.len() - 1
-        })
-    };
-    fn find(p: &mut [usize], mut a: usize) -> usize {
-        while p[a] != a {
-            p[a] = p[p[a]];
-            a = p[a];
-        }
-        a
-    }
+    let mut sets = UnionFind::new(0);
     for (ia, ib, ms) in matches {
         for m in ms {
-            let (u, v) = (key((*ia, m.a), &mut parent), key((*ib, m.b), &mut parent));
-            let (ru, rv) = (find(&mut parent, u), find(&mut parent, v));
-            if ru != rv {
-                parent[ru.max(rv)] = ru.min(rv);
-            }
+            let u = *id.entry((*ia, m.a)).or_insert_with(|| sets.push());
+            let v = *id.entry((*ib, m.b)).or_insert_with(|| sets.push());
+            sets.union(u, v);
         }
     }
     let mut groups: HashMap<usize, Vec<Keypoint>> = HashMap::new();
-    let keys: Vec<_> = id.into_iter().collect();
-    for (k, i) in keys {
-        let r = find(&mut parent, i);
-        groups.entry(r).or_default().push(k);
+    for (k, i) in id {
+        groups.entry(sets.find(i)).or_default().push(k);
     }
     let mut out: Vec<_> = groups
         .into_values()

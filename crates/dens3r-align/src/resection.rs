@@ -3,8 +3,8 @@
 //! point known and square pixels. Global alignment uses it so pair predictions may come in any
 //! similarity frame, not only their first camera's.
 
+use dens3r_geom::transform::nearest_rotation;
 use glam::{DMat3, DVec3};
-use glamx::DSvd3;
 
 /// A resected camera: `x_cam = rotation * X + translation` (world-to-camera, in the pointmap's
 /// units) and the focal in pixels.
@@ -42,7 +42,6 @@ fn jacobi_eigen(mut a: Vec<f64>, n: usize) -> (Vec<f64>, Vec<f64>) {
                 }
                 let theta = (a[q * n + q] - a[p * n + p]) / (2.0 * apq);
                 let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-                let t = if theta == 0.0 { 1.0 } else { t };
                 let c = 1.0 / (t * t + 1.0).sqrt();
                 let s = t * c;
                 for k in 0..n {
@@ -126,12 +125,7 @@ pub fn resect(samples: &[((f64, f64), DVec3, f64)]) -> Option<Resection> {
         return None;
     }
     // Nearest rotation to the rows (r0 / f, r1 / f, r2).
-    let m = DMat3::from_cols(r0.0 / f0, r1.0 / f1, r2.0).transpose();
-    let svd = DSvd3::from_matrix(m);
-    let mut rot = svd.u * svd.vt;
-    if rot.determinant() < 0.0 {
-        rot = svd.u * DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0)) * svd.vt;
-    }
+    let rot = nearest_rotation(DMat3::from_cols(r0.0 / f0, r1.0 / f1, r2.0).transpose());
     let translation = DVec3::new(r0.1 / focal, r1.1 / focal, r2.1);
     Some(Resection { rotation: rot, translation, focal })
 }

@@ -4,7 +4,7 @@
 //! both paths allocate the same blocks; [`GpuTsdf::finish`] copies the pool back for extraction.
 //! The result equals the CPU path's within float tolerance (`tests/gpu.rs`).
 
-use crate::tsdf::{FrameInput, FusionError, SparseTsdf, TsdfParams, BLOCK, BLOCK_VOXELS};
+use crate::tsdf::{block_base, FrameInput, FusionError, SparseTsdf, TsdfParams, BLOCK_VOXELS};
 use bytemuck::{Pod, Zeroable};
 use glam::{Mat4, Vec3};
 use wgpu::util::DeviceExt;
@@ -80,7 +80,7 @@ impl GpuTsdf {
         let max_buffer = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("dens3r-tsdf"),
-            required_limits: wgpu::Limits { ..limits },
+            required_limits: limits,
             ..Default::default()
         }))
         .map_err(|e| gpu_err(format!("could not open GPU '{}': {e}", info.name)))?;
@@ -163,20 +163,12 @@ impl GpuTsdf {
         let w2c: Mat4 = dens3r_geom::camera::rigid_inverse(&f.camera.cam_to_world).as_mat4();
         let step = |axis: Vec3| w2c.transform_vector3(axis * p.voxel).extend(0.0).to_array();
 
-        // Per touched block: camera-frame centre of its first voxel and its slot (the same
-        // expression as the CPU path, so both start from identical positions).
-        let keys: Vec<_> = self.grid.blocks().map(|(key, _)| key).collect();
+        // Per touched block: camera-frame centre of its first voxel and its slot.
         let blocks: Vec<[f32; 4]> = touched
             .iter()
-            .map(|&slot| {
-                let origin = keys[slot as usize] * BLOCK;
-                let base = w2c.transform_point3((origin.as_vec3() + 0.5) * p.voxel);
-                [base.x, base.y, base.z, f32::from_bits(slot)]
-            })
+            .map(|&slot| block_base(self.grid.key(slot), &w2c, p.voxel).extend(f32::from_bits(slot)).to_array())
             .collect();
-        let (dmin, dmax) = p.depth_range;
-        let depth: Vec<f32> =
-            f.depth.data().iter().map(|&d| if d.is_finite() && d >= dmin && d <= dmax { d } else { -1.0 }).collect();
+        let depth: Vec<f32> = f.depth.data().iter().map(|&d| if p.depth_valid(d) { d } else { -1.0 }).collect();
         let weight: Vec<f32> = match f.weight {
             Some(wt) => wt.data().iter().map(|&x| if x.is_finite() && x > 0.0 { x } else { 0.0 }).collect(),
             None => vec![0.0],
@@ -200,8 +192,8 @@ impl GpuTsdf {
             flags: f.weight.is_some() as u32 | (color.is_some() as u32) << 1,
             trunc: p.trunc,
             max_weight: p.max_weight,
-            dmin,
-            dmax,
+            dmin: p.depth_range.0,
+            dmax: p.depth_range.1,
         };
 
         let dev = &self.device;
@@ -240,67 +232,69 @@ impl GpuTsdf {
 
     /// Waits for the GPU, copies the voxel pool back into the host grid and returns it, ready
     /// for [`crate::extract_mesh`].
-    pub fn finish(mut self) -> Result<SparseTsdf, FusionError> {
-        let n = (self.grid.block_count() * BLOCK_VOXELS) as u64;
-        let color = self.grid.params().color;
+    pub fn finish(self) -> Result<SparseTsdf, FusionError> {
+        let Self { mut grid, device, queue, pool, .. } = self;
+        let n = (grid.block_count() * BLOCK_VOXELS) as u64;
+        let color = grid.params().color;
         let (vb, cb) = voxel_bytes(color);
-        let floats = |bytes: &[u8]| {
-            bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect::<Vec<_>>()
-        };
-        let mut tsdf = Vec::with_capacity(n as usize);
-        let mut weight = Vec::with_capacity(n as usize);
-        self.read(&self.pool.vox, n * vb, |bytes| {
-            for tw in floats(bytes).chunks_exact(2) {
+        let blocks = grid.blocks_mut();
+        // Voxels arrive slot-major, so voxel v is voxel v % 512 of block v / 512.
+        let mut v = 0;
+        read(&device, &queue, &pool.vox, n * vb, |bytes| {
+            for tw in bytes.chunks_exact(8) {
+                let [t, w] = bytemuck::pod_read_unaligned::<[f32; 2]>(tw);
+                let (b, j) = (&mut blocks[v / BLOCK_VOXELS], v % BLOCK_VOXELS);
                 // Never-observed voxels keep the CPU path's initial distance (+1).
-                tsdf.push(if tw[1] > 0.0 { tw[0] } else { 1.0 });
-                weight.push(tw[1]);
+                b.tsdf[j] = if w > 0.0 { t } else { 1.0 };
+                b.weight[j] = w;
+                v += 1;
             }
         })?;
-        let mut col = Vec::new();
         if color {
-            col.reserve(n as usize);
-            self.read(&self.pool.col, n * cb, |bytes| {
-                col.extend(floats(bytes).chunks_exact(3).map(|c| [c[0], c[1], c[2]]))
+            let mut v = 0;
+            read(&device, &queue, &pool.col, n * cb, |bytes| {
+                for c in bytes.chunks_exact(12) {
+                    blocks[v / BLOCK_VOXELS].color[v % BLOCK_VOXELS] = bytemuck::pod_read_unaligned::<[f32; 3]>(c);
+                    v += 1;
+                }
             })?;
         }
-        for (i, block) in self.grid.blocks_mut().iter_mut().enumerate() {
-            let r = i * BLOCK_VOXELS..(i + 1) * BLOCK_VOXELS;
-            block.tsdf.copy_from_slice(&tsdf[r.clone()]);
-            block.weight.copy_from_slice(&weight[r.clone()]);
-            if color {
-                block.color.copy_from_slice(&col[r]);
-            }
-        }
-        Ok(self.grid)
+        Ok(grid)
     }
+}
 
-    /// Reads the first `bytes` of a pool buffer back in chunks (whole voxels each), handing each
-    /// to `sink`.
-    fn read(&self, src: &wgpu::Buffer, bytes: u64, mut sink: impl FnMut(&[u8])) -> Result<(), FusionError> {
-        const CHUNK: u64 = 48 << 20; // a multiple of both voxel sizes (8 and 12 bytes)
-        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size: CHUNK.min(bytes.max(4)),
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
+/// Reads the first `bytes` of a pool buffer back in chunks (whole voxels each), handing each to
+/// `sink`.
+fn read(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    src: &wgpu::Buffer,
+    bytes: u64,
+    mut sink: impl FnMut(&[u8]),
+) -> Result<(), FusionError> {
+    const CHUNK: u64 = 48 << 20; // a multiple of both voxel sizes (8 and 12 bytes)
+    let staging = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("readback"),
+        size: CHUNK.min(bytes.max(4)),
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut off = 0;
+    while off < bytes {
+        let len = CHUNK.min(bytes - off);
+        let mut enc = device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(src, off, &staging, 0, len);
+        queue.submit([enc.finish()]);
+        let slice = staging.slice(..len);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
         });
-        let mut off = 0;
-        while off < bytes {
-            let len = CHUNK.min(bytes - off);
-            let mut enc = self.device.create_command_encoder(&Default::default());
-            enc.copy_buffer_to_buffer(src, off, &staging, 0, len);
-            self.queue.submit([enc.finish()]);
-            let slice = staging.slice(..len);
-            let (tx, rx) = std::sync::mpsc::channel();
-            slice.map_async(wgpu::MapMode::Read, move |r| {
-                let _ = tx.send(r);
-            });
-            self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(gpu_err)?;
-            rx.recv().map_err(gpu_err)?.map_err(gpu_err)?;
-            sink(&slice.get_mapped_range().map_err(gpu_err)?);
-            staging.unmap();
-            off += len;
-        }
-        Ok(())
+        device.poll(wgpu::PollType::wait_indefinitely()).map_err(gpu_err)?;
+        rx.recv().map_err(gpu_err)?.map_err(gpu_err)?;
+        sink(&slice.get_mapped_range().map_err(gpu_err)?);
+        staging.unmap();
+        off += len;
     }
+    Ok(())
 }

@@ -138,8 +138,7 @@ pub fn fuse_scene(
             }
         }
         summary.read_seconds += t.elapsed().as_secs_f64();
-        let (dmin, dmax) = opts.params.depth_range;
-        let valid = depth.data().iter().any(|&d| d.is_finite() && d >= dmin && d <= dmax);
+        let valid = depth.data().iter().any(|&d| opts.params.depth_valid(d));
         if valid {
             any_depth = true;
         } else {

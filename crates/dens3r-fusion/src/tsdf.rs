@@ -121,6 +121,12 @@ impl TsdfParams {
         Ok(())
     }
 
+    /// Whether a depth is used: finite and inside `depth_range`.
+    #[inline]
+    pub fn depth_valid(&self, d: f32) -> bool {
+        d.is_finite() && d >= self.depth_range.0 && d <= self.depth_range.1
+    }
+
     /// Bytes one block takes.
     pub fn block_bytes(&self) -> usize {
         BLOCK_VOXELS * (8 + if self.color { 12 } else { 0 }) + 64
@@ -191,6 +197,13 @@ pub fn angle_weights(normals: &Raster<Vec3>, camera: &PinholeCamera) -> Raster<f
     })
 }
 
+/// Camera-frame centre of the first voxel of block `key`, the start of the incremental voxel
+/// positions; one expression for the CPU update and the GPU upload, so both start identically.
+#[inline]
+pub(crate) fn block_base(key: IVec3, w2c: &Mat4, voxel: f32) -> Vec3 {
+    w2c.transform_point3(((key * BLOCK).as_vec3() + 0.5) * voxel)
+}
+
 impl SparseTsdf {
     /// An empty volume.
     pub fn new(params: TsdfParams) -> Result<Self, FusionError> {
@@ -246,8 +259,7 @@ impl SparseTsdf {
         let k = f.camera.intrinsics;
         let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
         let w2c: Mat4 = dens3r_geom::camera::rigid_inverse(&f.camera.cam_to_world).as_mat4();
-        let (dmin, dmax) = p.depth_range;
-        let valid = |d: f32| d.is_finite() && d >= dmin && d <= dmax;
+        let valid = |d: f32| p.depth_valid(d);
         let (w, h) = (f.depth.width(), f.depth.height());
 
         // Update every voxel of the touched blocks.
@@ -263,8 +275,7 @@ impl SparseTsdf {
         );
         let (wf, hf) = (w as f32 - 0.5, h as f32 - 0.5);
         self.blocks.par_iter_mut().zip(&self.keys).zip(&mask).filter(|(_, &m)| m).for_each(|((block, key), _)| {
-            let origin = *key * BLOCK;
-            let base = w2c.transform_point3((origin.as_vec3() + 0.5) * voxel);
+            let base = block_base(*key, &w2c, voxel);
             let mut i = 0;
             for z in 0..BLOCK {
                 for y in 0..BLOCK {
@@ -347,8 +358,7 @@ impl SparseTsdf {
         let k = f.camera.intrinsics;
         let (fx, fy, cx, cy) = (k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32);
         let c2w = f.camera.cam_to_world.as_mat4();
-        let (dmin, dmax) = p.depth_range;
-        let valid = |d: f32| d.is_finite() && d >= dmin && d <= dmax;
+        let valid = |d: f32| p.depth_valid(d);
 
         // 1. Blocks touched by the truncation band of every (sub-sampled) valid pixel.
         let block_len = p.voxel * BLOCK as f32;
@@ -421,6 +431,12 @@ impl SparseTsdf {
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
     pub(crate) fn count_frame(&mut self) {
         self.frames += 1;
+    }
+
+    /// Block coordinate of a slot (the GPU path's upload).
+    #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+    pub(crate) fn key(&self, slot: u32) -> IVec3 {
+        self.keys[slot as usize]
     }
 
     /// Mutable blocks (the GPU path's download).

@@ -1,6 +1,7 @@
 //! Similarity (and rigid) transforms in f64.
 
 use glam::{DMat3, DMat4, DQuat, DVec3};
+use glamx::DSvd3;
 
 /// `x -> scale * rotation * x + translation`. A rigid transform has `scale == 1`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -78,6 +79,14 @@ pub fn is_rotation(r: &DMat3, tol: f64) -> bool {
     (*r * r.transpose()).abs_diff_eq(DMat3::IDENTITY, tol) && (r.determinant() - 1.0).abs() < tol
 }
 
+/// The rotation nearest to `m` in the Frobenius norm (`U V^T` of its SVD, with the sign of
+/// the smallest singular direction flipped when that would be a reflection).
+pub fn nearest_rotation(m: DMat3) -> DMat3 {
+    let svd = DSvd3::from_matrix(m);
+    let d = if (svd.u.determinant() * svd.vt.determinant()) < 0.0 { -1.0 } else { 1.0 };
+    svd.u * DMat3::from_diagonal(DVec3::new(1.0, 1.0, d)) * svd.vt
+}
+
 /// Rotation angle of a rotation matrix, degrees.
 pub fn rotation_angle_deg(r: &DMat3) -> f64 {
     ((r.x_axis.x + r.y_axis.y + r.z_axis.z - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
@@ -91,6 +100,19 @@ pub fn axis_angle(axis: DVec3, angle: f64) -> DMat3 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn nearest_rotation_projects_onto_rotations() {
+        let r = axis_angle(DVec3::new(1.0, -2.0, 0.5), 1.1);
+        // A rotation is its own nearest rotation; a scaled, slightly sheared one comes back.
+        assert!(nearest_rotation(r).abs_diff_eq(r, 1e-12));
+        let m = r * 3.0 + DMat3::from_cols(DVec3::new(1e-3, 0.0, 0.0), DVec3::ZERO, DVec3::ZERO);
+        let n = nearest_rotation(m);
+        assert!(is_rotation(&n, 1e-12) && rotation_angle_deg(&(n.transpose() * r)) < 0.05);
+        // A reflection maps to a proper rotation (det +1), never a mirror.
+        let mirror = r * DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0));
+        assert!(is_rotation(&nearest_rotation(mirror), 1e-12));
+    }
 
     #[test]
     fn inverse_and_compose() {
