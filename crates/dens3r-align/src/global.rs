@@ -138,6 +138,8 @@ pub struct Alignment {
     pub pair_transforms: Vec<Sim3>,
     /// Weighted mean 3-D residual before and after optimisation (world units).
     pub loss: (f64, f64),
+    /// Fallbacks taken (a camera or focal no pointmap supported), for the user to see.
+    pub warnings: Vec<String>,
 }
 
 type Grad = (DVec3, DVec3); // (rotation tangent, translation)
@@ -322,6 +324,7 @@ pub fn global_align(
     // by resection, so the pair frame need not be camera k's; the focal by Weiszfeld on the
     // camera-frame pointmap; pose and depth scale by Procrustes onto the propagated points
     // (world point = s R x_cam + t, so the depth is s z).
+    let mut warnings = Vec::new();
     let mut focal = vec![0.0f64; n];
     let mut poses: Vec<Pose> = Vec::with_capacity(n);
     let mut scale = vec![1.0f64; n];
@@ -342,13 +345,34 @@ pub fn global_align(
                 }
             }
         }
-        let r = resection::resect(&samples).ok_or_else(|| {
-            GlobalAlignError::Degenerate(format!("image {k}: too few valid points to place its camera"))
-        })?;
-        let cam = pts.map(|&q| if valid(q) { (r.rotation * dv(q) + r.translation).as_vec3() } else { Vec3::NAN });
-        focal[k] = focal_from_pointmap(&cam, (cx, cy), FocalMode::Weiszfeld)
-            .filter(|f| f.is_finite() && *f > 0.0)
-            .ok_or_else(|| GlobalAlignError::Degenerate(format!("image {k}: no valid point to estimate the focal")))?;
+        if samples.len() < 6 {
+            return Err(GlobalAlignError::Degenerate(format!(
+                "image {k}: {} confident points in its own pair frame, too few to place its camera",
+                samples.len()
+            )));
+        }
+        // A pointmap no camera explains (untrained weights) keeps the pair frame as the
+        // camera frame, which is what Dens3R outputs anyway.
+        let (rot, tr) = match resection::resect(&samples) {
+            Some(r) => (r.rotation, r.translation),
+            None => {
+                warnings.push(format!(
+                    "image {k}: no camera explains its pointmap; taking the pair frame as its camera frame"
+                ));
+                (DMat3::IDENTITY, DVec3::ZERO)
+            }
+        };
+        let cam = pts.map(|&q| if valid(q) { (rot * dv(q) + tr).as_vec3() } else { Vec3::NAN });
+        focal[k] = match focal_from_pointmap(&cam, (cx, cy), FocalMode::Weiszfeld).filter(|f| f.is_finite() && *f > 0.0)
+        {
+            Some(f) => f,
+            None => {
+                warnings.push(format!(
+                    "image {k}: its pointmap gives no positive focal (untrained weights?); starting from a 60-degree field of view"
+                ));
+                Intrinsics::from_hfov(wk, hk, 60.0).fx
+            }
+        };
         let t = procrustes(&cam, world[k].as_ref().unwrap(), &w[e][0])?;
         scale[k] = t.scale;
         poses.push(Pose::new(t.rotation, t.translation));
@@ -550,7 +574,12 @@ pub fn global_align(
         if opts.optimize_focal {
             // DUSt3R optimises 20 log f: the same Adam step moves log f 20 times less.
             let step = adam_f.step(&fg, lr / 20.0, t);
-            logf.iter_mut().zip(step).for_each(|(l, s)| *l -= s);
+            // Fields of view between about 1 and 168 degrees: a bound that only untrained
+            // or broken predictions reach (they otherwise drive the focal to 0).
+            for (k, (l, s)) in logf.iter_mut().zip(step).enumerate() {
+                let side = sizes[k].0.max(sizes[k].1) as f64;
+                *l = (*l - s).clamp((0.05 * side).ln(), (50.0 * side).ln());
+            }
         }
         // The mean log-scale is fixed: only deviations from it carry gradient.
         let mean_g = sg.iter().sum::<f64>() / sg.len() as f64;
@@ -609,5 +638,5 @@ pub fn global_align(
             AlignedView { camera: PinholeCamera { intrinsics, width: wk, height: hk, cam_to_world: c2w }, depth, conf }
         })
         .collect();
-    Ok(Alignment { views, pair_transforms, loss: (loss0 / g, last / g) })
+    Ok(Alignment { views, pair_transforms, loss: (loss0 / g, last / g), warnings })
 }

@@ -32,10 +32,27 @@ pub struct ViewMaps {
     pub normals: Option<Raster<Vec3>>,
     /// Confidence (`1 + exp(x)`).
     pub conf: Option<Raster<f32>>,
+    /// Matching descriptors (MASt3R / Dens3R descriptor head), unit norm per pixel.
+    pub desc: Option<DescriptorMap>,
+    /// Descriptor confidence (the model's own, else a copy of `conf`).
+    pub desc_conf: Option<Raster<f32>>,
     /// Index of the camera (0 = first view of the pair) whose frame `points` are in.
     pub frame: usize,
     /// How the image was preprocessed.
     pub info: PrepInfo,
+}
+
+/// A dense descriptor map: `dim` floats per pixel, row-major over `width x height`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DescriptorMap {
+    /// Width in pixels.
+    pub width: usize,
+    /// Height in pixels.
+    pub height: usize,
+    /// Floats per pixel (24 for Dens3R and MASt3R).
+    pub dim: usize,
+    /// `width * height * dim` values.
+    pub data: Vec<f32>,
 }
 
 /// The single-image result (view 1 of the self-pair).
@@ -88,10 +105,16 @@ fn view_maps(v: &ViewPrediction, prep: &Prepared, frame: usize, frame_rotated: b
     let normals =
         v.normal.as_ref().map(|n| vec_map(values(n), &|c| raw.to_opencv(Vec3::from_array(c)).to_array(), rotated));
     let conf = v.conf.as_ref().map(|c| scalar_map(values(c)));
+    let desc = v.desc.as_ref().map(|d| {
+        let dim = d.dims()[3];
+        let (data, height, width) = grid(values(d), dim);
+        DescriptorMap { width, height, dim, data }
+    });
+    let desc_conf = v.desc_conf.as_ref().map(|c| scalar_map(values(c)));
     let depth = points.map(|p| if p.is_finite() && p.z > 0.0 { p.z } else { 0.0 });
     let (rgb, _, _) = to_image_grid(prep.rgb.as_raw().clone(), 3, (h, w), &prep.info, res);
     let rgb = RgbImage::from_raw(points.width() as u32, points.height() as u32, rgb).expect("sizes follow the maps");
-    ViewMaps { rgb, points, depth, normals, conf, frame, info: prep.info.clone() }
+    ViewMaps { rgb, points, depth, normals, conf, desc, desc_conf, frame, info: prep.info.clone() }
 }
 
 /// Runs the self-pair and reads view 1 (`pred1`), as the official pipeline does.

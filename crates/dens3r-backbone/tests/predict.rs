@@ -38,6 +38,20 @@ fn pair_and_mono_agree_and_keep_orientations() {
             assert_eq!(w2.depth.get(x, y), v2.depth.get(y, 47 - x), "({x},{y})");
         }
     }
+    // Descriptors follow the same pixel grid (not rotated as vectors: they are not spatial),
+    // are unit length, and come with a confidence map.
+    let (d2, e2) = (w2.desc.as_ref().unwrap(), v2.desc.as_ref().unwrap());
+    assert_eq!((d2.width, d2.height, d2.dim, e2.width, e2.height), (48, 64, 24, 64, 48));
+    for y in 0..64 {
+        for x in 0..48 {
+            let (a, b) = ((y * 48 + x) * 24, ((47 - x) * 64 + y) * 24);
+            assert_eq!(d2.data[a..a + 24], e2.data[b..b + 24], "desc ({x},{y})");
+            let n: f32 = d2.data[a..a + 24].iter().map(|v| v * v).sum();
+            assert!((n - 1.0).abs() < 1e-4, "unit descriptors: {n}");
+        }
+    }
+    let dc = w2.desc_conf.as_ref().unwrap();
+    assert_eq!((dc.width(), dc.height()), (48, 64));
     // At the original size the maps have the photo's size in each orientation.
     let [o1, o2] = predict_pair(&model, &land, &port, Resolution::Original);
     assert_eq!((o1.depth.width(), o1.depth.height(), o2.depth.width(), o2.depth.height()), (160, 120, 120, 160));

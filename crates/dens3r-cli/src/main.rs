@@ -7,6 +7,7 @@ mod eval;
 mod fuse;
 mod info;
 mod predict;
+mod reconstruct;
 mod render;
 mod verify;
 
@@ -38,6 +39,8 @@ enum Command {
     Info(info::InfoArgs),
     /// Predict depth, normals, confidence and intrinsics for images into a scene folder.
     Predict(predict::PredictArgs),
+    /// Photos -> cameras, aligned depth and normals, COLMAP / nerfstudio export and a mesh.
+    Reconstruct(reconstruct::ReconstructArgs),
     /// Fuse a scene folder's depth (+ colour, confidence, normals) into a mesh (TSDF).
     Fuse(fuse::FuseArgs),
     /// Benchmarks against peers measured in the same run (PyTorch for the backbone).
@@ -61,6 +64,7 @@ fn main() {
         Command::Verify(a) => verify::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Fuse(a) => fuse::run(a),
+        Command::Reconstruct(a) => reconstruct::run(a),
         Command::Bench(c) => bench::run(c),
     };
     if let Err(e) = result {

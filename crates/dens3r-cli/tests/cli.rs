@@ -305,3 +305,101 @@ fn copy_tree(src: &Path, dst: &Path) {
         }
     }
 }
+
+/// `reconstruct` end to end with the fixture-sized model (random weights: the numbers mean
+/// nothing, the plumbing does): a folder of mixed photos (landscape PNGs, a portrait, a JPEG of
+/// another size) -> scene folder, COLMAP model, transforms.json, match pictures, mesh; the
+/// second run takes every pair from the cache.
+#[test]
+fn reconstruct_runs_end_to_end_and_reuses_the_pair_cache() {
+    let dir = tempfile::tempdir().unwrap();
+    let b = fixture("B_two_dec_descconf_48x64_64x48");
+    let (w, c) = (b.join("weights.safetensors"), b.join("config.json"));
+    let (w, c) = (w.to_str().unwrap(), c.to_str().unwrap());
+    let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/room/images");
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    for k in 0..3 {
+        std::fs::copy(samples.join(format!("000{k}.png")), photos.join(format!("a{k}.png"))).unwrap();
+    }
+    let img = image::open(samples.join("0003.png")).unwrap().to_rgb8();
+    image::imageops::rotate90(&img).save(photos.join("b_portrait.png")).unwrap();
+    image::imageops::resize(
+        &image::open(samples.join("0004.png")).unwrap().to_rgb8(),
+        200,
+        112,
+        image::imageops::FilterType::Triangle,
+    )
+    .save(photos.join("c_wide.JPG"))
+    .unwrap();
+    std::fs::write(photos.join("notes.txt"), "not a photo: skipped").unwrap();
+    let out = dir.path().join("out");
+    let run = || {
+        ok(&[
+            "reconstruct",
+            photos.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--weights",
+            w,
+            "--config",
+            c,
+            "--size",
+            "64",
+            "--iterations",
+            "50",
+            "--min-conf",
+            "0",
+        ])
+    };
+    let first = run();
+    assert!(first.contains("5 photos, 20 network pairs (0 from the cache)"), "{first}");
+    let scene = dens3r_scene::Scene::open(&out.join("scene")).unwrap();
+    let sizes: Vec<_> = scene.frames().iter().map(|f| (f.name.as_str(), f.width, f.height)).collect();
+    // 200 x 112 at long side 64 is 64 x 36, cropped to 64 x 32.
+    assert_eq!(sizes, [("a0", 64, 48), ("a1", 64, 48), ("a2", 64, 48), ("b_portrait", 48, 64), ("c_wide", 64, 32)]);
+    for f in scene.frames() {
+        assert!(scene.depth(f).unwrap().is_some() && scene.conf(f).unwrap().is_some());
+        let n = scene.normals(f).unwrap().expect("normals written");
+        assert!(n.data().iter().all(|v| (v.length() - 1.0).abs() < 1e-3 || *v == glam::Vec3::ZERO));
+    }
+    for f in ["colmap/cameras.txt", "colmap/images.txt", "colmap/points3D.txt", "scene/transforms.json"] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    let images_txt = std::fs::read_to_string(out.join("colmap/images.txt")).unwrap();
+    assert!(images_txt.contains("images/b_portrait.png"));
+    if first.contains("mesh: none") {
+        assert!(!out.join("mesh.glb").exists());
+    } else {
+        assert!(!dens3r_mesh::read_mesh(&out.join("mesh.glb")).unwrap().indices.is_empty());
+    }
+    let cameras = std::fs::read(out.join("scene/cameras.json")).unwrap();
+    let second = run();
+    assert!(second.contains("0 network pairs (20 from the cache)"), "{second}");
+    assert_eq!(std::fs::read(out.join("scene/cameras.json")).unwrap(), cameras, "same cameras from the cache");
+    assert_no_temp_files(&out);
+
+    // Bad input: one line naming the problem, nothing written.
+    let bad = dir.path().join("bad");
+    let empty = dir.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let e = fails(&["reconstruct", empty.to_str().unwrap(), "-o", bad.to_str().unwrap(), "--weights", w]);
+    assert!(e.contains("empty") && e.contains("no .png"), "{e}");
+    std::fs::write(empty.join("x.png"), b"not an image").unwrap();
+    std::fs::copy(samples.join("0000.png"), empty.join("y.png")).unwrap();
+    let e = fails(&["reconstruct", empty.to_str().unwrap(), "-o", bad.to_str().unwrap(), "--weights", w]);
+    assert!(e.contains("x.png"), "{e}");
+    let one = samples.join("0000.png");
+    let e = fails(&["reconstruct", one.to_str().unwrap(), "-o", bad.to_str().unwrap(), "--weights", w]);
+    assert!(e.contains("at least 2 photos"), "{e}");
+    let e = fails(&[
+        "reconstruct",
+        photos.to_str().unwrap(),
+        "-o",
+        bad.to_str().unwrap(),
+        "--weights",
+        "/no/w.safetensors",
+    ]);
+    assert!(e.contains("/no/w.safetensors"), "{e}");
+    assert!(!bad.exists(), "failed runs leave no output folder");
+}

@@ -1,0 +1,206 @@
+//! `dens3r reconstruct`: photos -> pairwise predictions (cached) -> matches -> global
+//! alignment -> scene folder, COLMAP / nerfstudio exports, match pictures and a mesh.
+
+use anyhow::{bail, Result};
+use clap::{Args, ValueEnum};
+use dens3r_align::matching::MatchOptions;
+use dens3r_align::{AlignOptions, PairGraph};
+use dens3r_backbone::verify::load_model;
+use dens3r_recon::predictor::weights_id;
+use dens3r_recon::{
+    list_images, load_images, reconstruct, write_outputs, NetworkPredictor, OutputOptions, PairCache, ReconOptions,
+    Stage,
+};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Graph {
+    /// Every pair (Dens3R "exhaustive").
+    Complete,
+    /// Each photo with the next --window (ordered captures; Dens3R "sequential").
+    Swin,
+    /// Each photo with those 1, 2, 4, .. ahead (--window of them).
+    Logwin,
+    /// Every photo with the first.
+    Oneref,
+}
+
+#[derive(Args)]
+pub struct ReconstructArgs {
+    /// Photos: a folder (its .png / .jpg / .jpeg files, sorted by name) or files.
+    #[arg(required = true)]
+    photos: Vec<PathBuf>,
+    /// Output folder (scene/, colmap/, matches/, mesh.glb, cache/).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Checkpoint (.safetensors; convert a .pth with scripts/pth_to_safetensors.py).
+    #[arg(long)]
+    weights: PathBuf,
+    /// JSON with the head counts (see `dens3r predict --help`).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Long side of the network input (512; 1024 for more detail).
+    #[arg(long, default_value_t = 512)]
+    size: u32,
+    /// Keep portrait photos as they are instead of rotating them (upstream DUSt3R / MASt3R).
+    #[arg(long)]
+    keep_portrait: bool,
+    /// Which pairs the network runs (both orders of each).
+    #[arg(long, value_enum, default_value = "complete")]
+    graph: Graph,
+    /// Window of --graph swin / logwin.
+    #[arg(long, default_value_t = 3)]
+    window: usize,
+    /// Close the window around the end (captures that circle the object).
+    #[arg(long)]
+    cyclic: bool,
+    /// Global alignment iterations (DUSt3R: 300).
+    #[arg(long, default_value_t = 300)]
+    iterations: usize,
+    /// Keep the estimated focals fixed during alignment.
+    #[arg(long)]
+    fixed_focal: bool,
+    /// TSDF voxel in scene units (default: twice the pixel footprint at the median depth).
+    #[arg(long)]
+    voxel: Option<f32>,
+    /// Pixels below this confidence are not fused (DUSt3R's demo: 3).
+    #[arg(long, default_value_t = 3.0)]
+    min_conf: f32,
+    /// Stop before the voxel grid exceeds this many MB.
+    #[arg(long, default_value_t = 4096.0)]
+    budget_mb: f64,
+    /// Fuse on the GPU (wgpu).
+    #[arg(long)]
+    gpu: bool,
+    /// Skip the mesh (scene folder and exports only).
+    #[arg(long)]
+    no_mesh: bool,
+    /// Do not keep network outputs in OUTPUT/cache/ (kept by default so re-runs skip the
+    /// network).
+    #[arg(long)]
+    no_cache: bool,
+    /// Match pictures for at most this many pairs (0: none).
+    #[arg(long, default_value_t = 20)]
+    match_pictures: usize,
+    /// Shortest match track exported as a COLMAP 3-D point.
+    #[arg(long, default_value_t = 2)]
+    min_track: usize,
+}
+
+fn bar(prefix: &str, len: usize, unit: &str) -> ProgressBar {
+    ProgressBar::new(len as u64).with_style(
+        ProgressStyle::with_template(&format!("{prefix:>9} {{bar:30}} {{pos}}/{{len}} {unit} [{{elapsed}} < {{eta}}]"))
+            .expect("valid template"),
+    )
+}
+
+pub fn run(a: ReconstructArgs) -> Result<()> {
+    let graph = match a.graph {
+        Graph::Complete => PairGraph::Complete,
+        Graph::Swin => PairGraph::SlidingWindow { k: a.window.max(1), cyclic: a.cyclic },
+        Graph::Logwin => PairGraph::LogWindow { k: a.window.max(1), cyclic: a.cyclic },
+        Graph::Oneref => PairGraph::OneReference { reference: 0 },
+    };
+    if !a.weights.is_file() {
+        bail!("{}: weights not found (a .safetensors checkpoint; see `dens3r predict --help`)", a.weights.display());
+    }
+    if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
+        bail!("--voxel must be positive");
+    }
+    if !(a.budget_mb.is_finite() && a.budget_mb > 0.0) {
+        bail!("--budget-mb must be positive");
+    }
+    let t0 = Instant::now();
+    // Every photo is decoded before the model loads: a bad photo fails in a second.
+    let paths = list_images(&a.photos)?;
+    let images = load_images(&paths, a.size, a.keep_portrait)?;
+    if images.len() < 2 {
+        bail!("reconstruction needs at least 2 photos, got {}", images.len());
+    }
+    let device = dens3r_backbone::Device::default();
+    let (model, unexpected) = load_model(&a.weights, a.config.as_deref(), &device).map_err(anyhow::Error::msg)?;
+    if !unexpected.is_empty() {
+        eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);
+    }
+    let predictor =
+        NetworkPredictor { model: &model, weights_id: format!("{} size {}", weights_id(&a.weights), a.size) };
+    let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
+    let opts = ReconOptions {
+        graph,
+        align: AlignOptions { iterations: a.iterations, optimize_focal: !a.fixed_focal, ..Default::default() },
+        matching: MatchOptions::default(),
+        min_track: a.min_track,
+    };
+    let (pbar, abar) = (bar("pairs", 0, "pairs"), bar("align", a.iterations, "iterations"));
+    let rec = reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
+        Stage::Predict => {
+            pbar.set_length(total as u64);
+            pbar.set_position(done as u64);
+        }
+        Stage::Align => {
+            pbar.finish_and_clear();
+            abar.set_position(done as u64);
+        }
+    })?;
+    abar.finish_and_clear();
+    let out_opts = OutputOptions {
+        voxel: a.voxel,
+        min_conf: a.min_conf,
+        budget_bytes: (a.budget_mb * 1e6) as usize,
+        gpu: a.gpu,
+        mesh: !a.no_mesh,
+        match_pictures: a.match_pictures,
+        ..Default::default()
+    };
+    let fbar = bar("fuse", images.len(), "frames");
+    let summary = write_outputs(&rec, &paths, &a.output, &out_opts, |done, total| {
+        fbar.set_length(total as u64);
+        fbar.set_position(done as u64);
+    })?;
+    fbar.finish_and_clear();
+
+    let s = &rec.stats;
+    for w in s.warnings.iter().chain(&summary.warnings) {
+        eprintln!("warning: {w}");
+    }
+    let tracks = rec.points.len();
+    let nmatch: usize = rec.matches.iter().map(|m| m.2.len()).sum();
+    println!(
+        "{} photos, {} network pairs ({} from the cache) in {:.1}s; {} matches in {:.1}s -> {} tracks",
+        images.len(),
+        s.pairs - s.cache_hits,
+        s.cache_hits,
+        s.predict_seconds,
+        nmatch,
+        s.match_seconds,
+        tracks
+    );
+    println!(
+        "alignment: residual {:.4} -> {:.4} (scene units) in {:.1}s; focals {}",
+        rec.alignment.loss.0,
+        rec.alignment.loss.1,
+        s.align_seconds,
+        rec.alignment.views.iter().map(|v| format!("{:.1}", v.camera.intrinsics.fx)).collect::<Vec<_>>().join(", ")
+    );
+    match &summary.mesh {
+        Some(m) => println!(
+            "mesh: {} triangles at voxel {:.4} in {:.1}s ({}) -> {}",
+            summary.triangles,
+            summary.voxel,
+            summary.fuse_seconds,
+            summary.gpu_adapter.as_deref().map_or("CPU".to_string(), |g| format!("GPU: {g}")),
+            m.display()
+        ),
+        None if a.no_mesh => println!("mesh: skipped (--no-mesh)"),
+        None => println!("mesh: none (see the warning above)"),
+    }
+    println!(
+        "scene: {} (nerfstudio: transforms.json), COLMAP: {} (image path: the scene folder); total {:.1}s",
+        summary.scene.display(),
+        summary.colmap.display(),
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}

@@ -1,0 +1,61 @@
+//! Photos to a reconstructed scene (`dens3r reconstruct`), as a library:
+//!
+//! 1. [`input`]: decode (EXIF orientation), preprocess (portrait -> landscape, resize, crop).
+//! 2. [`pipeline`]: run every pair of the pair graph through a [`PairPredictor`] (the network,
+//!    or anything that yields pointmaps), each ordered pair once and cached on disk
+//!    ([`cache`]); match descriptors into tracks; align globally (`dens3r-align`).
+//! 3. [`output`]: the scene folder (aligned depth, normals, confidence, cameras), COLMAP text
+//!    model and nerfstudio `transforms.json`, match pictures ([`viz`]), and the TSDF mesh.
+
+pub mod cache;
+pub mod input;
+pub mod output;
+pub mod pipeline;
+pub mod predictor;
+pub mod viz;
+
+pub use cache::PairCache;
+pub use input::{list_images, load_images, InputImage};
+pub use output::{write_outputs, OutputOptions, OutputSummary};
+pub use pipeline::{reconstruct, ReconOptions, Reconstruction, Stage};
+pub use predictor::{NetworkPredictor, PairPredictor, ViewOutput};
+
+use std::path::Path;
+
+/// Why a reconstruction stopped; every message names the file or step and what to do.
+#[derive(Debug, thiserror::Error)]
+pub enum ReconError {
+    /// A photo or folder could not be used.
+    #[error("{path}: {msg}")]
+    Input {
+        /// The file or folder.
+        path: String,
+        /// What is wrong with it.
+        msg: String,
+    },
+    /// The predictor failed on a pair or returned malformed maps.
+    #[error("pair ({a}, {b}): {msg}")]
+    Predict {
+        /// First image name.
+        a: String,
+        /// Second image name.
+        b: String,
+        /// What went wrong.
+        msg: String,
+    },
+    /// Global alignment could not run.
+    #[error(transparent)]
+    Align(#[from] dens3r_align::GlobalAlignError),
+    /// Writing an output failed.
+    #[error(transparent)]
+    Scene(#[from] dens3r_scene::SceneError),
+    /// Anything else, described.
+    #[error("{0}")]
+    Other(String),
+}
+
+impl ReconError {
+    pub(crate) fn input(path: &Path, msg: impl Into<String>) -> Self {
+        Self::Input { path: path.display().to_string(), msg: msg.into() }
+    }
+}

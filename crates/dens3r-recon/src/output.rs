@@ -1,0 +1,192 @@
+//! Writing a [`Reconstruction`]: the scene folder, the exports other tools read, match
+//! pictures, and the fused mesh.
+//!
+//! ```text
+//! out/scene/            cameras.json, images/, depth/, normals/, conf/ (dens3r scene folder)
+//! out/scene/transforms.json   nerfstudio (OpenGL poses, paths relative to out/scene)
+//! out/colmap/           cameras.txt, images.txt, points3D.txt (image names relative to out/scene)
+//! out/matches/<a>-<b>.png     match pictures
+//! out/mesh.glb          TSDF mesh of the aligned depth
+//! ```
+
+use crate::pipeline::Reconstruction;
+use crate::viz::match_picture;
+use crate::ReconError;
+use dens3r_fusion::scene::{fuse_scene, SceneFusion};
+use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
+use dens3r_scene::export::{write_colmap_text, write_transforms_json};
+use dens3r_scene::{Frame, Layer, Scene, SceneWriter};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Output settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OutputOptions {
+    /// TSDF voxel in scene units; None: twice the pixel footprint at the median depth.
+    pub voxel: Option<f32>,
+    /// Truncation in voxels.
+    pub trunc_voxels: f32,
+    /// Pixels below this confidence are not fused (DUSt3R's demo default: 3).
+    pub min_conf: f32,
+    /// Stop before the voxel grid exceeds this many bytes.
+    pub budget_bytes: usize,
+    /// Fuse on the GPU (needs the `gpu` feature).
+    pub gpu: bool,
+    /// Fuse at all (otherwise only the scene and exports are written).
+    pub mesh: bool,
+    /// Drop mesh pieces with fewer triangles than this.
+    pub min_component: usize,
+    /// Match pictures for at most this many pairs (0: none).
+    pub match_pictures: usize,
+    /// Lines per match picture.
+    pub match_lines: usize,
+    /// Recorded in `cameras.json` as `generator`.
+    pub generator: String,
+}
+
+impl Default for OutputOptions {
+    fn default() -> Self {
+        Self {
+            voxel: None,
+            trunc_voxels: 4.0,
+            min_conf: 3.0,
+            budget_bytes: 4 << 30,
+            gpu: false,
+            mesh: true,
+            min_component: 100,
+            match_pictures: 20,
+            match_lines: 150,
+            generator: "dens3r reconstruct".into(),
+        }
+    }
+}
+
+/// What was written.
+#[derive(Debug, Clone, Default)]
+pub struct OutputSummary {
+    /// The scene folder.
+    pub scene: PathBuf,
+    /// The COLMAP text model folder.
+    pub colmap: PathBuf,
+    /// The mesh, when one was fused and had a surface.
+    pub mesh: Option<PathBuf>,
+    /// Mesh size.
+    pub triangles: usize,
+    /// Voxel used.
+    pub voxel: f32,
+    /// Seconds fusing and extracting.
+    pub fuse_seconds: f64,
+    /// GPU adapter used for fusion.
+    pub gpu_adapter: Option<String>,
+    /// Things the user should know.
+    pub warnings: Vec<String>,
+}
+
+/// Writes everything under `out`; `fuse_progress(done, total)` follows fusion.
+pub fn write_outputs(
+    rec: &Reconstruction,
+    sources: &[PathBuf],
+    out: &Path,
+    opts: &OutputOptions,
+    mut fuse_progress: impl FnMut(usize, usize),
+) -> Result<OutputSummary, ReconError> {
+    let scene_dir = out.join("scene");
+    let mut w = SceneWriter::create(&scene_dir)?;
+    w.set_extra("generator", serde_json::json!(opts.generator));
+    w.set_extra("units", serde_json::json!("arbitrary (up to scale)"));
+    w.set_extra("alignment_loss", serde_json::json!([rec.alignment.loss.0, rec.alignment.loss.1]));
+    for (k, v) in rec.alignment.views.iter().enumerate() {
+        let name = &rec.names[k];
+        let mut frame = Frame::new(name, &v.camera);
+        if let Some(src) = sources.get(k) {
+            frame.extra.insert("source".into(), serde_json::json!(src.display().to_string()));
+        }
+        w.add_frame(frame, &rec.rgb[k])?;
+        w.write_depth(name, &v.depth)?;
+        w.write_conf(name, &v.conf)?;
+        if let Some(n) = &rec.normals[k] {
+            w.write_normals(name, n)?;
+        }
+    }
+    w.finish()?;
+    let scene = Scene::open(&scene_dir)?;
+    write_transforms_json(&scene_dir.join("transforms.json"), scene.frames(), |f| scene.has(f, Layer::Depth))?;
+    let colmap = out.join("colmap");
+    write_colmap_text(&colmap, scene.frames(), &rec.points)?;
+
+    let mut ranked: Vec<&(usize, usize, Vec<_>)> = rec.matches.iter().filter(|m| !m.2.is_empty()).collect();
+    ranked.sort_by_key(|m| std::cmp::Reverse(m.2.len()));
+    for (a, b, ms) in ranked.into_iter().take(opts.match_pictures) {
+        let img = match_picture(&rec.rgb[*a], &rec.rgb[*b], ms, opts.match_lines);
+        let path = out.join("matches").join(format!("{}-{}.png", rec.names[*a], rec.names[*b]));
+        write_png(&path, &img)?;
+    }
+
+    let mut summary = OutputSummary { scene: scene_dir, colmap, ..Default::default() };
+    if opts.mesh {
+        fuse(rec, &scene, out, opts, &mut summary, &mut fuse_progress)?;
+    }
+    Ok(summary)
+}
+
+/// The default voxel: twice the pixel footprint at the median depth of all views.
+pub fn auto_voxel(rec: &Reconstruction) -> Option<f32> {
+    let mut per_view: Vec<f64> = rec
+        .alignment
+        .views
+        .iter()
+        .filter_map(|v| {
+            let mut d: Vec<f64> =
+                v.depth.data().iter().filter(|d| **d > 0.0 && d.is_finite()).map(|&d| d as f64).collect();
+            dens3r_geom::focal::median(&mut d).map(|m| 2.0 * m / v.camera.intrinsics.fx)
+        })
+        .collect();
+    dens3r_geom::focal::median(&mut per_view).map(|v| v as f32).filter(|v| v.is_finite() && *v > 0.0)
+}
+
+fn fuse(
+    rec: &Reconstruction,
+    scene: &Scene,
+    out: &Path,
+    opts: &OutputOptions,
+    summary: &mut OutputSummary,
+    progress: &mut impl FnMut(usize, usize),
+) -> Result<(), ReconError> {
+    let t = Instant::now();
+    let Some(voxel) = opts.voxel.or_else(|| auto_voxel(rec)) else {
+        summary.warnings.push("no valid aligned depth: no mesh".into());
+        return Ok(());
+    };
+    if !(voxel.is_finite() && voxel > 0.0) {
+        return Err(ReconError::Other(format!("voxel {voxel} must be positive")));
+    }
+    let mut params = TsdfParams::new(voxel);
+    params.trunc = opts.trunc_voxels * voxel;
+    params.depth_range = (voxel * 1e-3, f32::MAX);
+    params.budget_bytes = Some(opts.budget_bytes);
+    let fusion = SceneFusion { params, use_conf: true, min_conf: opts.min_conf, use_normals: false, gpu: opts.gpu };
+    let (tsdf, fs) = fuse_scene(scene, &fusion, progress).map_err(ReconError::Other)?;
+    let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: opts.min_component, crop: None });
+    summary.voxel = voxel;
+    summary.gpu_adapter = fs.gpu_adapter;
+    summary.fuse_seconds = t.elapsed().as_secs_f64();
+    if mesh.indices.is_empty() {
+        summary.warnings.push(format!(
+            "the fused volume has no surface at voxel {voxel} (confidence below {} everywhere, or too few views agree); lower --min-conf or set --voxel",
+            opts.min_conf
+        ));
+        return Ok(());
+    }
+    let path = out.join("mesh.glb");
+    dens3r_mesh::write_mesh(&path, &mesh).map_err(|e| ReconError::Other(e.to_string()))?;
+    summary.triangles = mesh.indices.len();
+    summary.mesh = Some(path);
+    Ok(())
+}
+
+fn write_png(path: &Path, img: &image::RgbImage) -> Result<(), ReconError> {
+    let mut buf = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut buf, image::ImageFormat::Png).map_err(|e| ReconError::Other(e.to_string()))?;
+    dens3r_mesh::io::write_atomic(path, |w| std::io::Write::write_all(w, buf.get_ref()))
+        .map_err(|e| ReconError::Other(format!("{}: {e}", path.display())))
+}

@@ -1,0 +1,247 @@
+//! Pairs -> matches -> global alignment -> tracks: the in-memory reconstruction.
+
+use crate::cache::PairCache;
+use crate::input::InputImage;
+use crate::predictor::{PairPredictor, ViewOutput};
+use crate::ReconError;
+use dens3r_align::matching::{reciprocal_matches, tracks, Descriptors, Match, MatchOptions};
+use dens3r_align::{global_align, make_pairs, AlignOptions, Alignment, PairGraph, PairPrediction};
+use dens3r_geom::{DVec3, Raster, Vec3};
+use dens3r_scene::export::TrackPoint;
+use image::RgbImage;
+use std::collections::HashSet;
+use std::time::Instant;
+
+/// Reconstruction settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReconOptions {
+    /// Which pairs run (symmetrised: both orders of each pair).
+    pub graph: PairGraph,
+    /// Global alignment.
+    pub align: AlignOptions,
+    /// Descriptor matching (skipped when the model has no descriptor head).
+    pub matching: MatchOptions,
+    /// Shortest track kept as a 3-D point (2 = every reciprocal match).
+    pub min_track: usize,
+}
+
+impl Default for ReconOptions {
+    fn default() -> Self {
+        Self {
+            graph: PairGraph::Complete,
+            align: AlignOptions::default(),
+            matching: MatchOptions::default(),
+            min_track: 2,
+        }
+    }
+}
+
+/// Pipeline stages, for progress reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Network runs (or cache reads) over the ordered pairs.
+    Predict,
+    /// Global alignment iterations.
+    Align,
+}
+
+/// What one run produced (all maps at each image's network size, own orientation).
+#[derive(Debug, Clone)]
+pub struct Reconstruction {
+    /// Frame names, input order.
+    pub names: Vec<String>,
+    /// Colours per frame.
+    pub rgb: Vec<RgbImage>,
+    /// Cameras, aligned depth and confidence.
+    pub alignment: Alignment,
+    /// Confidence-weighted mean of the pair predictions' normals (camera frame), if any.
+    pub normals: Vec<Option<Raster<Vec3>>>,
+    /// Reciprocal matches per matched pair `(i, j, matches)`, `i < j`.
+    pub matches: Vec<(usize, usize, Vec<Match>)>,
+    /// Tracks as 3-D points (for COLMAP's points3D).
+    pub points: Vec<TrackPoint>,
+    /// Counts, timings and warnings.
+    pub stats: ReconStats,
+}
+
+/// Counts and timings of a run.
+#[derive(Debug, Clone, Default)]
+pub struct ReconStats {
+    /// Ordered pairs in the graph.
+    pub pairs: usize,
+    /// Of those, read from the cache.
+    pub cache_hits: usize,
+    /// Seconds predicting (network or cache).
+    pub predict_seconds: f64,
+    /// Seconds matching.
+    pub match_seconds: f64,
+    /// Seconds aligning.
+    pub align_seconds: f64,
+    /// Things the user should know (fallbacks, cache problems).
+    pub warnings: Vec<String>,
+}
+
+/// Runs the pair graph over `images`, matches, aligns and triangulates tracks.
+/// `progress(stage, done, total)` reports each stage.
+pub fn reconstruct(
+    images: &[InputImage],
+    predictor: &dyn PairPredictor,
+    cache: &PairCache,
+    opts: &ReconOptions,
+    mut progress: impl FnMut(Stage, usize, usize),
+) -> Result<Reconstruction, ReconError> {
+    let n = images.len();
+    if n < 2 {
+        return Err(ReconError::Other(format!("reconstruction needs at least 2 photos, got {n}")));
+    }
+    let sizes: Vec<(usize, usize)> = images.iter().map(|im| im.size()).collect();
+    let order = make_pairs(n, opts.graph, true);
+    let ordered: HashSet<(usize, usize)> = order.iter().copied().collect();
+    let mut stats = ReconStats { pairs: order.len(), ..Default::default() };
+    let id = predictor.id();
+    let mut normal_sum: Vec<Option<(Vec<Vec3>, Vec<f32>)>> = vec![None; n];
+    let mut matches = Vec::new();
+    let mut preds = Vec::with_capacity(order.len());
+    progress(Stage::Predict, 0, order.len());
+    for (e, &(i, j)) in order.iter().enumerate() {
+        let t = Instant::now();
+        let key = PairCache::key(&id, &images[i], &images[j]);
+        let out = match cache.load(&key, [sizes[i], sizes[j]]) {
+            Some(out) => {
+                stats.cache_hits += 1;
+                out
+            }
+            None => {
+                let err =
+                    |msg: String| ReconError::Predict { a: images[i].name.clone(), b: images[j].name.clone(), msg };
+                let out = predictor.predict(images, i, j).map_err(err)?;
+                for (v, k) in [(0, i), (1, j)] {
+                    out[v].check(sizes[k]).map_err(|m| err(format!("{}: {m}", images[k].name)))?;
+                }
+                if let Err(w) = cache.store(&key, &out) {
+                    stats.warnings.push(format!("pair cache not written: {w}"));
+                }
+                out
+            }
+        };
+        stats.predict_seconds += t.elapsed().as_secs_f64();
+        for (v, k) in [(0, i), (1, j)] {
+            if let Some(nm) = &out[v].normals {
+                accumulate_normals(&mut normal_sum[k], nm, &out[v].conf);
+            }
+        }
+        // Each unordered pair is matched once, on the run with the smaller index first.
+        if i < j || !ordered.contains(&(j, i)) {
+            let t = Instant::now();
+            if let Some(ms) = match_pair(&out, &opts.matching).map_err(ReconError::Other)? {
+                let (a, b, ms) = if i < j { (i, j, ms) } else { (j, i, ms.into_iter().map(swap).collect()) };
+                matches.push((a, b, ms));
+            }
+            stats.match_seconds += t.elapsed().as_secs_f64();
+        }
+        let [vi, vj] = out;
+        preds.push(PairPrediction { i, j, pts_i: vi.points, pts_j: vj.points, conf_i: vi.conf, conf_j: vj.conf });
+        progress(Stage::Predict, e + 1, order.len());
+    }
+    matches.sort_by_key(|m| (m.0, m.1));
+
+    let t = Instant::now();
+    let iters = opts.align.iterations;
+    let alignment = global_align(&sizes, &preds, &opts.align, |it, _| progress(Stage::Align, it, iters))?;
+    stats.align_seconds = t.elapsed().as_secs_f64();
+    stats.warnings.extend(alignment.warnings.iter().cloned());
+    drop(preds);
+
+    let normals = normal_sum
+        .into_iter()
+        .zip(&sizes)
+        .map(|(s, &(w, h))| {
+            s.map(|(sum, _)| {
+                let v = sum.into_iter().map(|n| n.try_normalize().unwrap_or(Vec3::ZERO)).collect();
+                Raster::from_vec(w, h, v).expect("sizes checked")
+            })
+        })
+        .collect();
+    let rgb: Vec<RgbImage> = images.iter().map(|im| im.rgb()).collect();
+    let points = track_points(&alignment, &rgb, &matches, opts.min_track);
+    Ok(Reconstruction {
+        names: images.iter().map(|im| im.name.clone()).collect(),
+        rgb,
+        alignment,
+        normals,
+        matches,
+        points,
+        stats,
+    })
+}
+
+fn swap(m: Match) -> Match {
+    Match { a: m.b, b: m.a, conf: m.conf }
+}
+
+fn accumulate_normals(acc: &mut Option<(Vec<Vec3>, Vec<f32>)>, n: &Raster<Vec3>, conf: &Raster<f32>) {
+    let (sum, wsum) = acc.get_or_insert_with(|| (vec![Vec3::ZERO; n.data().len()], vec![0.0; n.data().len()]));
+    for (k, (&nk, &c)) in n.data().iter().zip(conf.data()).enumerate() {
+        if nk.is_finite() && nk.length_squared() > 0.0 && c.is_finite() && c > 0.0 {
+            sum[k] += nk * c;
+            wsum[k] += c;
+        }
+    }
+}
+
+/// Reciprocal matches of one pair run, or None when the model has no descriptors.
+fn match_pair(out: &[ViewOutput; 2], opts: &MatchOptions) -> Result<Option<Vec<Match>>, String> {
+    let (Some(da), Some(db)) = (&out[0].desc, &out[1].desc) else { return Ok(None) };
+    let conf = |v: &ViewOutput| v.desc_conf.as_ref().unwrap_or(&v.conf).data().to_vec();
+    reciprocal_matches(&descriptors(da), &descriptors(db), &conf(&out[0]), &conf(&out[1]), opts).map(Some)
+}
+
+fn descriptors(m: &dens3r_backbone::predict::DescriptorMap) -> Descriptors<'_> {
+    Descriptors { width: m.width, height: m.height, dim: m.dim, data: &m.data }
+}
+
+/// Tracks with one keypoint per image become 3-D points: each keypoint's aligned depth gives a
+/// world point; the most confident one is kept, and its mean reprojection error recorded.
+fn track_points(
+    a: &Alignment,
+    rgb: &[RgbImage],
+    matches: &[(usize, usize, Vec<Match>)],
+    min_track: usize,
+) -> Vec<TrackPoint> {
+    tracks(matches, min_track.max(2))
+        .into_iter()
+        .filter(|t| t.windows(2).all(|w| w[0].0 != w[1].0)) // sorted: repeats are adjacent
+        .filter_map(|t| {
+            let world = |&(k, (x, y)): &(usize, (usize, usize))| {
+                let v = &a.views[k];
+                let d = *v.depth.get(x, y);
+                (d > 0.0 && d.is_finite()).then(|| {
+                    let c = v.camera.intrinsics.unproject(x as f64, y as f64) * d as f64;
+                    (v.camera.cam_to_world.transform_point3(c), *v.conf.get(x, y))
+                })
+            };
+            let (best, (xyz, _)) = t
+                .iter()
+                .enumerate()
+                .filter_map(|(o, kp)| world(kp).map(|w| (o, w)))
+                .max_by(|a, b| a.1 .1.total_cmp(&b.1 .1))?;
+            let mut err = 0.0;
+            for &(k, (x, y)) in &t {
+                let cam = &a.views[k].camera;
+                let c: DVec3 = cam.world_to_cam().transform_point3(xyz);
+                if c.z <= 0.0 {
+                    return None;
+                }
+                let (u, v) = cam.intrinsics.project(c);
+                err += ((u - x as f64).powi(2) + (v - y as f64).powi(2)).sqrt();
+            }
+            let (k, (x, y)) = t[best];
+            Some(TrackPoint {
+                xyz,
+                rgb: rgb[k].get_pixel(x as u32, y as u32).0,
+                error: err / t.len() as f64,
+                observations: t.iter().map(|&(k, (x, y))| (k, (x as f64, y as f64))).collect(),
+            })
+        })
+        .collect()
+}

@@ -1,0 +1,99 @@
+//! What runs on a pair of images: the network ([`NetworkPredictor`]) or anything else that
+//! yields pointmaps (an oracle in tests, another model).
+
+use crate::input::InputImage;
+use dens3r_backbone::model::Dens3r;
+use dens3r_backbone::predict::{predict_pair, DescriptorMap, Resolution, ViewMaps};
+use dens3r_geom::{Raster, Vec3};
+
+/// One view of a pair prediction, at the view's [`InputImage::size`].
+#[derive(Debug, Clone)]
+pub struct ViewOutput {
+    /// Pointmap in the OpenCV frame of the pair's first camera (any similarity of it).
+    pub points: Raster<Vec3>,
+    /// Confidence (>= 1; `1 + exp(x)` for Dens3R).
+    pub conf: Raster<f32>,
+    /// Unit normals in this view's own OpenCV camera frame, facing the camera.
+    pub normals: Option<Raster<Vec3>>,
+    /// Matching descriptors.
+    pub desc: Option<DescriptorMap>,
+    /// Descriptor confidence.
+    pub desc_conf: Option<Raster<f32>>,
+}
+
+impl ViewOutput {
+    /// Checks sizes against `(w, h)` and that the maps agree with each other.
+    pub fn check(&self, (w, h): (usize, usize)) -> Result<(), String> {
+        let sz = |r: (usize, usize), what: &str| {
+            if r != (w, h) {
+                Err(format!("{what} is {}x{}, expected {w}x{h}", r.0, r.1))
+            } else {
+                Ok(())
+            }
+        };
+        sz((self.points.width(), self.points.height()), "pointmap")?;
+        sz((self.conf.width(), self.conf.height()), "confidence")?;
+        if let Some(n) = &self.normals {
+            sz((n.width(), n.height()), "normals")?;
+        }
+        if let Some(d) = &self.desc {
+            sz((d.width, d.height), "descriptors")?;
+            if d.dim == 0 || d.data.len() != w * h * d.dim {
+                return Err(format!("descriptors hold {} values for {w}x{h}x{}", d.data.len(), d.dim));
+            }
+        }
+        if let Some(c) = &self.desc_conf {
+            sz((c.width(), c.height()), "descriptor confidence")?;
+        }
+        Ok(())
+    }
+
+    /// From the backbone's maps; a model without a confidence head gets confidence `e`
+    /// (loss weight 1 under `log`).
+    pub fn from_maps(m: ViewMaps) -> Self {
+        let conf = m.conf.unwrap_or_else(|| Raster::filled(m.points.width(), m.points.height(), std::f32::consts::E));
+        Self { points: m.points, conf, normals: m.normals, desc: m.desc, desc_conf: m.desc_conf }
+    }
+}
+
+/// Runs pairs of images.
+pub trait PairPredictor {
+    /// Identifies the predictor and its settings in the pair cache: outputs cached under one
+    /// id are reused only by a predictor with the same id.
+    fn id(&self) -> String;
+    /// Predicts the ordered pair `(images[i], images[j])`: both pointmaps in camera `i`'s
+    /// frame.
+    fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String>;
+}
+
+/// The Dens3R / DUSt3R / MASt3R network at its input resolution.
+pub struct NetworkPredictor<'a> {
+    /// The loaded model.
+    pub model: &'a Dens3r,
+    /// Identity of the weights (file, length, modification time) for the cache.
+    pub weights_id: String,
+}
+
+impl PairPredictor for NetworkPredictor<'_> {
+    fn id(&self) -> String {
+        format!("dens3r-network-v1 {}", self.weights_id)
+    }
+
+    fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String> {
+        let [a, b] = predict_pair(self.model, &images[i].prep, &images[j].prep, Resolution::Network);
+        Ok([ViewOutput::from_maps(a), ViewOutput::from_maps(b)])
+    }
+}
+
+/// A weights file's identity for the cache: canonical path, length and modification time
+/// (hashing 2.4 GB per run would cost seconds).
+pub fn weights_id(path: &std::path::Path) -> String {
+    let canon = path.canonicalize().unwrap_or_else(|_| path.to_path_buf());
+    let meta = std::fs::metadata(path).ok();
+    let len = meta.as_ref().map_or(0, |m| m.len());
+    let mtime = meta
+        .and_then(|m| m.modified().ok())
+        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+        .map_or(0, |d| d.as_nanos());
+    format!("{} {len} {mtime}", canon.display())
+}

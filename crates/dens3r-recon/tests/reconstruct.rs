@@ -1,0 +1,293 @@
+//! The reconstruction pipeline end to end with an oracle predictor: rendered photos of the
+//! procedural room go in as files; the "network" returns the true pointmaps (each pair in its
+//! own random similarity frame), the true normals, and descriptors that are a known function of
+//! the world position. Everything the pipeline adds (cache, matching, alignment, tracks,
+//! outputs, fusion) is checked against the renderer's ground truth after one similarity.
+
+use dens3r_backbone::predict::DescriptorMap;
+use dens3r_geom::align::umeyama;
+use dens3r_geom::pointmap::depth_to_pointmap;
+use dens3r_geom::transform::{axis_angle, rotation_angle_deg, Sim3};
+use dens3r_geom::{DMat3, DVec3, Intrinsics, PinholeCamera, Raster, Vec3};
+use dens3r_mesh::metrics::{mesh_metrics, MeshMetricsOptions};
+use dens3r_recon::{
+    list_images, load_images, reconstruct, write_outputs, InputImage, OutputOptions, PairCache, PairPredictor,
+    ReconOptions, ViewOutput,
+};
+use dens3r_render::path::room_walk;
+use dens3r_render::procedural::{room, ROOM_HI, ROOM_LO};
+use dens3r_render::World;
+use rand::{Rng, SeedableRng};
+use std::cell::Cell;
+use std::path::Path;
+
+const W: usize = 160;
+const H: usize = 112; // multiples of 16: preprocessing at --size 160 keeps every pixel
+
+struct Truth {
+    world: World,
+    cams: Vec<PinholeCamera>,
+    own: Vec<Raster<Vec3>>,
+    normals: Vec<Raster<Vec3>>,
+}
+
+fn truth(n: usize) -> Truth {
+    let world = World::new(room(3)).unwrap();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let cams: Vec<PinholeCamera> = room_walk(ROOM_LO.as_dvec3(), ROOM_HI.as_dvec3(), 1.5, n, 4)
+        .into_iter()
+        .map(|pose| PinholeCamera {
+            intrinsics: Intrinsics::from_hfov(W, H, rng.gen_range(55.0..70.0)),
+            width: W,
+            height: H,
+            cam_to_world: pose,
+        })
+        .collect();
+    let views: Vec<_> = cams.iter().map(|c| world.render(c)).collect();
+    let own = cams.iter().zip(&views).map(|(c, v)| depth_to_pointmap(&v.depth, &c.intrinsics)).collect();
+    let normals = views.iter().map(|v| v.normals.clone()).collect();
+    Truth { world, cams, own, normals }
+}
+
+/// Writes the rendered photos as PNG files (the pipeline's input).
+fn photos(t: &Truth, dir: &Path) {
+    for (k, c) in t.cams.iter().enumerate() {
+        t.world.render(c).rgb.save(dir.join(format!("view{k}.png"))).unwrap();
+    }
+}
+
+/// Descriptor size: random Fourier features need more than Dens3R's 24 to be unique over a
+/// room (the matcher takes any size).
+const DIM: usize = 64;
+
+/// Unit descriptors: random Fourier features of the world position (a known function of it,
+/// so reciprocal nearest neighbours are true correspondences).
+fn feature(p: DVec3, freqs: &[(DVec3, f64)]) -> [f32; DIM] {
+    let mut out = [0f32; DIM];
+    let norm = ((DIM / 2) as f64).sqrt();
+    for (k, (f, ph)) in freqs.iter().enumerate() {
+        let a = f.dot(p) + ph;
+        out[2 * k] = (a.cos() / norm) as f32;
+        out[2 * k + 1] = (a.sin() / norm) as f32;
+    }
+    out
+}
+
+struct Oracle<'a> {
+    t: &'a Truth,
+    freqs: Vec<(DVec3, f64)>,
+    calls: Cell<usize>,
+}
+
+impl<'a> Oracle<'a> {
+    fn new(t: &'a Truth) -> Self {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(99);
+        let freqs = (0..DIM / 2)
+            .map(|_| {
+                let d = DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0));
+                (d.normalize() * rng.gen_range(1.0f64..4.0).exp2(), rng.gen_range(0.0..std::f64::consts::TAU))
+            })
+            .collect();
+        Self { t, freqs, calls: Cell::new(0) }
+    }
+}
+
+impl PairPredictor for Oracle<'_> {
+    fn id(&self) -> String {
+        "oracle-v1".into()
+    }
+
+    fn predict(&self, _images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String> {
+        self.calls.set(self.calls.get() + 1);
+        let t = self.t;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64((i * 100 + j) as u64);
+        let sim = Sim3 {
+            scale: rng.gen_range(0.3..3.0),
+            rotation: axis_angle(DVec3::new(rng.gen(), rng.gen(), rng.gen()), rng.gen_range(0.0..3.0)),
+            translation: DVec3::new(rng.gen(), rng.gen(), rng.gen()),
+        };
+        // Like a trained network's, descriptor confidence is high only where the other view of
+        // the pair sees the same surface.
+        let seen_by = |x: DVec3, o: usize| {
+            let c = t.cams[o].world_to_cam().transform_point3(x);
+            let (u, v) = t.cams[o].intrinsics.project(c);
+            let (u, v) = (u.round(), v.round());
+            c.z > 0.0 && u >= 0.0 && v >= 0.0 && (u as usize) < W && (v as usize) < H && {
+                let z = t.own[o].get(u as usize, v as usize).z as f64;
+                (z - c.z).abs() < 0.02 * c.z
+            }
+        };
+        let view = |k: usize| {
+            let other = if k == i { j } else { i };
+            let to_i = t.cams[i].world_to_cam() * t.cams[k].cam_to_world;
+            let to_world = t.cams[k].cam_to_world;
+            let own = &t.own[k];
+            let ok = |p: &Vec3| p.is_finite() && p.z > 0.0;
+            let points =
+                own.map(|p| if ok(p) { sim.apply(to_i.transform_point3(p.as_dvec3())).as_vec3() } else { Vec3::NAN });
+            let conf = own.map(|p| if ok(p) { 5.0 } else { 1.0 });
+            let desc_conf =
+                own.map(|p| if ok(p) && seen_by(to_world.transform_point3(p.as_dvec3()), other) { 5.0 } else { 1.0 });
+            let data = own
+                .data()
+                .iter()
+                .flat_map(|p| {
+                    if ok(p) {
+                        feature(to_world.transform_point3(p.as_dvec3()), &self.freqs)
+                    } else {
+                        [0.0; DIM]
+                    }
+                })
+                .collect();
+            ViewOutput {
+                points,
+                conf,
+                normals: Some(t.normals[k].clone()),
+                desc: Some(DescriptorMap { width: W, height: H, dim: DIM, data }),
+                desc_conf: Some(desc_conf),
+            }
+        };
+        Ok([view(i), view(j)])
+    }
+}
+
+/// A predictor with the oracle's id that must never run (everything comes from the cache).
+struct Refuses;
+impl PairPredictor for Refuses {
+    fn id(&self) -> String {
+        "oracle-v1".into()
+    }
+    fn predict(&self, _: &[InputImage], _: usize, _: usize) -> Result<[ViewOutput; 2], String> {
+        Err("the network was called".into())
+    }
+}
+
+#[test]
+fn oracle_photos_become_the_true_scene() {
+    let n = 6;
+    let t = truth(n);
+    let dir = tempfile::tempdir().unwrap();
+    let (photo_dir, out) = (dir.path().join("photos"), dir.path().join("out"));
+    std::fs::create_dir_all(&photo_dir).unwrap();
+    photos(&t, &photo_dir);
+    let paths = list_images(std::slice::from_ref(&photo_dir)).unwrap();
+    assert_eq!(paths.len(), n);
+    let images = load_images(&paths, W as u32, false).unwrap();
+    assert!(images.iter().all(|im| im.size() == (W, H)));
+
+    let oracle = Oracle::new(&t);
+    let cache = PairCache::new(Some(out.join("cache")));
+    let opts = ReconOptions::default();
+    let mut stages = Vec::new();
+    let rec = reconstruct(&images, &oracle, &cache, &opts, |s, d, _| stages.push((s, d))).unwrap();
+    assert_eq!((rec.stats.pairs, oracle.calls.get(), rec.stats.cache_hits), (n * (n - 1), n * (n - 1), 0));
+    assert!(stages.iter().any(|s| s.0 == dens3r_recon::Stage::Align));
+
+    // Cameras, up to one similarity (the gauge).
+    let tc: Vec<DVec3> = t.cams.iter().map(|c| c.center()).collect();
+    let est: Vec<PinholeCamera> = rec.alignment.views.iter().map(|v| v.camera).collect();
+    let ec: Vec<DVec3> = est.iter().map(|c| c.center()).collect();
+    let gauge = umeyama(&ec, &tc, None, true).unwrap();
+    let diag = (ROOM_HI - ROOM_LO).length() as f64;
+    let (mut rot, mut pos, mut foc) = (0f64, 0f64, 0f64);
+    for k in 0..n {
+        let re = gauge.rotation * DMat3::from_mat4(est[k].cam_to_world);
+        rot = rot.max(rotation_angle_deg(&(DMat3::from_mat4(t.cams[k].cam_to_world).transpose() * re)));
+        pos = pos.max((gauge.apply(ec[k]) - tc[k]).length() / diag);
+        foc = foc.max((est[k].intrinsics.fx / t.cams[k].intrinsics.fx - 1.0).abs());
+    }
+    eprintln!("cameras: rotation {rot:.3} deg, centre {:.3}% of the room, focal {:.3}%", pos * 100.0, foc * 100.0);
+    assert!(rot < 1.0 && pos < 0.01 && foc < 0.01, "{rot} {pos} {foc}");
+
+    // Aligned depth (times the gauge scale) is the true depth.
+    let mut rel = Vec::new();
+    for (k, v) in rec.alignment.views.iter().enumerate() {
+        for (d, p) in v.depth.data().iter().zip(t.own[k].data()) {
+            if *d > 0.0 && p.is_finite() && p.z > 0.0 {
+                rel.push((*d as f64 * gauge.scale / p.z as f64 - 1.0).abs());
+            }
+        }
+    }
+    rel.sort_by(f64::total_cmp);
+    let med = rel[rel.len() / 2];
+    eprintln!("depth: median relative error {:.3}% over {} pixels", med * 100.0, rel.len());
+    assert!(med < 0.01 && rel.len() > n * W * H / 2);
+
+    // Normals are each view's own (averaged over its pairs: the same truth every time).
+    for (k, nm) in rec.normals.iter().enumerate() {
+        let nm = nm.as_ref().unwrap();
+        let worst = nm
+            .data()
+            .iter()
+            .zip(t.normals[k].data())
+            .filter(|(_, g)| g.length() > 0.5)
+            .map(|(a, g)| a.dot(*g))
+            .fold(1.0f32, f32::min);
+        assert!(worst > 0.9999, "view {k}: normal cos {worst}");
+    }
+
+    // Matches join pixels that see the same world point (one pair per unordered pair).
+    assert_eq!(rec.matches.len(), n * (n - 1) / 2);
+    let world_at = |k: usize, (x, y): (usize, usize)| {
+        let p = t.own[k].get(x, y);
+        t.cams[k].cam_to_world.transform_point3(p.as_dvec3())
+    };
+    let (mut good, mut all) = (0, 0);
+    for (a, b, ms) in &rec.matches {
+        for m in ms {
+            all += 1;
+            let dd = (world_at(*a, m.a) - world_at(*b, m.b)).length();
+            good += (dd < 0.05) as usize;
+        }
+    }
+    eprintln!("matches: {good} of {all} within 5 cm of the true correspondence");
+    assert!(all > 500 && good as f64 > 0.95 * all as f64);
+
+    // Track points sit on the true surface where their cameras see it.
+    let mut off = Vec::new();
+    for p in &rec.points {
+        let g = gauge.apply(p.xyz);
+        // The point is one observation's aligned depth: the nearest observation's truth.
+        let d = p.observations.iter().map(|&(k, (x, y))| (g - world_at(k, (x as usize, y as usize))).length());
+        off.push(d.fold(f64::INFINITY, f64::min));
+    }
+    off.sort_by(f64::total_cmp);
+    eprintln!("tracks: {} points, median {:.4} m from the truth", off.len(), off[off.len() / 2]);
+    assert!(off.len() > 200 && off[off.len() / 2] < 0.01);
+
+    // Outputs: scene folder, exports, match pictures, mesh near the true surface.
+    let oo = OutputOptions::default();
+    let summary = write_outputs(&rec, &paths, &out, &oo, |_, _| {}).unwrap();
+    let scene = dens3r_scene::Scene::open(&summary.scene).unwrap();
+    assert_eq!(scene.frames().len(), n);
+    for f in ["cameras.txt", "images.txt", "points3D.txt"] {
+        assert!(summary.colmap.join(f).is_file(), "{f}");
+    }
+    let pts3d = std::fs::read_to_string(summary.colmap.join("points3D.txt")).unwrap();
+    assert_eq!(pts3d.lines().filter(|l| !l.starts_with('#')).count(), rec.points.len());
+    assert!(summary.scene.join("transforms.json").is_file());
+    let matched = rec.matches.iter().filter(|m| !m.2.is_empty()).count();
+    assert!(matched >= n - 1);
+    assert_eq!(std::fs::read_dir(out.join("matches")).unwrap().count(), matched);
+    let mut mesh = dens3r_mesh::read_mesh(summary.mesh.as_ref().unwrap()).unwrap();
+    for p in mesh.positions.iter_mut() {
+        *p = gauge.apply(p.as_dvec3()).as_vec3();
+    }
+    let m =
+        mesh_metrics(&mesh, &t.world.gt_mesh(), &MeshMetricsOptions { samples: 20_000, ..Default::default() }).unwrap();
+    let voxel = summary.voxel as f64 * gauge.scale;
+    eprintln!("mesh: {} triangles, voxel {voxel:.4} m, accuracy {:.4} m", summary.triangles, m.accuracy);
+    assert!(m.accuracy < 0.5 * voxel, "mesh accuracy {} at voxel {voxel}", m.accuracy);
+
+    // A second run reads every pair from the cache and gives the same cameras; a damaged
+    // entry is recomputed (here: by a predictor that refuses, so the run names the pair).
+    let again = reconstruct(&images, &Refuses, &cache, &opts, |_, _, _| {}).unwrap();
+    assert_eq!(again.stats.cache_hits, n * (n - 1));
+    for (a, b) in again.alignment.views.iter().zip(&rec.alignment.views) {
+        assert_eq!(a.camera.cam_to_world, b.camera.cam_to_world);
+    }
+    let entry = std::fs::read_dir(out.join("cache")).unwrap().next().unwrap().unwrap().path();
+    std::fs::write(entry.join("v0_points.npy"), b"not an array").unwrap();
+    let e = reconstruct(&images, &Refuses, &cache, &opts, |_, _, _| {}).unwrap_err().to_string();
+    assert!(e.contains("pair (view") && e.contains("the network was called"), "{e}");
+}
