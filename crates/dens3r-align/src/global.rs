@@ -56,7 +56,8 @@ pub enum ConfTransform {
 }
 
 impl ConfTransform {
-    fn apply(self, c: f32) -> f64 {
+    /// The loss weight of confidence `c` (0 for non-finite `c`).
+    pub fn weight(self, c: f32) -> f64 {
         let c = c as f64;
         if !c.is_finite() {
             return 0.0;
@@ -257,7 +258,7 @@ pub fn global_align(
 
     // Loss weights per pair side, and pair scores.
     let weights = |pts: &Raster<Vec3>, conf: &Raster<f32>| -> Vec<f64> {
-        pts.data().iter().zip(conf.data()).map(|(&p, &c)| if valid(p) { opts.conf.apply(c) } else { 0.0 }).collect()
+        pts.data().iter().zip(conf.data()).map(|(&p, &c)| if valid(p) { opts.conf.weight(c) } else { 0.0 }).collect()
     };
     let w: Vec<[Vec<f64>; 2]> =
         pairs.iter().map(|p| [weights(&p.pts_i, &p.conf_i), weights(&p.pts_j, &p.conf_j)]).collect();
@@ -334,27 +335,18 @@ pub fn global_align(
         let (wk, hk) = sizes[k];
         let (cx, cy) = (wk as f64 / 2.0, hk as f64 / 2.0);
         let pts = &pairs[e].pts_i;
-        let step = ((wk * hk) as f64 / 20_000.0).sqrt().ceil().max(1.0) as usize;
-        let mut samples = Vec::new();
-        for y in (0..hk).step_by(step) {
-            for x in (0..wk).step_by(step) {
-                let q = *pts.get(x, y);
-                let wq = w[e][0][y * wk + x];
-                if wq > 0.0 {
-                    samples.push(((x as f64 - cx, y as f64 - cy), dv(q), wq));
-                }
-            }
-        }
+        let samples = resection::pointmap_samples(pts, |i| w[e][0][i], 20_000);
         if samples.len() < 6 {
             return Err(GlobalAlignError::Degenerate(format!(
                 "image {k}: {} confident points in its own pair frame, too few to place its camera",
                 samples.len()
             )));
         }
-        // A pointmap no camera explains (untrained weights) keeps the pair frame as the
-        // camera frame, which is what Dens3R outputs anyway.
-        let (rot, tr) = match resection::resect(&samples) {
-            Some(r) => (r.rotation, r.translation),
+        // PnP-RANSAC, so depth-edge smears do not pull the camera. A pointmap no camera
+        // explains (untrained weights) keeps the pair frame as the camera frame, which is what
+        // Dens3R outputs anyway.
+        let (rot, tr) = match resection::resect_ransac(&samples, &resection::RansacOptions::for_image(wk, hk)) {
+            Some((r, _)) => (r.rotation, r.translation),
             None => {
                 warnings.push(format!(
                     "image {k}: no camera explains its pointmap; taking the pair frame as its camera frame"

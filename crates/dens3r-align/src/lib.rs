@@ -2,13 +2,16 @@
 //! [`global`] aligns the pairwise pointmaps into one scene (cameras, focal, depth: DUSt3R's
 //! `PointCloudOptimizer` with the minimum-spanning-tree initialisation, written natively), and
 //! [`matching`] finds MASt3R fast reciprocal nearest-neighbour correspondences between
-//! descriptor maps and joins them into tracks.
+//! descriptor maps and joins them into tracks; [`two_view`] gives a pair's relative pose by
+//! PnP-RANSAC ([`resection`]) without global optimisation.
 
 pub mod global;
 pub mod matching;
 pub mod pairs;
 pub mod resection;
+pub mod two_view;
 mod union_find;
 
 pub use global::{global_align, AlignOptions, AlignedView, Alignment, ConfTransform, GlobalAlignError, PairPrediction};
 pub use pairs::{make_pairs, PairGraph};
+pub use two_view::{relative_pose, RelativePose};

@@ -130,6 +130,155 @@ pub fn resect(samples: &[((f64, f64), DVec3, f64)]) -> Option<Resection> {
     Some(Resection { rotation: rot, translation, focal })
 }
 
+/// Reprojection error (pixels) of a `(pixel offset, point)` sample under `r`; infinite behind
+/// the camera.
+pub fn reprojection_error(r: &Resection, (u, v): (f64, f64), x: DVec3) -> f64 {
+    let c = r.rotation * x + r.translation;
+    if c.z <= 0.0 {
+        return f64::INFINITY;
+    }
+    (r.focal * c.x / c.z - u).hypot(r.focal * c.y / c.z - v)
+}
+
+/// PnP-RANSAC settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RansacOptions {
+    /// Minimal-sample hypotheses tried.
+    pub iterations: usize,
+    /// Inlier reprojection error, pixels.
+    pub threshold: f64,
+    /// Sampling seed (results are reproducible).
+    pub seed: u64,
+}
+
+impl Default for RansacOptions {
+    fn default() -> Self {
+        Self { iterations: 512, threshold: 5.0, seed: 0 }
+    }
+}
+
+impl RansacOptions {
+    /// Defaults with the threshold scaled to the image: 5 px, or 1% of the long side for
+    /// images over 500 px.
+    pub fn for_image(width: usize, height: usize) -> Self {
+        Self { threshold: (0.01 * width.max(height) as f64).max(5.0), ..Default::default() }
+    }
+}
+
+/// Resection samples of a `w x h` pointmap (pixel `(x, y)` sees `pts(x, y)`): about `max`
+/// pixels on a regular grid, those with positive `weight(flat index)` and a finite point,
+/// as (offset from the centre `(w/2, h/2)`, point, weight).
+pub fn pointmap_samples(
+    pts: &dens3r_geom::Raster<dens3r_geom::Vec3>,
+    weight: impl Fn(usize) -> f64,
+    max: usize,
+) -> Vec<((f64, f64), DVec3, f64)> {
+    let (w, h) = (pts.width(), pts.height());
+    let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
+    let step = ((w * h) as f64 / max.max(1) as f64).sqrt().ceil().max(1.0) as usize;
+    let mut out = Vec::new();
+    for y in (0..h).step_by(step) {
+        for x in (0..w).step_by(step) {
+            let q = *pts.get(x, y);
+            let wq = weight(y * w + x);
+            if wq > 0.0 && q.is_finite() {
+                out.push(((x as f64 - cx, y as f64 - cy), q.as_dvec3(), wq));
+            }
+        }
+    }
+    out
+}
+
+/// SplitMix64: a small reproducible generator for sampling.
+struct SplitMix(u64);
+
+impl SplitMix {
+    fn below(&mut self, n: usize) -> usize {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        ((z ^ (z >> 31)) % n as u64) as usize
+    }
+}
+
+/// Robust resection (PnP-RANSAC with unknown focal, locally optimised): DLT hypotheses from
+/// random 8-point samples (6 is the minimum, but noisy 6-point DLTs are poor), scored by the
+/// weight of their inliers (reprojection error below the threshold); every new best is refitted
+/// on its inliers at shrinking thresholds, then until the inlier set stops growing. Returns the camera and its
+/// inlier mask. `None` with fewer than 6 samples or no hypothesis.
+pub fn resect_ransac(samples: &[((f64, f64), DVec3, f64)], opts: &RansacOptions) -> Option<(Resection, Vec<bool>)> {
+    let n = samples.len();
+    if n < 6 {
+        return None;
+    }
+    let mut rng = SplitMix(opts.seed);
+    let score_at = |r: &Resection, thr: f64| -> (f64, Vec<bool>) {
+        let mask: Vec<bool> = samples.iter().map(|s| reprojection_error(r, s.0, s.1) < thr).collect();
+        (samples.iter().zip(&mask).filter(|(_, &m)| m).map(|(s, _)| s.2).sum(), mask)
+    };
+    let score = |r: &Resection| score_at(r, opts.threshold);
+    let fit = |mask: &[bool]| {
+        let inliers: Vec<_> = samples.iter().zip(mask).filter(|(_, &m)| m).map(|(s, _)| *s).collect();
+        resect(&inliers)
+    };
+    // Local optimisation: refit on the inliers at 4x, 2x, then 1x the threshold (a loose set
+    // first, so a rough hypothesis from a near-degenerate sample reaches the true camera),
+    // then while refitting gains inlier weight.
+    let refine = |(mut sc, mut r, mut mask): (f64, Resection, Vec<bool>)| {
+        for m in [4.0, 2.0, 1.0] {
+            let Some(refit) = fit(&score_at(&r, m * opts.threshold).1) else { break };
+            let (sc2, mask2) = score(&refit);
+            if sc2 > sc {
+                (sc, r, mask) = (sc2, refit, mask2);
+            }
+        }
+        for _ in 0..5 {
+            let Some(refit) = fit(&mask) else { break };
+            let (sc2, mask2) = score(&refit);
+            if sc2 <= sc {
+                break;
+            }
+            (sc, r, mask) = (sc2, refit, mask2);
+        }
+        (sc, r, mask)
+    };
+    const SAMPLE: usize = 8;
+    let mut best: Option<(f64, Resection, Vec<bool>)> = None;
+    let mut pick = Vec::with_capacity(SAMPLE);
+    for _ in 0..opts.iterations {
+        pick.clear();
+        while pick.len() < SAMPLE.min(n) {
+            let k = rng.below(n);
+            if !pick.contains(&k) {
+                pick.push(k);
+            }
+        }
+        let minimal: Vec<_> = pick.iter().map(|&k| samples[k]).collect();
+        if let Some(r) = resect(&minimal) {
+            let (sc, mask) = score(&r);
+            if best.as_ref().is_none_or(|b| sc > b.0) {
+                best = Some(refine((sc, r, mask)));
+            }
+        }
+    }
+    let (_, mut r, mut mask) = best?;
+    // Polish at a tighter threshold: outliers that happen to land within the search threshold
+    // (points smeared along the surface) otherwise bias the focal.
+    for _ in 0..3 {
+        let tight = score_at(&r, 0.4 * opts.threshold).1;
+        if tight.iter().filter(|&&m| m).count() < 6 {
+            break;
+        }
+        let Some(refit) = fit(&tight) else { break };
+        r = refit;
+    }
+    if let Some(m) = Some(score(&r).1) {
+        mask = m;
+    }
+    Some((r, mask))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -157,5 +306,34 @@ mod tests {
             assert!((r.translation - t).length() < 1e-6);
         }
         assert!(resect(&[]).is_none());
+    }
+
+    #[test]
+    fn ransac_ignores_gross_outliers() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        for trial in 0..10 {
+            let rot = axis_angle(DVec3::new(rng.gen(), rng.gen(), rng.gen::<f64>() + 0.1), rng.gen_range(0.0..3.0));
+            let t = DVec3::new(rng.gen_range(-2.0..2.0), rng.gen_range(-2.0..2.0), rng.gen_range(-2.0..2.0));
+            let f = rng.gen_range(200.0..800.0);
+            // 35% of the points are wrong (a depth-edge smear, far off the true surface).
+            let samples: Vec<_> = (0..400)
+                .map(|k| {
+                    let pc = DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(1.0..4.0));
+                    let px = (f * pc.x / pc.z, f * pc.y / pc.z);
+                    let pc = if k % 20 < 7 { pc * rng.gen_range(1.3..3.0) + DVec3::X * 0.5 } else { pc };
+                    (px, rot.transpose() * (pc - t), 1.0)
+                })
+                .collect();
+            let plain = resect(&samples).unwrap();
+            let (r, mask) = resect_ransac(&samples, &RansacOptions { seed: trial, ..Default::default() }).unwrap();
+            let inliers = mask.iter().filter(|&&m| m).count();
+            assert_eq!(inliers, 260, "trial {trial}: exactly the clean points are inliers");
+            assert!((r.focal / f - 1.0).abs() < 1e-6, "{} vs {f}", r.focal);
+            assert!((r.rotation - rot).abs_diff_eq(DMat3::ZERO, 1e-6));
+            assert!((r.translation - t).length() < 1e-6);
+            // The plain least-squares DLT is pulled off by the outliers.
+            assert!((plain.focal / f - 1.0).abs() > 1e-3 || (plain.translation - t).length() > 1e-3);
+        }
+        assert!(resect_ransac(&[], &RansacOptions::default()).is_none());
     }
 }
