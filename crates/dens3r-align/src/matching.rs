@@ -59,21 +59,61 @@ pub struct Match {
     pub conf: f32,
 }
 
-/// Index of the pixel of `db` whose descriptor has the largest dot product with `q`.
-fn nearest(q: &[f32], db: &Descriptors) -> usize {
-    let (mut best, mut arg) = (f32::NEG_INFINITY, 0);
-    for i in 0..db.len() {
-        let d = db.at(i);
-        let mut s = 0.0;
-        for k in 0..q.len() {
-            s += q[k] * d[k];
-        }
-        if s > best {
-            best = s;
-            arg = i;
-        }
-    }
-    arg
+/// For each query (flat pixel index into `q`), the pixel of `db` whose descriptor has the
+/// largest dot product with it (the first on ties). Blocks of queries run in parallel; each
+/// block's scores against a tile of `db` come from one `gemm` call, followed by a running
+/// arg-max, so no full score matrix is ever held.
+fn nearest_many(queries: &[usize], q: &Descriptors, db: &Descriptors) -> Vec<usize> {
+    const QB: usize = 64; // queries per block
+    const TB: usize = 2048; // database pixels per tile
+    let dim = q.dim;
+    queries
+        .par_chunks(QB)
+        .flat_map_iter(|block| {
+            let rows = block.len();
+            let lhs: Vec<f32> = block.iter().flat_map(|&i| q.at(i).iter().copied()).collect();
+            let mut scores = vec![0f32; rows * TB];
+            let mut best = vec![(f32::NEG_INFINITY, 0usize); rows];
+            for t0 in (0..db.len()).step_by(TB) {
+                let n = TB.min(db.len() - t0);
+                let rhs = &db.data[t0 * dim..(t0 + n) * dim];
+                // SAFETY: dst is rows x n with row stride n inside `scores` (rows * TB >= rows * n);
+                // lhs is rows x dim row-major; rhs is read as dim x n (element (k, j) at
+                // rhs[j * dim + k]); every index stays inside its slice.
+                unsafe {
+                    gemm::gemm(
+                        rows,
+                        n,
+                        dim,
+                        scores.as_mut_ptr(),
+                        1,
+                        n as isize,
+                        false,
+                        lhs.as_ptr(),
+                        1,
+                        dim as isize,
+                        rhs.as_ptr(),
+                        dim as isize,
+                        1,
+                        0.0,
+                        1.0,
+                        false,
+                        false,
+                        false,
+                        gemm::Parallelism::None,
+                    );
+                }
+                for (r, b) in best.iter_mut().enumerate() {
+                    for (j, &v) in scores[r * n..(r + 1) * n].iter().enumerate() {
+                        if v > b.0 {
+                            *b = (v, t0 + j);
+                        }
+                    }
+                }
+            }
+            best.into_iter().map(|b| b.1)
+        })
+        .collect()
 }
 
 /// Seeds on a `subsample` grid of `from`; a seed `x` matches `y = NN(x)` in `to` when
@@ -89,12 +129,14 @@ fn one_way(from: &Descriptors, to: &Descriptors, sub: usize, tol: f32) -> Vec<(u
         }
         y += sub;
     }
+    let fwd = nearest_many(&seeds, from, to);
+    let back = nearest_many(&fwd, to, from);
     seeds
-        .into_par_iter()
-        .filter_map(|s| {
-            let t = nearest(from.at(s), to);
-            let back = nearest(to.at(t), from);
-            let ((x0, y0), (x1, y1)) = (from.xy(s), from.xy(back));
+        .into_iter()
+        .zip(fwd)
+        .zip(back)
+        .filter_map(|((s, t), b)| {
+            let ((x0, y0), (x1, y1)) = (from.xy(s), from.xy(b));
             let d = ((x0 as f32 - x1 as f32).powi(2) + (y0 as f32 - y1 as f32).powi(2)).sqrt();
             (d < tol).then_some((s, t))
         })
@@ -242,5 +284,24 @@ mod tests {
         let t = tracks(&matches, 3);
         assert_eq!(t, vec![vec![(0, (1, 1)), (1, (2, 2)), (2, (3, 3)), (3, (4, 4))]]);
         assert_eq!(tracks(&matches, 2).len(), 3);
+    }
+
+    /// The blocked gemm search equals a direct f64 scan (sizes that leave partial blocks and
+    /// tiles).
+    #[test]
+    fn blocked_search_equals_a_direct_scan() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let (w, h, dim) = (67, 41, 24);
+        let mut data = |n: usize| -> Vec<f32> { (0..n * dim).map(|_| rng.gen_range(-1.0..1.0)).collect() };
+        let (a, b) = (data(w * h), data(w * h));
+        let (da, db) =
+            (Descriptors { width: w, height: h, dim, data: &a }, Descriptors { width: w, height: h, dim, data: &b });
+        let queries: Vec<usize> = (0..w * h).step_by(7).collect();
+        let got = nearest_many(&queries, &da, &db);
+        for (&q, &g) in queries.iter().zip(&got) {
+            let dot = |j: usize| (0..dim).map(|k| a[q * dim + k] as f64 * b[j * dim + k] as f64).sum::<f64>();
+            let best = (0..w * h).map(dot).fold(f64::NEG_INFINITY, f64::max);
+            assert!(dot(g) >= best - 1e-5, "query {q}: {} vs {best}", dot(g));
+        }
     }
 }
