@@ -436,8 +436,10 @@ impl Dens3r {
         self.decode(e1, g1, e2, g2)
     }
 
-    /// The decoder on two views' encoder tokens.
-    fn decode(&self, e1: Tensor<3>, g1: (usize, usize), e2: Tensor<3>, g2: (usize, usize)) -> Features {
+    /// The decoder on two views' encoder tokens ([`Dens3r::encode_image`] outputs and their
+    /// patch grids): `encode(a, b)` is `decode(encode_image(a), encode_image(b))`, so an image
+    /// in several pairs needs encoding once.
+    pub fn decode(&self, e1: Tensor<3>, g1: (usize, usize), e2: Tensor<3>, g2: (usize, usize)) -> Features {
         let dh = self.config.dec_dim / self.config.dec_heads;
         let (r1, r2) = (self.rope(g1, dh), self.rope(g2, dh));
         let (mut f1, mut f2) = (self.decoder_embed.forward(e1.clone()), self.decoder_embed.forward(e2.clone()));

@@ -126,7 +126,33 @@ pub fn predict_mono(model: &Dens3r, prep: &Prepared, res: Resolution) -> MonoPre
 /// Runs the pair `(first, second)`: both pointmaps in the first camera's frame (`pred1`,
 /// `pred2.pts3d_in_other_view`), each view's normals in its own camera frame.
 pub fn predict_pair(model: &Dens3r, first: &Prepared, second: &Prepared, res: Resolution) -> [ViewMaps; 2] {
-    let pred = model.forward(first.tensor(model.device()), second.tensor(model.device()));
+    predict_pair_encoded(model, (first, &encode(model, first)), (second, &encode(model, second)), res)
+}
+
+/// An image's encoder tokens and patch grid: the siamese encoder's output, the same in every
+/// pair the image is in.
+#[derive(Debug, Clone)]
+pub struct Encoded {
+    tokens: Tensor<3>,
+    grid: (usize, usize),
+}
+
+/// Runs the encoder on one preprocessed image.
+pub fn encode(model: &Dens3r, prep: &Prepared) -> Encoded {
+    let (tokens, grid) = model.encode_image(prep.tensor(model.device()));
+    Encoded { tokens, grid }
+}
+
+/// [`predict_pair`] from encoder outputs made once per image ([`encode`]): only the decoder
+/// and heads run per pair. Equal to [`predict_pair`].
+pub fn predict_pair_encoded(
+    model: &Dens3r,
+    (first, e1): (&Prepared, &Encoded),
+    (second, e2): (&Prepared, &Encoded),
+    res: Resolution,
+) -> [ViewMaps; 2] {
+    let features = model.decode(e1.tokens.clone(), e1.grid, e2.tokens.clone(), e2.grid);
+    let pred = model.heads(&features);
     let r = first.info.rotated;
     [view_maps(&pred.views[0], first, 0, r, res), view_maps(&pred.views[1], second, 0, r, res)]
 }

@@ -18,6 +18,13 @@ fn pair_and_mono_agree_and_keep_orientations() {
     let port = preprocess(&img.rotate90(), 64, true).unwrap();
     assert!(port.info.rotated && !land.info.rotated);
 
+    // predict_pair (encoder outputs reused across pairs) equals the plain forward pass.
+    let direct = model.forward(land.tensor(&device), port.tensor(&device));
+    let [p1, _] = predict_pair(&model, &land, &port, Resolution::Network);
+    let raw: Vec<f32> = direct.views[0].pts3d.to_data().try_to_vec::<f32>().unwrap();
+    let got: Vec<f32> = p1.points.data().iter().flat_map(|p| p.to_array()).collect();
+    assert_eq!(raw, got, "same numbers as model.forward");
+
     let mono = predict_mono(&model, &land, Resolution::Network);
     let [v1, v2] = predict_pair(&model, &land, &land, Resolution::Network);
     let worst = mono.points.data().iter().zip(v1.points.data()).map(|(a, b)| (*a - *b).length()).fold(0.0, f32::max);

@@ -124,8 +124,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     if !unexpected.is_empty() {
         eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);
     }
-    let predictor =
-        NetworkPredictor { model: &model, weights_id: format!("{} size {}", weights_id(&a.weights), a.size) };
+    let predictor = NetworkPredictor::new(&model, format!("{} size {}", weights_id(&a.weights), a.size));
     let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
     let opts = ReconOptions {
         graph,
@@ -168,10 +167,11 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let tracks = rec.points.len();
     let nmatch: usize = rec.matches.iter().map(|m| m.2.len()).sum();
     println!(
-        "{} photos, {} network pairs ({} from the cache) in {:.1}s; {} matches in {:.1}s -> {} tracks",
+        "{} photos, {} network pairs ({} from the cache; {} images encoded) in {:.1}s; {} matches in {:.1}s -> {} tracks",
         images.len(),
         s.pairs - s.cache_hits,
         s.cache_hits,
+        predictor.encoded_images(),
         s.predict_seconds,
         nmatch,
         s.match_seconds,

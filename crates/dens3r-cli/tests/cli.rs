@@ -353,7 +353,8 @@ fn reconstruct_runs_end_to_end_and_reuses_the_pair_cache() {
         ])
     };
     let first = run();
-    assert!(first.contains("5 photos, 20 network pairs (0 from the cache)"), "{first}");
+    // Each photo is encoded once for its 8 pairs.
+    assert!(first.contains("5 photos, 20 network pairs (0 from the cache; 5 images encoded)"), "{first}");
     let scene = dens3r_scene::Scene::open(&out.join("scene")).unwrap();
     let sizes: Vec<_> = scene.frames().iter().map(|f| (f.name.as_str(), f.width, f.height)).collect();
     // 200 x 112 at long side 64 is 64 x 36, cropped to 64 x 32.
@@ -375,7 +376,7 @@ fn reconstruct_runs_end_to_end_and_reuses_the_pair_cache() {
     }
     let cameras = std::fs::read(out.join("scene/cameras.json")).unwrap();
     let second = run();
-    assert!(second.contains("0 network pairs (20 from the cache)"), "{second}");
+    assert!(second.contains("0 network pairs (20 from the cache; 0 images encoded)"), "{second}");
     assert_eq!(std::fs::read(out.join("scene/cameras.json")).unwrap(), cameras, "same cameras from the cache");
     assert_no_temp_files(&out);
 

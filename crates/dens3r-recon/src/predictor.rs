@@ -3,8 +3,10 @@
 
 use crate::input::InputImage;
 use dens3r_backbone::model::Dens3r;
-use dens3r_backbone::predict::{predict_pair, DescriptorMap, Resolution, ViewMaps};
+use dens3r_backbone::predict::{encode, predict_pair_encoded, DescriptorMap, Encoded, Resolution, ViewMaps};
 use dens3r_geom::{Raster, Vec3};
+use std::cell::RefCell;
+use std::collections::HashMap;
 
 /// One view of a pair prediction, at the view's [`InputImage::size`].
 #[derive(Debug, Clone)]
@@ -66,12 +68,30 @@ pub trait PairPredictor {
     fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String>;
 }
 
-/// The Dens3R / DUSt3R / MASt3R network at its input resolution.
+/// The Dens3R / DUSt3R / MASt3R network at its input resolution. Each image is encoded once
+/// and its encoder tokens reused in every pair it is in (the siamese encoder's output does not
+/// depend on the other view), so only the decoder and heads run per pair.
 pub struct NetworkPredictor<'a> {
-    /// The loaded model.
-    pub model: &'a Dens3r,
-    /// Identity of the weights (file, length, modification time) for the cache.
-    pub weights_id: String,
+    model: &'a Dens3r,
+    weights_id: String,
+    encoded: RefCell<HashMap<(u64, (u32, u32, u32, u32), bool), Encoded>>,
+}
+
+impl<'a> NetworkPredictor<'a> {
+    /// `weights_id` identifies the weights and input size in the pair cache (see [`weights_id`]).
+    pub fn new(model: &'a Dens3r, weights_id: String) -> Self {
+        Self { model, weights_id, encoded: RefCell::new(HashMap::new()) }
+    }
+
+    /// Images encoded so far.
+    pub fn encoded_images(&self) -> usize {
+        self.encoded.borrow().len()
+    }
+
+    fn encoding(&self, im: &InputImage) -> Encoded {
+        let key = (im.hash, im.prep.info.crop, im.prep.info.rotated);
+        self.encoded.borrow_mut().entry(key).or_insert_with(|| encode(self.model, &im.prep)).clone()
+    }
 }
 
 impl PairPredictor for NetworkPredictor<'_> {
@@ -80,8 +100,10 @@ impl PairPredictor for NetworkPredictor<'_> {
     }
 
     fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String> {
-        let [a, b] = predict_pair(self.model, &images[i].prep, &images[j].prep, Resolution::Network);
-        Ok([ViewOutput::from_maps(a), ViewOutput::from_maps(b)])
+        let (a, b) = (&images[i], &images[j]);
+        let (ea, eb) = (self.encoding(a), self.encoding(b));
+        let [va, vb] = predict_pair_encoded(self.model, (&a.prep, &ea), (&b.prep, &eb), Resolution::Network);
+        Ok([ViewOutput::from_maps(va), ViewOutput::from_maps(vb)])
     }
 }
 
