@@ -68,13 +68,16 @@ pub trait PairPredictor {
     fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String>;
 }
 
+/// An image's identity for the encoder cache: content hash, crop box, portrait rotation.
+type ImageKey = (u64, (u32, u32, u32, u32), bool);
+
 /// The Dens3R / DUSt3R / MASt3R network at its input resolution. Each image is encoded once
 /// and its encoder tokens reused in every pair it is in (the siamese encoder's output does not
 /// depend on the other view), so only the decoder and heads run per pair.
 pub struct NetworkPredictor<'a> {
     model: &'a Dens3r,
     weights_id: String,
-    encoded: RefCell<HashMap<(u64, (u32, u32, u32, u32), bool), Encoded>>,
+    encoded: RefCell<HashMap<ImageKey, Encoded>>,
 }
 
 impl<'a> NetworkPredictor<'a> {
