@@ -262,7 +262,7 @@ pub fn resect_ransac(samples: &[((f64, f64), DVec3, f64)], opts: &RansacOptions)
             }
         }
     }
-    let (_, mut r, mut mask) = best?;
+    let (_, mut r, _) = best?;
     // Polish at a tighter threshold: outliers that happen to land within the search threshold
     // (points smeared along the surface) otherwise bias the focal.
     for _ in 0..3 {
@@ -273,9 +273,7 @@ pub fn resect_ransac(samples: &[((f64, f64), DVec3, f64)], opts: &RansacOptions)
         let Some(refit) = fit(&tight) else { break };
         r = refit;
     }
-    if let Some(m) = Some(score(&r).1) {
-        mask = m;
-    }
+    let mask = score(&r).1;
     Some((r, mask))
 }
 

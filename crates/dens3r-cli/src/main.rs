@@ -6,6 +6,7 @@ mod bench_fusion;
 mod eval;
 mod fuse;
 mod info;
+mod model_args;
 mod predict;
 mod reconstruct;
 mod render;

@@ -5,28 +5,16 @@ use anyhow::{bail, Result};
 use clap::Args;
 use dens3r_backbone::predict::{predict_mono, Resolution};
 use dens3r_backbone::preprocess::{open_oriented, preprocess};
-use dens3r_backbone::verify::load_model;
 use dens3r_geom::{focal_from_pointmap, DMat4, FocalMode, Intrinsics, NormalConvention, PinholeCamera, Raster, Vec3};
 use dens3r_mesh::TriMesh;
 use dens3r_scene::{Frame, SceneWriter};
 use std::collections::HashSet;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(Args)]
 pub struct PredictArgs {
-    /// Checkpoint (.safetensors; convert a .pth with scripts/pth_to_safetensors.py).
-    #[arg(long)]
-    weights: PathBuf,
-    /// JSON with the head counts (enc_num_heads, dec_num_heads, or the converter's "args");
-    /// default: head dim 64.
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// Long side of the network input (512, or 1024 for more detail).
-    #[arg(long, default_value_t = 512)]
-    size: u32,
-    /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them.
-    #[arg(long)]
-    keep_portrait: bool,
+    #[command(flatten)]
+    model: crate::model_args::ModelArgs,
     /// Write every map at the original image size (the official `rescale_to_orig`: edge
     /// padding, nearest neighbour) with the original pixels as colours, so depth, normals and
     /// intrinsics line up with the input photos (COLMAP, nerfstudio). Default: network size.
@@ -46,24 +34,15 @@ pub fn run(a: PredictArgs) -> Result<()> {
             bail!("{}: image not found", p.display());
         }
     }
-    let device = dens3r_backbone::Device::default();
-    let (model, unexpected) = load_model(&a.weights, a.config.as_deref(), &device).map_err(anyhow::Error::msg)?;
-    if !unexpected.is_empty() {
-        eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);
-    }
+    let model = a.model.load()?;
     // Decode and preprocess everything first: a bad image fails before anything is written.
     let mut inputs = Vec::new();
     let mut names = HashSet::new();
     for p in &a.images {
         let img = open_oriented(p).map_err(anyhow::Error::msg)?;
-        let prep = preprocess(&img, a.size, !a.keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-        let stem = p.file_stem().and_then(|s| s.to_str()).unwrap_or("image").replace(['/', '\\'], "_");
-        let mut name = stem.clone();
-        let mut k = 1;
-        while !names.insert(name.clone()) {
-            name = format!("{stem}_{k}");
-            k += 1;
-        }
+        let prep = preprocess(&img, a.model.size, !a.model.keep_portrait)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+        let name = dens3r_recon::input::unique_name(p, &mut names);
         let source = a.original_size.then(|| img.to_rgb8());
         inputs.push((name, prep, source));
     }
@@ -99,12 +78,12 @@ pub fn run(a: PredictArgs) -> Result<()> {
         writer.write_depth(name, &pred.depth)?;
         if let Some(n) = &pred.normals {
             writer.write_normals(name, n)?;
-            write_png(&a.output.join("viz").join(format!("{name}_normal.png")), &normal_viz(n))?;
+            dens3r_scene::write_rgb_png(&a.output.join("viz").join(format!("{name}_normal.png")), &normal_viz(n))?;
         }
         if let Some(c) = &pred.conf {
             writer.write_conf(name, c)?;
         }
-        write_png(&a.output.join("viz").join(format!("{name}_depth.png")), &depth_viz(&pred.depth))?;
+        dens3r_scene::write_rgb_png(&a.output.join("viz").join(format!("{name}_depth.png")), &depth_viz(&pred.depth))?;
         let mut cloud =
             TriMesh::new(pred.points.data().iter().copied().filter(|p| p.is_finite()).collect(), Vec::new());
         let colors: Vec<[u8; 3]> =
@@ -119,7 +98,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
         "predicted {} images into {} (network size {}, maps at {} size, normals in the OpenCV camera frame)",
         inputs.len(),
         a.output.display(),
-        a.size,
+        a.model.size,
         if a.original_size { "original" } else { "network" }
     );
     Ok(())
@@ -152,11 +131,4 @@ fn depth_viz(d: &Raster<f32>) -> image::RgbImage {
         let (i, f) = ((t.floor() as usize).min(3), t - t.floor().min(3.0));
         image::Rgb(std::array::from_fn(|k| (RAMP[i][k] + (RAMP[i + 1][k] - RAMP[i][k]) * f) as u8))
     })
-}
-
-fn write_png(path: &Path, img: &image::RgbImage) -> Result<()> {
-    let mut buf = std::io::Cursor::new(Vec::new());
-    img.write_to(&mut buf, image::ImageFormat::Png)?;
-    dens3r_mesh::io::write_atomic(path, |w| std::io::Write::write_all(w, buf.get_ref()))?;
-    Ok(())
 }

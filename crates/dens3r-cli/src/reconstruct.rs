@@ -5,7 +5,6 @@ use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
 use dens3r_align::matching::MatchOptions;
 use dens3r_align::{AlignOptions, PairGraph};
-use dens3r_backbone::verify::load_model;
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
     list_images, load_images, reconstruct, write_outputs, NetworkPredictor, OutputOptions, PairCache, ReconOptions,
@@ -35,18 +34,8 @@ pub struct ReconstructArgs {
     /// Output folder (scene/, colmap/, matches/, mesh.glb, cache/).
     #[arg(short, long)]
     output: PathBuf,
-    /// Checkpoint (.safetensors; convert a .pth with scripts/pth_to_safetensors.py).
-    #[arg(long)]
-    weights: PathBuf,
-    /// JSON with the head counts (see `dens3r predict --help`).
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// Long side of the network input (512; 1024 for more detail).
-    #[arg(long, default_value_t = 512)]
-    size: u32,
-    /// Keep portrait photos as they are instead of rotating them (upstream DUSt3R / MASt3R).
-    #[arg(long)]
-    keep_portrait: bool,
+    #[command(flatten)]
+    model: crate::model_args::ModelArgs,
     /// Which pairs the network runs (both orders of each).
     #[arg(long, value_enum, default_value = "complete")]
     graph: Graph,
@@ -103,8 +92,11 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         Graph::Logwin => PairGraph::LogWindow { k: a.window.max(1), cyclic: a.cyclic },
         Graph::Oneref => PairGraph::OneReference { reference: 0 },
     };
-    if !a.weights.is_file() {
-        bail!("{}: weights not found (a .safetensors checkpoint; see `dens3r predict --help`)", a.weights.display());
+    if !a.model.weights.is_file() {
+        bail!(
+            "{}: weights not found (a .safetensors checkpoint; see `dens3r predict --help`)",
+            a.model.weights.display()
+        );
     }
     if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         bail!("--voxel must be positive");
@@ -115,16 +107,12 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let t0 = Instant::now();
     // Every photo is decoded before the model loads: a bad photo fails in a second.
     let paths = list_images(&a.photos)?;
-    let images = load_images(&paths, a.size, a.keep_portrait)?;
+    let images = load_images(&paths, a.model.size, a.model.keep_portrait)?;
     if images.len() < 2 {
         bail!("reconstruction needs at least 2 photos, got {}", images.len());
     }
-    let device = dens3r_backbone::Device::default();
-    let (model, unexpected) = load_model(&a.weights, a.config.as_deref(), &device).map_err(anyhow::Error::msg)?;
-    if !unexpected.is_empty() {
-        eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);
-    }
-    let predictor = NetworkPredictor::new(&model, format!("{} size {}", weights_id(&a.weights), a.size));
+    let model = a.model.load()?;
+    let predictor = NetworkPredictor::new(&model, format!("{} size {}", weights_id(&a.model.weights), a.model.size));
     let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
     let opts = ReconOptions {
         graph,

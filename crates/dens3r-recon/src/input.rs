@@ -98,7 +98,9 @@ pub fn load_images(paths: &[PathBuf], size: u32, keep_portrait: bool) -> Result<
     Ok(out)
 }
 
-fn unique_name(p: &Path, taken: &mut HashSet<String>) -> String {
+/// A frame name for `p` not yet in `taken` (the file stem, suffixed `_1`, `_2`, .. on clashes),
+/// recorded in `taken`.
+pub fn unique_name(p: &Path, taken: &mut HashSet<String>) -> String {
     let stem = p.file_stem().and_then(|s| s.to_str()).unwrap_or("image").replace(['/', '\\'], "_");
     let mut name = stem.clone();
     let mut k = 1;

@@ -119,7 +119,7 @@ pub fn write_outputs(
     for (a, b, ms) in ranked.into_iter().take(opts.match_pictures) {
         let img = match_picture(&rec.rgb[*a], &rec.rgb[*b], ms, opts.match_lines);
         let path = out.join("matches").join(format!("{}-{}.png", rec.names[*a], rec.names[*b]));
-        write_png(&path, &img)?;
+        dens3r_scene::write_rgb_png(&path, &img)?;
     }
 
     let mut summary = OutputSummary { scene: scene_dir, colmap, ..Default::default() };
@@ -182,11 +182,4 @@ fn fuse(
     summary.triangles = mesh.indices.len();
     summary.mesh = Some(path);
     Ok(())
-}
-
-fn write_png(path: &Path, img: &image::RgbImage) -> Result<(), ReconError> {
-    let mut buf = std::io::Cursor::new(Vec::new());
-    img.write_to(&mut buf, image::ImageFormat::Png).map_err(|e| ReconError::Other(e.to_string()))?;
-    dens3r_mesh::io::write_atomic(path, |w| std::io::Write::write_all(w, buf.get_ref()))
-        .map_err(|e| ReconError::Other(format!("{}: {e}", path.display())))
 }

@@ -192,8 +192,12 @@ fn accumulate_normals(acc: &mut Option<(Vec<Vec3>, Vec<f32>)>, n: &Raster<Vec3>,
 /// Reciprocal matches of one pair run, or None when the model has no descriptors.
 fn match_pair(out: &[ViewOutput; 2], opts: &MatchOptions) -> Result<Option<Vec<Match>>, String> {
     let (Some(da), Some(db)) = (&out[0].desc, &out[1].desc) else { return Ok(None) };
-    let conf = |v: &ViewOutput| v.desc_conf.as_ref().unwrap_or(&v.conf).data().to_vec();
-    reciprocal_matches(&descriptors(da), &descriptors(db), &conf(&out[0]), &conf(&out[1]), opts).map(Some)
+    reciprocal_matches(&descriptors(da), &descriptors(db), match_conf(&out[0]), match_conf(&out[1]), opts).map(Some)
+}
+
+/// The confidence a view's matches are filtered by: the descriptor's own, else the pointmap's.
+fn match_conf(v: &ViewOutput) -> &[f32] {
+    v.desc_conf.as_ref().unwrap_or(&v.conf).data()
 }
 
 fn descriptors(m: &dens3r_backbone::predict::DescriptorMap) -> Descriptors<'_> {

@@ -31,4 +31,4 @@ mod writer;
 pub use cameras::{CamerasFile, Frame, MAX_IMAGE_SIDE};
 pub use error::SceneError;
 pub use reader::{Layer, Scene};
-pub use writer::SceneWriter;
+pub use writer::{write_rgb_png, SceneWriter};

@@ -155,6 +155,11 @@ impl SceneWriter {
 }
 
 /// Encodes a PNG in memory, then writes it atomically.
+/// Writes an RGB image as PNG atomically (visualisations and other extra pictures).
+pub fn write_rgb_png(path: &Path, img: &RgbImage) -> Result<(), SceneError> {
+    write_png(path, img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8)
+}
+
 pub(crate) fn write_png(
     path: &Path,
     px: &[u8],
