@@ -20,6 +20,12 @@ $bin eval normals --from-depth "$out/room" "$out/room"
 $bin eval depth --align median data-samples/room data-samples/room
 # The re-rendered ground-truth mesh against the bundled one: Chamfer 0, F-score 1.
 $bin eval mesh "$out/orbit/gt_mesh.ply" data-samples/orbit/gt_mesh.ply --threshold 0.01
+# Meshes of the bundled orbit: TSDF fusion, and a short neural-SDF run (300 iterations), each
+# against the ground truth.
+$bin fuse data-samples/orbit -o "$out/orbit_tsdf.ply" --voxel 0.02
+$bin eval mesh "$out/orbit_tsdf.ply" data-samples/orbit/gt_mesh.ply
+$bin nsdf data-samples/orbit -o "$out/orbit_nsdf.ply" --iters 300 --voxel 0.02 --restart
+$bin eval mesh "$out/orbit_nsdf.ply" data-samples/orbit/gt_mesh.ply
 # The backbone: parity with the official PyTorch code on a dumped case, then predict on the
 # bundled room images. The parity fixtures hold a tiny random-weight model: the predictions
 # exercise the pipeline only. With real weights: --weights dens3r.safetensors --size 512.

@@ -18,6 +18,8 @@ pub enum BenchCommand {
     Backbone(BackboneArgs),
     /// Rust vs Open3D TSDF fusion on rendered scenes (time, memory, mesh accuracy).
     Fusion(FusionArgs),
+    /// Neural SDF vs TSDF fusion on a noisy object orbit, with the no-normals ablation.
+    Nsdf(crate::bench_nsdf::NsdfBenchArgs),
     /// (internal) fuse one scene and print timings as JSON.
     #[command(hide = true)]
     RunFuse {
@@ -85,6 +87,7 @@ pub fn run(c: BenchCommand) -> Result<()> {
     match c {
         BenchCommand::Backbone(a) => backbone(a),
         BenchCommand::Fusion(a) => crate::bench_fusion::fusion(a),
+        BenchCommand::Nsdf(a) => crate::bench_nsdf::run(a),
         BenchCommand::RunFuse { scene, voxel, out, gpu } => crate::bench_fusion::run_fuse(&scene, voxel, &out, gpu),
         BenchCommand::MakeWeights { out } => {
             let w = Weights::synthetic(7, 0.02);

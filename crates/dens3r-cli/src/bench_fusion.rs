@@ -45,26 +45,8 @@ fn noisy_copy(src: &Path, dst: &Path, sigma: f32, seed: u64) -> Result<()> {
         std::fs::remove_dir_all(dst)?;
     }
     copy_dir(src, dst)?;
-    let scene = dens3r_scene::Scene::open(dst)?;
-    let mut state = seed | 1;
-    let mut gauss = move || {
-        let mut u = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        let (u1, u2) = (u(), u());
-        ((-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()) as f32
-    };
-    for f in scene.frames() {
-        let path = dst.join("depth").join(format!("{}.npy", f.name));
-        let (shape, mut d) = dens3r_scene::npy::read_f32(&path)?;
-        for v in d.iter_mut().filter(|v| **v > 0.0) {
-            *v *= 1.0 + sigma * gauss();
-        }
-        dens3r_scene::npy::write_f32(&path, &shape, &d)?;
-    }
+    let noise = dens3r_render::noise::Noise { depth_sigma: sigma, normal_deg: 0.0, seed };
+    dens3r_render::noise::add_noise(dst, &noise)?;
     Ok(())
 }
 

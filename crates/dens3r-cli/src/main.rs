@@ -3,10 +3,12 @@
 
 mod bench;
 mod bench_fusion;
+mod bench_nsdf;
 mod eval;
 mod fuse;
 mod info;
 mod model_args;
+mod nsdf;
 mod predict;
 mod reconstruct;
 mod render;
@@ -44,6 +46,8 @@ enum Command {
     Reconstruct(reconstruct::ReconstructArgs),
     /// Fuse a scene folder's depth (+ colour, confidence, normals) into a mesh (TSDF).
     Fuse(fuse::FuseArgs),
+    /// Train a neural SDF (NeuS-style, normal- and depth-supervised) on a scene folder and mesh it.
+    Nsdf(nsdf::NsdfArgs),
     /// Benchmarks against peers measured in the same run (PyTorch for the backbone).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -66,6 +70,7 @@ fn main() {
         Command::Predict(a) => predict::run(a),
         Command::Fuse(a) => fuse::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),
+        Command::Nsdf(a) => nsdf::run(a),
         Command::Bench(c) => bench::run(c),
     };
     if let Err(e) = result {

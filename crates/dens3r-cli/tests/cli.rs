@@ -404,3 +404,61 @@ fn reconstruct_runs_end_to_end_and_reuses_the_pair_cache() {
     assert!(e.contains("/no/w.safetensors"), "{e}");
     assert!(!bad.exists(), "failed runs leave no output folder");
 }
+
+#[test]
+fn nsdf_meshes_a_scene_resumes_and_rejects_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples");
+    let orbit = samples.join("orbit");
+    let orbit_s = orbit.to_str().unwrap();
+    let gt = dens3r_mesh::read_mesh(&orbit.join("gt_mesh.ply")).unwrap();
+    let small = ["--rays", "256", "--samples", "16", "--levels", "6", "--max-res", "64", "--voxel", "0.03"];
+    let out = dir.path().join("nsdf.ply");
+    let o = out.to_str().unwrap();
+    // Stopped after the checkpoint at iteration 20 (as if killed), then resumed to the end.
+    let mut args = vec!["nsdf", orbit_s, "-o", o, "--iters", "60", "--checkpoint-every", "10", "--stop-after", "20"];
+    args.extend(small);
+    let e = fails(&args);
+    assert!(e.contains("stopped after iteration 20"), "{e}");
+    assert!(!out.exists(), "a stopped run writes no mesh");
+    assert!(dir.path().join("nsdf.ply.nsdf/nsdf.safetensors").is_file());
+    let mut args = vec!["nsdf", orbit_s, "-o", o, "--iters", "60", "--checkpoint-every", "10"];
+    args.extend(small);
+    let run = dens3r(&args);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    assert!(String::from_utf8_lossy(&run.stderr).contains("resuming from iteration 20"));
+    let text = String::from_utf8_lossy(&run.stdout);
+    assert!(text.contains("trained 40 iterations") && text.contains("normals on"), "{text}");
+    let m = dens3r_mesh::read_mesh(&out).unwrap();
+    assert!(m.indices.len() > 500 && m.normals.is_some() && m.colors.is_some());
+    // 60 iterations on 8 small views: near the surface already, not converged.
+    let opts = dens3r_mesh::MeshMetricsOptions { samples: 20_000, thresholds: vec![0.05], seed: 0 };
+    let metrics = dens3r_mesh::mesh_metrics(&m, &gt, &opts).unwrap();
+    assert!(metrics.accuracy < 0.05, "accuracy {}", metrics.accuracy);
+    assert_no_temp_files(dir.path());
+
+    // Bad input: one line naming the problem, no mesh.
+    let bad = dir.path().join("bad.ply");
+    let b = bad.to_str().unwrap();
+    let e = fails(&["nsdf", orbit_s, "-o", dir.path().join("m.stl").to_str().unwrap()]);
+    assert!(e.contains(".ply, .obj or .glb"), "{e}");
+    let e = fails(&["nsdf", orbit_s, "-o", b, "--voxel", "0"]);
+    assert!(e.contains("--voxel"), "{e}");
+    let e = fails(&["nsdf", orbit_s, "-o", b, "--iters", "10", "--lr", "3"]);
+    assert!(e.contains("learning rate"), "{e}");
+    let nodepth = dir.path().join("nodepth");
+    copy_tree(&orbit, &nodepth);
+    std::fs::remove_dir_all(nodepth.join("depth")).unwrap();
+    let e = fails(&["nsdf", nodepth.to_str().unwrap(), "-o", b]);
+    assert!(e.contains("no depth/") && e.contains("dens3r predict"), "{e}");
+    // A damaged checkpoint is named, with what to do.
+    let ck = dir.path().join("bad.ply.nsdf");
+    std::fs::create_dir_all(&ck).unwrap();
+    std::fs::copy(dir.path().join("nsdf.ply.nsdf/nsdf.json"), ck.join("nsdf.json")).unwrap();
+    std::fs::write(ck.join("nsdf.safetensors"), b"garbage").unwrap();
+    let mut args = vec!["nsdf", orbit_s, "-o", b, "--iters", "60"];
+    args.extend(small);
+    let e = fails(&args);
+    assert!(e.contains("nsdf.safetensors") && e.contains("delete both"), "{e}");
+    assert!(!bad.exists());
+}

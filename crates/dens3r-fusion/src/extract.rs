@@ -268,7 +268,7 @@ pub fn extract_mesh(tsdf: &SparseTsdf, opts: &ExtractOptions) -> TriMesh {
 }
 
 /// Triangles in connected components (through shared vertices) of at least `min` triangles.
-fn component_filter(mesh: &TriMesh, min: usize) -> Vec<bool> {
+pub fn component_filter(mesh: &TriMesh, min: usize) -> Vec<bool> {
     let n = mesh.positions.len();
     let mut parent: Vec<u32> = (0..n as u32).collect();
     fn find(p: &mut [u32], mut x: u32) -> u32 {
@@ -296,7 +296,7 @@ fn component_filter(mesh: &TriMesh, min: usize) -> Vec<bool> {
 }
 
 /// The mesh with only the kept triangles and the vertices they use (attributes follow).
-fn filter_triangles(mesh: &TriMesh, keep: &[bool]) -> TriMesh {
+pub fn filter_triangles(mesh: &TriMesh, keep: &[bool]) -> TriMesh {
     let mut remap = vec![u32::MAX; mesh.positions.len()];
     let mut out = TriMesh::new(Vec::new(), Vec::new());
     let mut normals = Vec::new();

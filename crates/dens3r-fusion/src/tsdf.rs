@@ -146,7 +146,8 @@ pub struct Block {
 }
 
 impl Block {
-    fn new(color: bool) -> Self {
+    /// An unobserved block (TSDF 1, weight 0, black if `color`).
+    pub fn new(color: bool) -> Self {
         Self {
             tsdf: vec![1.0; BLOCK_VOXELS],
             weight: vec![0.0; BLOCK_VOXELS],
@@ -239,6 +240,30 @@ impl SparseTsdf {
     /// All blocks with their block coordinates.
     pub fn blocks(&self) -> impl Iterator<Item = (IVec3, &Block)> {
         self.keys.iter().copied().zip(&self.blocks)
+    }
+
+    /// Puts a block filled by other means than integration (e.g. an SDF sampled from a neural
+    /// field) at block coordinate `key`, replacing any block there. Its layers must hold
+    /// [`BLOCK_VOXELS`] entries (colour: that many, or none when colour is off).
+    pub fn insert_block(&mut self, key: IVec3, block: Block) -> Result<(), FusionError> {
+        let colors = if self.params.color { BLOCK_VOXELS } else { 0 };
+        if block.tsdf.len() != BLOCK_VOXELS || block.weight.len() != BLOCK_VOXELS || block.color.len() != colors {
+            return Err(FusionError::Param(format!(
+                "block {key} has {} / {} / {} tsdf / weight / colour entries, expected {BLOCK_VOXELS} / {BLOCK_VOXELS} / {colors}",
+                block.tsdf.len(),
+                block.weight.len(),
+                block.color.len()
+            )));
+        }
+        match self.index.get(&key) {
+            Some(&i) => self.blocks[i as usize] = block,
+            None => {
+                self.index.insert(key, self.blocks.len() as u32);
+                self.keys.push(key);
+                self.blocks.push(block);
+            }
+        }
+        Ok(())
     }
 
     /// World position of the centre of global voxel `v`.

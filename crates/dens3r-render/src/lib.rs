@@ -12,6 +12,7 @@
 //! surface.
 
 pub mod material;
+pub mod noise;
 pub mod path;
 pub mod procedural;
 mod to_scene;
