@@ -50,7 +50,8 @@ fn noisy_copy(src: &Path, dst: &Path, sigma: f32, seed: u64) -> Result<()> {
     Ok(())
 }
 
-fn copy_dir(src: &Path, dst: &Path) -> Result<()> {
+/// Copies a folder tree.
+pub(crate) fn copy_dir(src: &Path, dst: &Path) -> Result<()> {
     std::fs::create_dir_all(dst)?;
     for e in std::fs::read_dir(src)? {
         let e = e?;

@@ -10,7 +10,7 @@ use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
 use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetricsOptions};
 use dens3r_mesh::TriMesh;
 use dens3r_nsdf::{FitOptions, TrainOptions};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Args)]
@@ -48,20 +48,6 @@ pub struct NsdfBenchArgs {
     samples: usize,
 }
 
-fn copy_dir(src: &Path, dst: &Path) -> Result<()> {
-    std::fs::create_dir_all(dst)?;
-    for e in std::fs::read_dir(src)? {
-        let e = e?;
-        let to = dst.join(e.file_name());
-        if e.file_type()?.is_dir() {
-            copy_dir(&e.path(), &to)?;
-        } else {
-            std::fs::copy(e.path(), &to)?;
-        }
-    }
-    Ok(())
-}
-
 pub fn run(a: NsdfBenchArgs) -> Result<()> {
     let (w, h) = a.size.split_once('x').context("--size is WIDTHxHEIGHT")?;
     let (w, h): (usize, usize) = (w.parse()?, h.parse()?);
@@ -83,7 +69,7 @@ pub fn run(a: NsdfBenchArgs) -> Result<()> {
     if noisy.exists() {
         std::fs::remove_dir_all(&noisy)?;
     }
-    copy_dir(&clean, &noisy)?;
+    crate::bench_fusion::copy_dir(&clean, &noisy)?;
     let noise = dens3r_render::noise::Noise { depth_sigma: a.depth_noise, normal_deg: a.normal_noise, seed: 7 };
     dens3r_render::noise::add_noise(&noisy, &noise)?;
 
