@@ -356,7 +356,6 @@ fn a_tsdf_start_puts_the_surface_in_place_before_rendering() {
     let (pts, vals) = dens3r_nsdf::tsdf_targets(&tsdf, &data.bounds).unwrap();
     // The targets are the sphere's signed distances within the truncation band (projective
     // distances overstate them at grazing angles, hence the loose bound).
-    let s = data.bounds.scale;
     // Projective distances overstate the true ones away from head-on views, but their sign
     // (in front of / behind the surface) is right.
     let (mut agree, mut total) = (0, 0);
