@@ -354,8 +354,6 @@ fn a_tsdf_start_puts_the_surface_in_place_before_rendering() {
     let fusion = dens3r_fusion::scene::SceneFusion::new(params);
     let (tsdf, _) = dens3r_fusion::scene::fuse_scene(&scene, &fusion, |_, _| {}).unwrap();
     let (pts, vals) = dens3r_nsdf::tsdf_targets(&tsdf, &data.bounds).unwrap();
-    // The targets are the sphere's signed distances within the truncation band (projective
-    // distances overstate them at grazing angles, hence the loose bound).
     // Projective distances overstate the true ones away from head-on views, but their sign
     // (in front of / behind the surface) is right.
     let (mut agree, mut total) = (0, 0);
