@@ -444,6 +444,10 @@ fn nsdf_meshes_a_scene_resumes_and_rejects_bad_input() {
     assert!(e.contains(".ply, .obj or .glb"), "{e}");
     let e = fails(&["nsdf", orbit_s, "-o", b, "--voxel", "0"]);
     assert!(e.contains("--voxel"), "{e}");
+    if !cfg!(feature = "nsdf-wgpu") {
+        let e = fails(&["nsdf", orbit_s, "-o", b, "--gpu"]);
+        assert!(e.contains("--features nsdf-wgpu"), "{e}");
+    }
     let e = fails(&["nsdf", orbit_s, "-o", b, "--iters", "10", "--lr", "3"]);
     assert!(e.contains("learning rate"), "{e}");
     let nodepth = dir.path().join("nodepth");

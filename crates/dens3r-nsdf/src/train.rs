@@ -360,6 +360,11 @@ impl Trainer {
             .collect();
         let keep: Vec<usize> = (0..rays.len()).filter(|&i| samples[i].is_some()).collect();
         let n_rays = keep.len();
+        if n_rays == 0 {
+            // No ray of this batch crosses an occupied cell (observations outside the bounds).
+            self.iter += 1;
+            return StepStats { iter: it + 1, ..Default::default() };
+        }
         let mut t_host = Vec::with_capacity(n_rays * s);
         let mut pts = Vec::with_capacity(n_rays * s);
         for &i in &keep {
