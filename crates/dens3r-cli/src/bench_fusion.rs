@@ -9,6 +9,7 @@ use anyhow::{bail, Context, Result};
 use dens3r_fusion::scene::{fuse_scene, SceneFusion};
 use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
 use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetricsOptions};
+use dens3r_render::noise::Noise;
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
@@ -39,19 +40,37 @@ pub fn run_fuse(scene: &Path, voxel: f32, out: &Path, gpu: bool) -> Result<()> {
     Ok(())
 }
 
-/// A copy of `src` whose depth has seeded multiplicative Gaussian noise of `sigma`.
-fn noisy_copy(src: &Path, dst: &Path, sigma: f32, seed: u64) -> Result<()> {
+/// Renders procedural scene `kind` along its default path into `out` with this binary's
+/// `render`, unless `out` already holds a scene (a reused `--workdir`).
+pub(crate) fn render_procedural(kind: &str, views: usize, (w, h): (usize, usize), out: &Path) -> Result<()> {
+    if out.join("cameras.json").is_file() {
+        return Ok(());
+    }
+    eprintln!("rendering {kind} ({views} views, {w}x{h}) ...");
+    let st = Command::new(std::env::current_exe()?)
+        .args(["render", "--procedural", kind, "--views", &views.to_string()])
+        .args(["--width", &w.to_string(), "--height", &h.to_string(), "-o"])
+        .arg(out)
+        .stdout(std::process::Stdio::null())
+        .status()?;
+    if !st.success() {
+        bail!("rendering the {kind} scene into {} failed", out.display());
+    }
+    Ok(())
+}
+
+/// A fresh copy of `src` at `dst` with seeded depth / normal noise.
+pub(crate) fn noisy_copy(src: &Path, dst: &Path, noise: &Noise) -> Result<()> {
     if dst.exists() {
         std::fs::remove_dir_all(dst)?;
     }
     copy_dir(src, dst)?;
-    let noise = dens3r_render::noise::Noise { depth_sigma: sigma, normal_deg: 0.0, seed };
-    dens3r_render::noise::add_noise(dst, &noise)?;
+    dens3r_render::noise::add_noise(dst, noise)?;
     Ok(())
 }
 
 /// Copies a folder tree.
-pub(crate) fn copy_dir(src: &Path, dst: &Path) -> Result<()> {
+fn copy_dir(src: &Path, dst: &Path) -> Result<()> {
     std::fs::create_dir_all(dst)?;
     for e in std::fs::read_dir(src)? {
         let e = e?;
@@ -85,20 +104,9 @@ pub fn fusion(a: FusionArgs) -> Result<()> {
     let mut scenes = Vec::new();
     for (name, proc_) in [("room", "room"), ("object", "blob")] {
         let out = dir.join(name);
-        if !out.join("cameras.json").is_file() {
-            eprintln!("rendering {name} ({} views, {w}x{h}) ...", a.views);
-            let st = Command::new(&exe)
-                .args(["render", "--procedural", proc_, "--views", &a.views.to_string()])
-                .args(["--width", &w.to_string(), "--height", &h.to_string(), "-o"])
-                .arg(&out)
-                .stdout(std::process::Stdio::null())
-                .status()?;
-            if !st.success() {
-                bail!("rendering the {name} scene failed");
-            }
-        }
+        render_procedural(proc_, a.views, (w, h), &out)?;
         let noisy = dir.join(format!("{name}_noise1"));
-        noisy_copy(&out, &noisy, 0.01, 42)?;
+        noisy_copy(&out, &noisy, &Noise { depth_sigma: 0.01, normal_deg: 0.0, seed: 42 })?;
         scenes.push((name.to_string(), out.clone(), out.clone()));
         scenes.push((format!("{name}+1%"), noisy, out.clone()));
     }

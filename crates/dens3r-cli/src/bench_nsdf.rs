@@ -56,22 +56,9 @@ pub fn run(a: NsdfBenchArgs) -> Result<()> {
     std::fs::create_dir_all(&dir)?;
     let clean = dir.join("object");
     let noisy = dir.join("object_noisy");
-    if !clean.join("cameras.json").is_file() {
-        eprintln!("rendering the object orbit ({} views, {w}x{h}) ...", a.views);
-        let st = std::process::Command::new(std::env::current_exe()?)
-            .args(["render", "--procedural", "blob", "--views", &a.views.to_string()])
-            .args(["--width", &w.to_string(), "--height", &h.to_string(), "-o"])
-            .arg(&clean)
-            .stdout(std::process::Stdio::null())
-            .status()?;
-        anyhow::ensure!(st.success(), "rendering failed");
-    }
-    if noisy.exists() {
-        std::fs::remove_dir_all(&noisy)?;
-    }
-    crate::bench_fusion::copy_dir(&clean, &noisy)?;
+    crate::bench_fusion::render_procedural("blob", a.views, (w, h), &clean)?;
     let noise = dens3r_render::noise::Noise { depth_sigma: a.depth_noise, normal_deg: a.normal_noise, seed: 7 };
-    dens3r_render::noise::add_noise(&noisy, &noise)?;
+    crate::bench_fusion::noisy_copy(&clean, &noisy, &noise)?;
 
     let gt = dens3r_mesh::read_mesh(&clean.join("gt_mesh.ply"))?;
     let seen = dens3r_scene::visibility::Visibility::from_scene(&dens3r_scene::Scene::open(&clean)?, 0.02)?;

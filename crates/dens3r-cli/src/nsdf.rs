@@ -52,8 +52,7 @@ pub struct NsdfArgs {
     /// Start by fitting the field to the scene's TSDF for this many iterations.
     #[arg(long, num_args = 0..=1, default_missing_value = "300")]
     init_tsdf: Option<usize>,
-    /// Mesh voxel size in scene units (default: a quarter of the occupancy cell, 1/128 of the
-    /// scene's extent).
+    /// Mesh voxel size in scene units (default: 1/256 of the scene's bounding cube).
     #[arg(long)]
     voxel: Option<f32>,
     /// Drop connected pieces with fewer triangles than this.
@@ -147,8 +146,7 @@ pub fn run(a: NsdfArgs) -> Result<()> {
         ck_dir = PathBuf::from(".");
     }
     let init = if train.init_tsdf_iters > 0 {
-        let voxel = (data.occupancy.cell() as f64 * data.bounds.scale / 4.0) as f32;
-        let mut params = TsdfParams::new(voxel);
+        let mut params = TsdfParams::new(data.default_voxel());
         params.color = false;
         params.depth_range = (0.0, f32::MAX);
         let (tsdf, _) = fuse_scene(&scene, &SceneFusion::new(params), |_, _| {}).map_err(anyhow::Error::msg)?;

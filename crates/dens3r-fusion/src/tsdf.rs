@@ -171,6 +171,12 @@ pub struct FrameInput<'a> {
     pub weight: Option<&'a Raster<f32>>,
 }
 
+/// Global voxel coordinate of entry `i` of the block at `key` (layout `x + 8 y + 64 z`).
+pub fn block_voxel(key: IVec3, i: usize) -> IVec3 {
+    let i = i as i32;
+    key * BLOCK + IVec3::new(i % BLOCK, (i / BLOCK) % BLOCK, i / (BLOCK * BLOCK))
+}
+
 /// The sparse TSDF volume.
 pub struct SparseTsdf {
     params: TsdfParams,

@@ -9,6 +9,7 @@ use crate::train::TrainOptions;
 use crate::NsdfError;
 use safetensors::tensor::{Dtype, TensorView};
 use serde::{Deserialize, Serialize};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// Everything a checkpoint holds.
@@ -53,8 +54,6 @@ fn write_atomic(path: &Path, data: &[u8]) -> Result<(), NsdfError> {
     dens3r_mesh::io::write_atomic(path, |w| w.write_all(data))
         .map_err(|e| NsdfError::Checkpoint(format!("{}: cannot write: {e}", path.display())))
 }
-
-use std::io::Write;
 
 /// Writes a checkpoint.
 pub fn save(path: &Path, ck: &Checkpoint) -> Result<(), NsdfError> {

@@ -57,6 +57,18 @@ impl Rays {
     }
 }
 
+/// Where a ray `o + t d` (`t >= 0`) is inside the cube `[-1, 1]^3` (slab test), if anywhere.
+pub fn ray_cube(o: Vec3, d: Vec3) -> Option<(f32, f32)> {
+    let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+    for a in 0..3 {
+        let inv = 1.0 / d[a];
+        let (ta, tb) = ((-1.0 - o[a]) * inv, (1.0 - o[a]) * inv);
+        t0 = t0.max(ta.min(tb));
+        t1 = t1.min(ta.max(tb));
+    }
+    (t1 > t0).then_some((t0, t1))
+}
+
 /// A boolean grid of `res^3` cells over the normalised cube.
 #[derive(Debug, Clone)]
 pub struct Occupancy {
@@ -139,24 +151,12 @@ impl Occupancy {
         (0..r * r * r).map(move |i| IVec3::new(i % r, (i / r) % r, i / (r * r))).filter(|&c| self.occupied_cell(c))
     }
 
-    /// Number of occupied cells.
-    pub fn count(&self) -> usize {
-        self.cells.iter().filter(|&&c| c).count()
-    }
-
     /// The occupied stretches `[t0, t1]` of a ray inside the cube, marched at half a cell.
     pub fn segments(&self, o: Vec3, d: Vec3) -> Vec<(f32, f32)> {
-        let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
-        for a in 0..3 {
-            let inv = 1.0 / d[a];
-            let (ta, tb) = ((-1.0 - o[a]) * inv, (1.0 - o[a]) * inv);
-            t0 = t0.max(ta.min(tb));
-            t1 = t1.min(ta.max(tb));
-        }
         let mut out: Vec<(f32, f32)> = Vec::new();
-        if t1.partial_cmp(&t0) != Some(std::cmp::Ordering::Greater) {
+        let Some((t0, t1)) = ray_cube(o, d) else {
             return out;
-        }
+        };
         let step = 0.5 * self.cell();
         let mut t = t0;
         while t < t1 {
@@ -186,6 +186,14 @@ pub struct TrainData {
     pub frames: usize,
     /// Whether every frame had normals.
     pub has_normals: bool,
+}
+
+impl TrainData {
+    /// The default mesh voxel (also the TSDF start's): a quarter of an occupancy cell, in world
+    /// units (1/256 of the bounding cube's side).
+    pub fn default_voxel(&self) -> f32 {
+        (self.occupancy.cell() as f64 * self.bounds.scale / 4.0) as f32
+    }
 }
 
 /// Occupancy grid resolution over the normalised cube.

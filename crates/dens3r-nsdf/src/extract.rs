@@ -8,7 +8,7 @@ use crate::NsdfError;
 use burn::tensor::activation::sigmoid;
 use burn::tensor::Device;
 use dens3r_fusion::extract::{component_filter, filter_triangles};
-use dens3r_fusion::tsdf::{Block, BLOCK, BLOCK_VOXELS};
+use dens3r_fusion::tsdf::{block_voxel, Block, BLOCK, BLOCK_VOXELS};
 use dens3r_fusion::{extract_mesh, ExtractOptions, SparseTsdf, TsdfParams};
 use dens3r_mesh::TriMesh;
 use glam::{DVec3, IVec3, Vec3};
@@ -64,9 +64,8 @@ pub fn sample_grid(
     let keys: Vec<IVec3> = keys.into_iter().map(|(z, y, x)| IVec3::new(x, y, z)).collect();
     let mut world = Vec::with_capacity(keys.len() * BLOCK_VOXELS);
     for k in &keys {
-        for i in 0..BLOCK_VOXELS as i32 {
-            let v = *k * BLOCK + IVec3::new(i % BLOCK, (i / BLOCK) % BLOCK, i / (BLOCK * BLOCK));
-            world.push((v.as_dvec3() + 0.5) * voxel as f64);
+        for i in 0..BLOCK_VOXELS {
+            world.push((block_voxel(*k, i).as_dvec3() + 0.5) * voxel as f64);
         }
     }
     let unit: Vec<Vec3> = world.iter().map(|p| bounds.to_unit(*p)).collect();

@@ -210,15 +210,14 @@ pub fn init_values(cfg: &FieldConfig, seed: u64) -> Vec<(Vec<f32>, [usize; 2])> 
         let (u1, u2): (f32, f32) = (rng.gen_range(1e-7..1.0), rng.gen());
         sd * (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
     };
-    let mut out = Vec::new();
-    let rows = cfg.levels * cfg.table_size();
+    let shapes = param_shapes(cfg);
+    let mut out = Vec::with_capacity(shapes.len());
+    let [rows, features] = shapes[0];
     let mut r2 = ChaCha8Rng::seed_from_u64(seed ^ 0x9e37_79b9);
-    out.push(((0..rows * cfg.features).map(|_| r2.gen_range(-1e-4..1e-4)).collect(), [rows, cfg.features]));
-    let h = cfg.hidden;
-    let mut fan_in = cfg.input_width();
+    out.push(((0..rows * features).map(|_| r2.gen_range(-1e-4..1e-4)).collect(), shapes[0]));
     for i in 0..=cfg.layers {
         let last = i == cfg.layers;
-        let fan_out = if last { cfg.outputs() } else { h };
+        let [fan_in, fan_out] = shapes[1 + 2 * i];
         let mut w = vec![0f32; fan_in * fan_out];
         for r in 0..fan_in {
             for c in 0..fan_out {
@@ -239,11 +238,10 @@ pub fn init_values(cfg: &FieldConfig, seed: u64) -> Vec<(Vec<f32>, [usize; 2])> 
         if last {
             b[0] = -cfg.init_radius;
         }
-        out.push((w, [fan_in, fan_out]));
-        out.push((b, [1, fan_out]));
-        fan_in = h;
+        out.push((w, shapes[1 + 2 * i]));
+        out.push((b, shapes[2 + 2 * i]));
     }
-    out.push((vec![0.3], [1, 1]));
+    out.push((vec![0.3], shapes[shapes.len() - 1]));
     out
 }
 

@@ -54,7 +54,7 @@ pub struct FitOptions {
     pub field: FieldConfig,
     /// Training.
     pub train: TrainOptions,
-    /// Mesh voxel size in world units (`None`: the occupancy cell / 4).
+    /// Mesh voxel size in world units (`None`: [`TrainData::default_voxel`]).
     pub voxel: Option<f32>,
     /// Folder for the checkpoint (`None`: no checkpoints).
     pub checkpoint_dir: Option<PathBuf>,
@@ -130,10 +130,7 @@ pub fn fit(
     let ck = opts.checkpoint_dir.as_ref().map(|d| train::checkpoint_path(d));
     let mut trainer = match &ck {
         Some(p) if opts.resume && p.is_file() => {
-            let t = Trainer::resume(p, opts.train.clone(), data, device.clone())?;
-            if t.config != opts.field {
-                return Err(NsdfError::Checkpoint(format!("{}: written for another field configuration", p.display())));
-            }
+            let t = Trainer::resume(p, &opts.field, opts.train.clone(), data, device.clone())?;
             progress(Progress::Resumed(t.iter));
             t
         }
@@ -169,7 +166,7 @@ pub fn fit(
         }
     }
     let train_seconds = t0.elapsed().as_secs_f64();
-    let voxel = opts.voxel.unwrap_or((data.occupancy.cell() as f64 * data.bounds.scale / 4.0) as f32);
+    let voxel = opts.voxel.unwrap_or_else(|| data.default_voxel());
     let t1 = Instant::now();
     let mesh = extract::extract(
         &trainer.values(),
@@ -197,7 +194,7 @@ pub fn fit(
 /// SDF targets for the TSDF start: observed voxels of `tsdf` inside its truncation band, as
 /// normalised positions and distances.
 pub fn tsdf_targets(tsdf: &SparseTsdf, bounds: &Bounds) -> Result<(Vec<glam::Vec3>, Vec<f32>), NsdfError> {
-    use dens3r_fusion::tsdf::{BLOCK, BLOCK_VOXELS};
+    use dens3r_fusion::tsdf::{block_voxel, BLOCK_VOXELS};
     let trunc = tsdf.params().trunc as f64;
     let mut pts = Vec::new();
     let mut vals = Vec::new();
@@ -205,9 +202,7 @@ pub fn tsdf_targets(tsdf: &SparseTsdf, bounds: &Bounds) -> Result<(Vec<glam::Vec
         for i in 0..BLOCK_VOXELS {
             let (w, f) = (b.weight[i], b.tsdf[i]);
             if w > 0.0 && f.abs() < 0.99 {
-                let li = i as i32;
-                let v = k * BLOCK + glam::IVec3::new(li % BLOCK, (li / BLOCK) % BLOCK, li / (BLOCK * BLOCK));
-                let p = bounds.to_unit(tsdf.voxel_center(v).as_dvec3());
+                let p = bounds.to_unit(tsdf.voxel_center(block_voxel(k, i)).as_dvec3());
                 if p.abs().max_element() < 1.0 {
                     pts.push(p);
                     vals.push((f as f64 * trunc / bounds.scale) as f32);

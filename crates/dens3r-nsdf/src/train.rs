@@ -3,7 +3,7 @@
 //! activation of the grid levels, checkpoints that resume to the same numbers.
 
 use crate::checkpoint::{self, Checkpoint};
-use crate::data::TrainData;
+use crate::data::{ray_cube, TrainData};
 use crate::field::{self, encode, Evaluated, FieldConfig, Params};
 use crate::render;
 use crate::NsdfError;
@@ -163,6 +163,8 @@ pub struct Trainer {
     pub table: Vec<f32>,
     table_m: Vec<f32>,
     table_v: Vec<f32>,
+    /// The table's gradient, reused across steps (25 MB at the default size).
+    table_grad: Vec<f32>,
     moments: Vec<Moments>,
     /// Iterations done.
     pub iter: usize,
@@ -222,7 +224,21 @@ impl Trainer {
         }
         let frame_ranges = frame_ranges.into_iter().filter(|r| r.1 > r.0).collect();
         let occupied = data.occupancy.cells().collect();
-        Self { config, options, params, table, table_m, table_v, moments, iter, device, frame_ranges, occupied }
+        let table_grad = vec![0.0; table.len()];
+        Self {
+            config,
+            options,
+            params,
+            table,
+            table_m,
+            table_v,
+            table_grad,
+            moments,
+            iter,
+            device,
+            frame_ranges,
+            occupied,
+        }
     }
 
     /// Saves parameters, optimiser state and progress to `path` (`.safetensors`, atomically,
@@ -241,15 +257,22 @@ impl Trainer {
         checkpoint::save(path, &ck)
     }
 
-    /// Resumes from a checkpoint written by [`Trainer::save`] for the same data and options
-    /// (only `iters` may differ).
+    /// Resumes from a checkpoint written by [`Trainer::save`] for the same field, data and
+    /// options (only `iters` may differ).
     pub fn resume(
         path: &std::path::Path,
+        config: &FieldConfig,
         options: TrainOptions,
         data: &TrainData,
         device: Device,
     ) -> Result<Self, NsdfError> {
         let ck = checkpoint::load(path)?;
+        if ck.config != *config {
+            return Err(NsdfError::Checkpoint(format!(
+                "{}: written for another field configuration; delete it or rerun with the same options",
+                path.display()
+            )));
+        }
         let same = TrainOptions { iters: options.iters, ..ck.options.clone() };
         if same != options {
             return Err(NsdfError::Checkpoint(format!(
@@ -338,7 +361,8 @@ impl Trainer {
                 // A quarter of the samples stratified over the whole ray up to the last occupied
                 // stretch (so free space in front of the surface is seen and kept positive),
                 // the rest stratified over the occupied stretches.
-                let (near, far) = (ray_entry(data.rays.origin[r], data.rays.dir[r]), segs[segs.len() - 1].1);
+                let near = ray_cube(data.rays.origin[r], data.rays.dir[r]).map_or(0.0, |(t0, _)| t0);
+                let far = segs[segs.len() - 1].1;
                 let su = s / 4;
                 let mut ts = Vec::with_capacity(s);
                 for j in 0..su {
@@ -481,10 +505,11 @@ impl Trainer {
         let grads = loss.backward();
         let t = (self.iter + 1) as i32;
         let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
-        let mut gtable = vec![0f32; self.table.len()];
+        let gtable = &mut self.table_grad;
+        gtable.par_iter_mut().for_each(|g| *g = 0.0);
         for ev in evals {
             if let Some(g) = ev.features.grad(&grads) {
-                field::grid_backward(&self.config, &ev.enc, mask, &field::to_vec(g), &mut gtable);
+                field::grid_backward(&self.config, &ev.enc, mask, &field::to_vec(g), gtable);
             }
         }
         let (lr32, b1f, b2f) = (lr as f32, b1 as f32, b2 as f32);
@@ -534,17 +559,6 @@ impl Trainer {
             m.v = m.v.clone().zeros_like();
         }
     }
-}
-
-/// Where a ray enters the cube `[-1, 1]^3` (0 when it starts inside).
-fn ray_entry(o: Vec3, d: Vec3) -> f32 {
-    let mut t0 = 0.0f32;
-    for a in 0..3 {
-        let inv = 1.0 / d[a];
-        let (ta, tb) = ((-1.0 - o[a]) * inv, (1.0 - o[a]) * inv);
-        t0 = t0.max(ta.min(tb));
-    }
-    t0
 }
 
 /// MonoSDF's per-image least-squares `a * observed + b ~ rendered` (rendered held constant):

@@ -243,6 +243,11 @@ fn sphere_scene(dir: &Path, noise: bool) -> (PathBuf, DVec3, f64) {
     (out, c.as_dvec3(), r as f64)
 }
 
+/// The error of a run that must fail.
+fn fit_error(data: &dens3r_nsdf::TrainData, opts: &FitOptions) -> String {
+    dens3r_nsdf::fit(data, opts, None, dens3r_nsdf::cpu_device(), |_| {}).unwrap_err().to_string()
+}
+
 fn small_opts(iters: usize) -> FitOptions {
     FitOptions {
         field: FieldConfig { levels: 8, log2_table: 15, max_res: 128, hidden: 32, ..FieldConfig::default() },
@@ -305,10 +310,13 @@ fn fits_a_sphere_and_resumes_where_it_stopped() {
     let d = mesh2.positions.iter().zip(&mesh.positions).map(|(a, b)| (*a - *b).length()).fold(0f32, f32::max);
     assert!(d < 1e-3, "resumed mesh differs by {d}");
 
-    // A finished run resumes to the end at once; other options are refused.
+    // A checkpoint written with other options is refused.
     let other = FitOptions { train: TrainOptions { lr: 5e-3, ..go.train.clone() }, ..go.clone() };
-    let e = dens3r_nsdf::fit(&data, &other, None, dens3r_nsdf::cpu_device(), |_| {}).unwrap_err().to_string();
+    let e = fit_error(&data, &other);
     assert!(e.contains("other training options") && e.contains("nsdf.safetensors"), "{e}");
+    let other = FitOptions { field: FieldConfig { hidden: 16, ..go.field.clone() }, ..go.clone() };
+    let e = fit_error(&data, &other);
+    assert!(e.contains("another field configuration") && e.contains("nsdf.safetensors"), "{e}");
 }
 
 #[test]
@@ -327,10 +335,10 @@ fn damaged_checkpoints_are_refused_with_their_path() {
     let bytes = std::fs::read(&path).unwrap();
     std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
     let go = FitOptions { stop_after: None, ..opts.clone() };
-    let e = dens3r_nsdf::fit(&data, &go, None, dens3r_nsdf::cpu_device(), |_| {}).unwrap_err().to_string();
+    let e = fit_error(&data, &go);
     assert!(e.contains("nsdf.safetensors") && e.contains("truncated"), "{e}");
     std::fs::write(ck.join("nsdf.json"), b"{not json").unwrap();
-    let e = dens3r_nsdf::fit(&data, &go, None, dens3r_nsdf::cpu_device(), |_| {}).unwrap_err().to_string();
+    let e = fit_error(&data, &go);
     assert!(e.contains("nsdf.json") && e.contains("not a dens3r-nsdf checkpoint"), "{e}");
 }
 
@@ -382,6 +390,6 @@ fn a_tsdf_start_puts_the_surface_in_place_before_rendering() {
     assert!(init_losses[149] < 0.2 * init_losses[0]);
     assert!(mesh.positions.len() > 500 && mean < 0.02, "mean distance {mean} after the TSDF start");
     // Without a TSDF the start is refused, not skipped.
-    let e = dens3r_nsdf::fit(&data, &opts, None, dens3r_nsdf::cpu_device(), |_| {}).unwrap_err().to_string();
+    let e = fit_error(&data, &opts);
     assert!(e.contains("TSDF"), "{e}");
 }
