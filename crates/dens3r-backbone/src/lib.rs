@@ -9,7 +9,9 @@
 
 pub mod config;
 pub mod cpu;
+pub mod dinov2;
 pub mod model;
+pub mod onnx;
 pub mod ops;
 pub mod predict;
 pub mod preprocess;
