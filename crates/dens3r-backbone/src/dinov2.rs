@@ -85,7 +85,11 @@ impl Loader<'_> {
         Ok(Tensor::from_data(TensorData::new(v, [n]), self.device))
     }
     fn norm(&mut self, prefix: &str, d: usize) -> Result<LayerNorm, OnnxError> {
-        Ok(LayerNorm { gamma: self.vec(&format!("{prefix}.weight"), d)?, beta: self.vec(&format!("{prefix}.bias"), d)?, eps: 1e-6 })
+        Ok(LayerNorm {
+            gamma: self.vec(&format!("{prefix}.weight"), d)?,
+            beta: self.vec(&format!("{prefix}.bias"), d)?,
+            eps: 1e-6,
+        })
     }
     /// A `MatMul` weight stored `(in, out)` plus its bias.
     fn linear(&mut self, prefix: &str, inp: usize, out: usize) -> Result<Linear, OnnxError> {

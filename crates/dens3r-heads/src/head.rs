@@ -1,0 +1,302 @@
+//! Heads: a [`HeadConfig`] (which feature layers, what task) plus named parameters.
+//!
+//! An architecture implements [`HeadArch`] (its parameter shapes and its forward pass on burn
+//! tensors, so autodiff gives the gradients) and is found by name through [`arch`], the
+//! registry. Two are registered: `linear` (the DINOv2-style linear probe: a per-token linear
+//! map of the concatenated layers, upsampled bilinearly) and `dpt` (reassemble four layers at
+//! 4x, 2x, 1x and 1/2x the token grid, fuse coarse to fine with residual conv units, a conv
+//! head, bilinear upsampling). A head saves as safetensors (parameters) + JSON (config).
+
+use burn::tensor::module::{conv2d, interpolate};
+use burn::tensor::ops::{ConvOptions, InterpolateMode, InterpolateOptions};
+use burn::tensor::{activation::relu, Device, Tensor, TensorData};
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// What a head predicts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Task {
+    /// Per-pixel class logits.
+    Seg {
+        /// Class names, index = class id.
+        classes: Vec<String>,
+    },
+    /// Per-pixel log depth (one channel; depth = `exp(output)`).
+    Depth,
+}
+
+impl Task {
+    /// Output channels.
+    pub fn channels(&self) -> usize {
+        match self {
+            Task::Seg { classes } => classes.len(),
+            Task::Depth => 1,
+        }
+    }
+}
+
+/// A head's architecture and the features it reads.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HeadConfig {
+    /// Registered architecture name (`linear`, `dpt`).
+    pub kind: String,
+    /// Task.
+    pub task: Task,
+    /// [`crate::Backbone::id`] of the backbone it was trained on.
+    pub backbone: String,
+    /// Pixels per token.
+    pub patch: usize,
+    /// Indices of the feature layers read (repeats allowed: a one-layer backbone feeds all
+    /// four DPT branches).
+    pub layers: Vec<usize>,
+    /// Channels of each read layer.
+    pub in_dims: Vec<usize>,
+    /// Hidden width (DPT features; unused by the linear probe).
+    pub width: usize,
+}
+
+/// An architecture: parameter shapes and the forward pass.
+pub trait HeadArch: Sync {
+    /// Registry name.
+    fn name(&self) -> &'static str;
+    /// Checks a configuration (layer count and so on).
+    fn check(&self, config: &HeadConfig) -> Result<(), String>;
+    /// Parameter names and shapes, in storage order.
+    fn param_shapes(&self, config: &HeadConfig) -> Vec<(String, Vec<usize>)>;
+    /// Output `(B, channels, H, W)` at image size `out` from the read layers `(B, C, h, w)`
+    /// (in `config.layers` order), with `params` in [`HeadArch::param_shapes`] order.
+    fn forward(&self, config: &HeadConfig, params: &[Tensor<1>], feats: &[Tensor<4>], out: (usize, usize))
+        -> Tensor<4>;
+}
+
+/// The registered architectures.
+pub static ARCHS: &[&dyn HeadArch] = &[&LinearProbe, &Dpt];
+
+/// Looks an architecture up by name.
+pub fn arch(name: &str) -> Result<&'static dyn HeadArch, String> {
+    ARCHS.iter().copied().find(|a| a.name() == name).ok_or_else(|| {
+        let known: Vec<_> = ARCHS.iter().map(|a| a.name()).collect();
+        format!("unknown head kind {name:?}; known: {}", known.join(", "))
+    })
+}
+
+/// A head: configuration and parameter values (host, f32).
+#[derive(Debug, Clone)]
+pub struct Head {
+    /// Configuration.
+    pub config: HeadConfig,
+    /// Values in [`HeadArch::param_shapes`] order.
+    pub values: Vec<Vec<f32>>,
+}
+
+impl Head {
+    /// A freshly initialised head (uniform `+-1/sqrt(fan_in)` weights, zero biases, seeded).
+    pub fn new(config: HeadConfig, seed: u64) -> Result<Self, String> {
+        let a = arch(&config.kind)?;
+        a.check(&config)?;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let values = a
+            .param_shapes(&config)
+            .iter()
+            .map(|(name, s)| {
+                let n: usize = s.iter().product();
+                if name.ends_with(".bias") {
+                    return vec![0.0; n];
+                }
+                let fan_in: usize = s[1..].iter().product::<usize>().max(1);
+                let b = 1.0 / (fan_in as f32).sqrt();
+                (0..n).map(|_| rng.gen_range(-b..b)).collect()
+            })
+            .collect();
+        Ok(Self { config, values })
+    }
+
+    /// Names and shapes of the parameters.
+    pub fn param_shapes(&self) -> Vec<(String, Vec<usize>)> {
+        arch(&self.config.kind).map(|a| a.param_shapes(&self.config)).unwrap_or_default()
+    }
+
+    /// The parameters as flat tensors on `device` (autodiff devices track them).
+    pub fn tensors(&self, device: &Device) -> Vec<Tensor<1>> {
+        self.values.iter().map(|v| Tensor::from_data(TensorData::new(v.clone(), [v.len()]), device)).collect()
+    }
+
+    /// Runs the head on a feature batch with the given parameter tensors.
+    pub fn forward_with(&self, params: &[Tensor<1>], feats: &[Tensor<4>], out: (usize, usize)) -> Tensor<4> {
+        let a = arch(&self.config.kind).expect("registered kind");
+        a.forward(&self.config, params, feats, out)
+    }
+
+    /// Inference on one image's features.
+    pub fn predict(&self, features: &crate::FeatureMaps, out: (usize, usize), device: &Device) -> Tensor<4> {
+        let feats: Vec<Tensor<4>> = self.config.layers.iter().map(|&l| features.tensor(l, device)).collect();
+        self.forward_with(&self.tensors(device), &feats, out)
+    }
+
+    /// Writes `PATH.safetensors` and `PATH.json` (atomically; JSON last).
+    pub fn save(&self, path: &Path) -> Result<(), String> {
+        let named: Vec<(String, Vec<usize>, &[f32])> =
+            self.param_shapes().into_iter().zip(&self.values).map(|((n, s), v)| (n, s, v.as_slice())).collect();
+        crate::io::save_tensors(&path.with_extension("safetensors"), &named)?;
+        let meta = serde_json::json!({ "format": FORMAT, "config": self.config });
+        crate::io::save_json(&path.with_extension("json"), &meta)
+    }
+
+    /// Reads a head written by [`Head::save`] (either file's path, or the stem).
+    pub fn load(path: &Path) -> Result<Self, String> {
+        let json = path.with_extension("json");
+        let text = std::fs::read_to_string(&json).map_err(|e| {
+            format!("{}: cannot read the head ({e}); give the .json written by train-head", json.display())
+        })?;
+        #[derive(Deserialize)]
+        struct Meta {
+            format: String,
+            config: HeadConfig,
+        }
+        let meta: Meta = serde_json::from_str(&text)
+            .map_err(|e| format!("{}: not a dens3r head ({e}); retrain or restore the file", json.display()))?;
+        if meta.format != FORMAT {
+            return Err(format!("{}: format {:?}, expected {FORMAT:?}", json.display(), meta.format));
+        }
+        let a = arch(&meta.config.kind).map_err(|e| format!("{}: {e}", json.display()))?;
+        a.check(&meta.config).map_err(|e| format!("{}: {e}", json.display()))?;
+        let shapes = a.param_shapes(&meta.config);
+        let values = crate::io::load_tensors(&path.with_extension("safetensors"), &shapes)?;
+        Ok(Self { config: meta.config, values })
+    }
+}
+
+const FORMAT: &str = "dens3r-head/1";
+
+/// Bilinear resize (`align_corners=False`) to `size`.
+pub fn resize(x: Tensor<4>, size: (usize, usize)) -> Tensor<4> {
+    let [_, _, h, w] = x.dims();
+    if (h, w) == size {
+        return x;
+    }
+    interpolate(x, InterpolateOptions::new(InterpolateMode::Bilinear).with_output_size([size.0, size.1]))
+}
+
+/// Convolution with a flat weight `(out, in, k, k)` and bias.
+fn conv(x: Tensor<4>, w: &Tensor<1>, b: Option<&Tensor<1>>, out: usize, k: usize, stride: usize) -> Tensor<4> {
+    let inp = x.dims()[1];
+    let w = w.clone().reshape([out, inp, k, k]);
+    conv2d(x, w, b.cloned(), ConvOptions::new([stride; 2], [k / 2; 2], [1, 1], 1))
+}
+
+/// The linear probe: logits = `W [f_l1; f_l2; ...] + b` per token, bilinearly upsampled.
+pub struct LinearProbe;
+
+impl HeadArch for LinearProbe {
+    fn name(&self) -> &'static str {
+        "linear"
+    }
+    fn check(&self, c: &HeadConfig) -> Result<(), String> {
+        if c.layers.is_empty() || c.layers.len() != c.in_dims.len() {
+            return Err("the linear probe reads at least one layer, with one width per layer".into());
+        }
+        Ok(())
+    }
+    fn param_shapes(&self, c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
+        let k = c.task.channels();
+        let d: usize = c.in_dims.iter().sum();
+        vec![("linear.weight".into(), vec![k, d, 1, 1]), ("linear.bias".into(), vec![k])]
+    }
+    fn forward(&self, c: &HeadConfig, p: &[Tensor<1>], feats: &[Tensor<4>], out: (usize, usize)) -> Tensor<4> {
+        let x = Tensor::cat(feats.to_vec(), 1);
+        resize(conv(x, &p[0], Some(&p[1]), c.task.channels(), 1, 1), out)
+    }
+}
+
+/// A DPT-style head on four layers (Ranftl et al. 2021, reduced): per layer a 1x1 projection to
+/// `width`, resampling to 4x, 2x, 1x and 1/2x the token grid (bilinear up, a strided 3x3 conv
+/// down), a 3x3 conv; fusion from the coarsest level with residual conv units
+/// `x + conv3x3(relu(x))`; head conv3x3 -> ReLU -> conv1x1; bilinear upsampling to the image.
+pub struct Dpt;
+
+const DPT_SCALES: [f32; 4] = [4.0, 2.0, 1.0, 0.5];
+
+impl HeadArch for Dpt {
+    fn name(&self) -> &'static str {
+        "dpt"
+    }
+    fn check(&self, c: &HeadConfig) -> Result<(), String> {
+        if c.layers.len() != 4 || c.in_dims.len() != 4 {
+            return Err(format!("the DPT head reads 4 layers (repeats allowed), got {:?}", c.layers));
+        }
+        if c.width < 2 {
+            return Err("the DPT width must be at least 2".into());
+        }
+        Ok(())
+    }
+    fn param_shapes(&self, c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
+        let w = c.width;
+        let mut s: Vec<(String, Vec<usize>)> = Vec::new();
+        for (l, &d) in c.in_dims.iter().enumerate() {
+            s.push((format!("reassemble.{l}.proj.weight"), vec![w, d, 1, 1]));
+            s.push((format!("reassemble.{l}.proj.bias"), vec![w]));
+            if l == 3 {
+                s.push(("reassemble.3.down.weight".into(), vec![w, w, 3, 3]));
+                s.push(("reassemble.3.down.bias".into(), vec![w]));
+            }
+            s.push((format!("reassemble.{l}.rn.weight"), vec![w, w, 3, 3]));
+        }
+        for l in 0..4 {
+            s.push((format!("fusion.{l}.rcu1.weight"), vec![w, w, 3, 3]));
+            s.push((format!("fusion.{l}.rcu1.bias"), vec![w]));
+            s.push((format!("fusion.{l}.rcu2.weight"), vec![w, w, 3, 3]));
+            s.push((format!("fusion.{l}.rcu2.bias"), vec![w]));
+        }
+        let h = (w / 2).max(1);
+        s.push(("head.conv.weight".into(), vec![h, w, 3, 3]));
+        s.push(("head.conv.bias".into(), vec![h]));
+        s.push(("head.out.weight".into(), vec![c.task.channels(), h, 1, 1]));
+        s.push(("head.out.bias".into(), vec![c.task.channels()]));
+        s
+    }
+    fn forward(&self, c: &HeadConfig, p: &[Tensor<1>], feats: &[Tensor<4>], out: (usize, usize)) -> Tensor<4> {
+        let w = c.width;
+        let mut i = 0;
+        let mut next = || {
+            i += 1;
+            &p[i - 1]
+        };
+        let [_, _, gh, gw] = feats[0].dims();
+        let mut levels = Vec::with_capacity(4);
+        for (l, f) in feats.iter().enumerate() {
+            let (pw, pb) = (next(), next());
+            let mut x = conv(f.clone(), pw, Some(pb), w, 1, 1);
+            if l == 3 {
+                let (dw, db) = (next(), next());
+                x = conv(x, dw, Some(db), w, 3, 2);
+            } else {
+                let s = DPT_SCALES[l];
+                x = resize(x, ((gh as f32 * s) as usize, (gw as f32 * s) as usize));
+            }
+            levels.push(conv(x, next(), None, w, 3, 1));
+        }
+        let rcu = |x: Tensor<4>, wt: &Tensor<1>, b: &Tensor<1>| x.clone() + conv(relu(x), wt, Some(b), w, 3, 1);
+        let mut fusion = Vec::with_capacity(4);
+        for _ in 0..4 {
+            fusion.push((next().clone(), next().clone(), next().clone(), next().clone()));
+        }
+        // Coarse to fine: level 3 (1/2x) up to level 2's size, and so on to level 0 (4x).
+        let mut path: Option<Tensor<4>> = None;
+        for l in (0..4).rev() {
+            let (w1, b1, w2, b2) = &fusion[l];
+            let x = levels[l].clone();
+            let [_, _, h, wd] = x.dims();
+            let x = match path.take() {
+                Some(prev) => resize(prev, (h, wd)) + rcu(x, w1, b1),
+                None => rcu(x, w1, b1),
+            };
+            path = Some(rcu(x, w2, b2));
+        }
+        let x = path.expect("four levels");
+        let (hw, hb, ow, ob) = (next(), next(), next(), next());
+        let x = relu(conv(x, hw, Some(hb), (w / 2).max(1), 3, 1));
+        resize(conv(x, ow, Some(ob), c.task.channels(), 1, 1), out)
+    }
+}

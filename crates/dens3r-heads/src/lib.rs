@@ -1,0 +1,22 @@
+//! Trainable heads on frozen backbone features (the design card's first use: "train a
+//! segmentation head on frozen features").
+//!
+//! [`features`] is the seam: a [`Backbone`] (Dens3R, DINOv2 or raw pixels) turns an image into
+//! [`FeatureMaps`]; [`cache`] stores them on disk once per image; [`head`] holds the head
+//! architectures (registry: `linear`, `dpt`) and their safetensors + JSON files; [`loss`] and
+//! [`metrics`] the objectives and scores; [`data`] the labelled images; [`train`] AdamW
+//! training with validation, checkpoints and resume. The backbone is never trained: only head
+//! parameters are tracked by autodiff.
+
+pub mod cache;
+pub mod data;
+pub mod features;
+pub mod head;
+pub mod io;
+pub mod loss;
+pub mod metrics;
+pub mod train;
+
+pub use features::{Backbone, Dens3rBackbone, Dinov2Backbone, FeatureMaps, PixelBackbone};
+pub use head::{Head, HeadConfig, Task};
+pub use train::{Example, TrainOptions, Trainer};

@@ -1,0 +1,451 @@
+//! Head training on cached frozen features: AdamW with linear warm-up and cosine decay,
+//! mini-batches, augmentation (left-right flip and token-aligned random crops in feature space;
+//! colour jitter, which needs the backbone re-run, when a backbone is given), validation after
+//! every epoch (mIoU and pixel accuracy, or AbsRel and delta1), checkpoints and resume.
+//!
+//! Determinism: the sample order of an epoch is drawn from `(seed, epoch)` and a step's
+//! augmentation from `(seed, step)`, so a run resumed from a checkpoint takes the same steps as
+//! one never interrupted.
+
+use crate::data::{Sample, Target};
+use crate::features::{to_vec, Backbone, FeatureMaps};
+use crate::head::{Head, Task};
+use crate::loss::{affine_invariant, cross_entropy, silog};
+use crate::metrics::{Confusion, DepthStats};
+use burn::tensor::{Device, Tensor};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Depth loss.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DepthLoss {
+    /// Scale-invariant log (metric-ish depth up to a global scale).
+    Silog,
+    /// Affine-invariant (relative depth).
+    AffineInvariant,
+}
+
+/// Training settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainOptions {
+    /// Passes over the training set.
+    pub epochs: usize,
+    /// Samples per step.
+    pub batch: usize,
+    /// Peak learning rate.
+    pub lr: f32,
+    /// Decoupled weight decay (AdamW).
+    pub weight_decay: f32,
+    /// Warm-up as a fraction of all steps.
+    pub warmup: f32,
+    /// Random crop size in tokens `(rows, cols)`; `None` trains on whole images.
+    pub crop: Option<(usize, usize)>,
+    /// Random left-right flips.
+    pub flip: bool,
+    /// Colour jitter strength (brightness / contrast / saturation factors in `1 +- jitter`);
+    /// needs the backbone at every step.
+    pub jitter: f32,
+    /// Per-class loss weights.
+    pub class_weights: Option<Vec<f32>>,
+    /// Depth loss.
+    pub depth_loss: DepthLoss,
+    /// Seed of initialisation, order and augmentation.
+    pub seed: u64,
+    /// Checkpoint every this many steps (and after every epoch).
+    pub checkpoint_every: usize,
+}
+
+impl Default for TrainOptions {
+    fn default() -> Self {
+        Self {
+            epochs: 20,
+            batch: 4,
+            lr: 1e-3,
+            weight_decay: 1e-4,
+            warmup: 0.05,
+            crop: None,
+            flip: true,
+            jitter: 0.0,
+            class_weights: None,
+            depth_loss: DepthLoss::Silog,
+            seed: 0,
+            checkpoint_every: 50,
+        }
+    }
+}
+
+impl TrainOptions {
+    /// Rejects settings that cannot train.
+    pub fn check(&self) -> Result<(), String> {
+        if self.epochs == 0 || self.batch == 0 {
+            return Err("epochs and batch must be at least 1".into());
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0 && self.lr < 1.0) {
+            return Err(format!("learning rate {} must be in (0, 1)", self.lr));
+        }
+        if !(0.0..1.0).contains(&self.warmup) || !(0.0..1.0).contains(&self.jitter) {
+            return Err("warm-up and jitter must be in [0, 1)".into());
+        }
+        if self.crop.is_some_and(|(r, c)| r == 0 || c == 0) {
+            return Err("crop sizes must be at least one token".into());
+        }
+        Ok(())
+    }
+}
+
+/// A training or validation example: an image's features and its target.
+#[derive(Debug, Clone)]
+pub struct Example {
+    /// The sample (image and full-resolution target).
+    pub sample: Sample,
+    /// Its frozen features.
+    pub features: FeatureMaps,
+}
+
+/// Validation result of one epoch.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Validation {
+    /// Epoch (1-based).
+    pub epoch: usize,
+    /// Mean IoU (segmentation).
+    pub miou: f64,
+    /// Pixel accuracy (segmentation).
+    pub pixel_accuracy: f64,
+    /// AbsRel (depth).
+    pub abs_rel: f64,
+    /// delta < 1.25 (depth).
+    pub delta1: f64,
+}
+
+/// Progress report after each step.
+#[derive(Debug, Clone, Copy)]
+pub struct Progress {
+    /// Steps done / total.
+    pub step: usize,
+    /// Total steps.
+    pub steps: usize,
+    /// This step's loss.
+    pub loss: f32,
+    /// Learning rate used.
+    pub lr: f32,
+    /// Set after an epoch's validation.
+    pub validation: Option<Validation>,
+}
+
+/// The trainer's saved state beside the head.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct State {
+    format: String,
+    options: TrainOptions,
+    step: usize,
+    history: Vec<Validation>,
+}
+
+const STATE_FORMAT: &str = "dens3r-head-train/1";
+
+/// A head being trained, with AdamW moments.
+pub struct Trainer {
+    /// The head.
+    pub head: Head,
+    /// Settings.
+    pub options: TrainOptions,
+    m: Vec<Vec<f32>>,
+    v: Vec<Vec<f32>>,
+    /// Steps done.
+    pub step: usize,
+    /// Validation after each finished epoch.
+    pub history: Vec<Validation>,
+    device: Device,
+}
+
+/// Checkpoint files in `dir`: the head (`head.json` / `head.safetensors`), the AdamW moments
+/// and the trainer state.
+fn ck_paths(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
+    (dir.join("head"), dir.join("adam.safetensors"), dir.join("state.json"))
+}
+
+impl Trainer {
+    /// A fresh trainer on `device` (an autodiff device, e.g. `Device::autodiff(Device::flex())`).
+    pub fn new(head: Head, options: TrainOptions, device: Device) -> Result<Self, String> {
+        options.check()?;
+        let zeros: Vec<Vec<f32>> = head.values.iter().map(|v| vec![0.0; v.len()]).collect();
+        Ok(Self { head, options, m: zeros.clone(), v: zeros, step: 0, history: Vec::new(), device })
+    }
+
+    /// Resumes from a checkpoint folder written by [`Trainer::save`], if one is there and was
+    /// made with the same head configuration and options; `Ok(None)` when the folder has none.
+    pub fn resume(dir: &Path, head: &Head, options: &TrainOptions, device: Device) -> Result<Option<Self>, String> {
+        let (hp, ap, sp) = ck_paths(dir);
+        if !sp.is_file() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&sp).map_err(|e| format!("{}: {e}", sp.display()))?;
+        let state: State = serde_json::from_str(&text)
+            .map_err(|e| format!("{}: damaged checkpoint ({e}); delete the folder to start over", sp.display()))?;
+        if state.format != STATE_FORMAT || &state.options != options {
+            return Err(format!(
+                "{}: the checkpoint was made with other training options; delete the folder to start over, or rerun with the same options",
+                sp.display()
+            ));
+        }
+        let saved = Head::load(&hp)?;
+        if saved.config != head.config {
+            return Err(format!(
+                "{}: the checkpoint is for another head or backbone; delete the folder to start over",
+                hp.with_extension("json").display()
+            ));
+        }
+        let shapes = saved.param_shapes();
+        let moment_shapes: Vec<(String, Vec<usize>)> =
+            ["m", "v"].iter().flat_map(|k| shapes.iter().map(move |(n, s)| (format!("{k}.{n}"), s.clone()))).collect();
+        let mut mv = crate::io::load_tensors(&ap, &moment_shapes)?;
+        let v = mv.split_off(shapes.len());
+        let mut t = Self::new(saved, options.clone(), device)?;
+        (t.m, t.v, t.step, t.history) = (mv, v, state.step, state.history);
+        Ok(Some(t))
+    }
+
+    /// Writes the checkpoint (head and moments first, the state last, each atomically).
+    pub fn save(&self, dir: &Path) -> Result<(), String> {
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: cannot create ({e})", dir.display()))?;
+        let (hp, ap, sp) = ck_paths(dir);
+        self.head.save(&hp)?;
+        let shapes = self.head.param_shapes();
+        let named: Vec<(String, Vec<usize>, &[f32])> = ["m", "v"]
+            .iter()
+            .zip([&self.m, &self.v])
+            .flat_map(|(k, vals)| {
+                shapes.iter().zip(vals).map(move |((n, s), v)| (format!("{k}.{n}"), s.clone(), v.as_slice()))
+            })
+            .collect();
+        crate::io::save_tensors(&ap, &named)?;
+        let state = State {
+            format: STATE_FORMAT.into(),
+            options: self.options.clone(),
+            step: self.step,
+            history: self.history.clone(),
+        };
+        crate::io::save_json(&sp, &serde_json::to_value(&state).map_err(|e| e.to_string())?)
+    }
+
+    /// Steps per epoch for `n` training examples.
+    pub fn steps_per_epoch(&self, n: usize) -> usize {
+        n.div_ceil(self.options.batch)
+    }
+
+    /// Learning rate at a step: linear warm-up, then cosine decay to zero.
+    pub fn lr_at(&self, step: usize, total: usize) -> f32 {
+        let warm = ((self.options.warmup * total as f32) as usize).max(1);
+        let lr = self.options.lr;
+        if step < warm {
+            return lr * (step + 1) as f32 / warm as f32;
+        }
+        let t = (step - warm) as f32 / (total - warm).max(1) as f32;
+        lr * 0.5 * (1.0 + (std::f32::consts::PI * t.min(1.0)).cos())
+    }
+
+    /// The loss of one (augmented) example with parameter tensors `params`.
+    pub fn example_loss(
+        &self,
+        params: &[Tensor<1>],
+        f: &FeatureMaps,
+        target: &Target,
+        size: (usize, usize),
+    ) -> Option<Tensor<1>> {
+        let feats: Vec<Tensor<4>> = self.head.config.layers.iter().map(|&l| f.tensor(l, &self.device)).collect();
+        let out = self.head.forward_with(params, &feats, size);
+        match (target, &self.head.config.task) {
+            (Target::Labels(l), Task::Seg { .. }) => cross_entropy(out, l, self.options.class_weights.as_deref()),
+            (Target::Depth(d), Task::Depth) => match self.options.depth_loss {
+                DepthLoss::Silog => silog(out, d),
+                DepthLoss::AffineInvariant => affine_invariant(out, d),
+            },
+            _ => None,
+        }
+    }
+
+    /// One AdamW step on a batch of examples; returns the mean loss (`None` when no example
+    /// had a usable target).
+    fn train_step(&mut self, batch: &[(FeatureMaps, Target, (usize, usize))], lr: f32) -> Option<f32> {
+        let params: Vec<Tensor<1>> = self.head.tensors(&self.device).into_iter().map(|t| t.require_grad()).collect();
+        let losses: Vec<Tensor<1>> =
+            batch.iter().filter_map(|(f, t, s)| self.example_loss(&params, f, t, *s)).collect();
+        if losses.is_empty() {
+            return None;
+        }
+        let k = losses.len() as f32;
+        let loss = Tensor::cat(losses, 0).sum().div_scalar(k);
+        let value = to_vec(loss.clone())[0];
+        let grads = loss.backward();
+        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
+        let t = (self.step + 1) as i32;
+        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+        let wd = self.options.weight_decay;
+        let shapes = self.head.param_shapes();
+        for (i, p) in params.iter().enumerate() {
+            let Some(g) = p.grad(&grads) else { continue };
+            let g = to_vec(g);
+            let decay = !shapes[i].0.ends_with(".bias");
+            let (vals, m, v) = (&mut self.head.values[i], &mut self.m[i], &mut self.v[i]);
+            for j in 0..vals.len() {
+                m[j] = b1 * m[j] + (1.0 - b1) * g[j];
+                v[j] = b2 * v[j] + (1.0 - b2) * g[j] * g[j];
+                if decay {
+                    vals[j] -= lr * wd * vals[j];
+                }
+                vals[j] -= lr * (m[j] / c1) / ((v[j] / c2).sqrt() + eps);
+            }
+        }
+        Some(value)
+    }
+
+    /// An augmented copy of an example for `step` (crop, flip, jitter).
+    fn augment(
+        &self,
+        ex: &Example,
+        rng: &mut ChaCha8Rng,
+        backbone: Option<&dyn Backbone>,
+    ) -> (FeatureMaps, Target, (usize, usize)) {
+        let o = &self.options;
+        let p = self.head.config.patch;
+        let (gh, gw) = ex.features.grid;
+        let (rows, cols) = o.crop.map_or((gh, gw), |(r, c)| (r.min(gh), c.min(gw)));
+        let r0 = rng.gen_range(0..=gh - rows);
+        let c0 = rng.gen_range(0..=gw - cols);
+        let flip = o.flip && rng.gen_bool(0.5);
+        let features = if o.jitter > 0.0 && backbone.is_some() {
+            let img = jitter(&ex.sample.image, o.jitter, rng);
+            let f = backbone.expect("checked").extract(&img);
+            f.crop(r0, c0, rows, cols, flip)
+        } else {
+            ex.features.crop(r0, c0, rows, cols, flip)
+        };
+        let w = ex.sample.image.width() as usize;
+        let (ph, pw) = (rows * p, cols * p);
+        let pick = |x: usize, y: usize| {
+            let sx = c0 * p + if flip { pw - 1 - x } else { x };
+            (r0 * p + y) * w + sx
+        };
+        let target = match &ex.sample.target {
+            Target::Labels(l) => Target::Labels((0..ph * pw).map(|i| l[pick(i % pw, i / pw)]).collect()),
+            Target::Depth(d) => Target::Depth((0..ph * pw).map(|i| d[pick(i % pw, i / pw)]).collect()),
+        };
+        (features, target, (ph, pw))
+    }
+
+    /// Trains to the end of `options.epochs`, validating after every epoch, checkpointing to
+    /// `checkpoint` (if given) every `checkpoint_every` steps and after each epoch. `stop_after`
+    /// ends early after that many steps in total (as an interruption would). `backbone` is
+    /// needed only for colour jitter.
+    pub fn fit(
+        &mut self,
+        train: &[Example],
+        val: &[Example],
+        backbone: Option<&dyn Backbone>,
+        checkpoint: Option<&Path>,
+        stop_after: Option<usize>,
+        progress: &mut dyn FnMut(Progress),
+    ) -> Result<(), String> {
+        if train.is_empty() {
+            return Err("no training examples".into());
+        }
+        let per_epoch = self.steps_per_epoch(train.len());
+        let total = per_epoch * self.options.epochs;
+        while self.step < total {
+            if stop_after.is_some_and(|s| self.step >= s) {
+                return Ok(());
+            }
+            let epoch = self.step / per_epoch;
+            let mut order: Vec<usize> = (0..train.len()).collect();
+            order.shuffle(&mut ChaCha8Rng::seed_from_u64(self.options.seed ^ (0x9e37_79b9 * (epoch as u64 + 1))));
+            let within = self.step % per_epoch;
+            let idx = &order[within * self.options.batch..((within + 1) * self.options.batch).min(order.len())];
+            let mut rng =
+                ChaCha8Rng::seed_from_u64(self.options.seed.wrapping_mul(6364136223846793005) ^ self.step as u64);
+            let batch: Vec<_> = idx.iter().map(|&i| self.augment(&train[i], &mut rng, backbone)).collect();
+            let lr = self.lr_at(self.step, total);
+            let loss = self.train_step(&batch, lr);
+            self.step += 1;
+            let mut validation = None;
+            if self.step % per_epoch == 0 {
+                let mut v = self.validate(val);
+                v.epoch = self.step / per_epoch;
+                self.history.push(v);
+                validation = Some(v);
+            }
+            if let Some(dir) = checkpoint {
+                if self.step % self.options.checkpoint_every.max(1) == 0 || validation.is_some() {
+                    self.save(dir)?;
+                }
+            }
+            progress(Progress { step: self.step, steps: total, loss: loss.unwrap_or(f32::NAN), lr, validation });
+        }
+        Ok(())
+    }
+
+    /// Metrics of the current head on whole validation images.
+    pub fn validate(&self, val: &[Example]) -> Validation {
+        evaluate(&self.head, val)
+    }
+}
+
+/// Segmentation or depth metrics of a head on examples (whole images, plain CPU device).
+pub fn evaluate(head: &Head, examples: &[Example]) -> Validation {
+    let device = Device::flex();
+    let params = head.tensors(&device);
+    let mut conf = Confusion::new(head.config.task.channels());
+    let mut depth = DepthStats::default();
+    for ex in examples {
+        let (w, h) = (ex.sample.image.width() as usize, ex.sample.image.height() as usize);
+        let feats: Vec<Tensor<4>> = head.config.layers.iter().map(|&l| ex.features.tensor(l, &device)).collect();
+        let out = head.forward_with(&params, &feats, (h, w));
+        match &ex.sample.target {
+            Target::Labels(l) => conf.add(&argmax_channels(&to_vec(out), conf.k, h * w), l),
+            Target::Depth(d) => depth.add(&to_vec(out.exp()), d),
+        }
+    }
+    Validation {
+        epoch: 0,
+        miou: conf.miou(),
+        pixel_accuracy: conf.pixel_accuracy(),
+        abs_rel: depth.abs_rel(),
+        delta1: depth.delta1(),
+    }
+}
+
+/// Per-pixel argmax over `k` channel planes of `n` pixels.
+pub fn argmax_channels(v: &[f32], k: usize, n: usize) -> Vec<u16> {
+    (0..n)
+        .map(|px| {
+            let mut best = 0;
+            for c in 1..k {
+                if v[c * n + px] > v[best * n + px] {
+                    best = c;
+                }
+            }
+            best as u16
+        })
+        .collect()
+}
+
+/// Brightness, contrast and saturation jitter by factors in `1 +- s`.
+pub fn jitter(img: &image::RgbImage, s: f32, rng: &mut ChaCha8Rng) -> image::RgbImage {
+    let (b, c, sat) = (1.0 + rng.gen_range(-s..s), 1.0 + rng.gen_range(-s..s), 1.0 + rng.gen_range(-s..s));
+    let mean: f32 = img.pixels().map(|p| (p[0] as f32 + p[1] as f32 + p[2] as f32) / 3.0).sum::<f32>()
+        / (img.len() / 3).max(1) as f32;
+    let mut out = img.clone();
+    for p in out.pixels_mut() {
+        let grey = (p[0] as f32 + p[1] as f32 + p[2] as f32) / 3.0;
+        for ch in 0..3 {
+            let mut v = p[ch] as f32 * b;
+            v = grey * b + (v - grey * b) * sat;
+            v = mean + (v - mean) * c;
+            p[ch] = v.round().clamp(0.0, 255.0) as u8;
+        }
+    }
+    out
+}

