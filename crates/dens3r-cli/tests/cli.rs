@@ -466,3 +466,73 @@ fn nsdf_meshes_a_scene_resumes_and_rejects_bad_input() {
     assert!(e.contains("nsdf.safetensors") && e.contains("delete both"), "{e}");
     assert!(!bad.exists());
 }
+
+/// `train-head` on the bundled orbit with raw-pixel features: stopped mid-epoch, rerun resumes
+/// from the last checkpoint and ends with the head of an uninterrupted run; bad input is a
+/// one-line error.
+#[test]
+fn train_head_resumes_mid_epoch_and_rejects_bad_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let orbit = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/orbit");
+    let orbit_s = orbit.to_str().unwrap();
+    let cache = dir.path().join("cache");
+    let run = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "train-head",
+            "--backbone",
+            "pixels",
+            "--head",
+            "dpt",
+            "--width",
+            "8",
+            "--data",
+            orbit_s,
+            "--val-every",
+            "4",
+            "--size",
+            "112",
+            "--epochs",
+            "3",
+            "--batch",
+            "2",
+            "--checkpoint-every",
+            "2",
+            "--cache",
+            cache.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        dens3r(&args)
+    };
+    // 6 training views, batch 2: 3 steps an epoch, 9 in all; stop at step 4 (mid-epoch 2).
+    let a = dir.path().join("a");
+    let o = run(&a, &["--stop-after", "4"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!a.with_extension("json").exists(), "no head before training ends");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("stopped at step 4 of 9"));
+    let o = run(&a, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.success() && err.contains("resuming from step 4") && err.contains("8 from the cache, 0 computed"),
+        "{err}"
+    );
+    let b = dir.path().join("b");
+    assert!(run(&b, &[]).status.success());
+    let (ha, hb) = (
+        std::fs::read(a.with_extension("safetensors")).unwrap(),
+        std::fs::read(b.with_extension("safetensors")).unwrap(),
+    );
+    assert_eq!(ha, hb, "the resumed head differs from the uninterrupted one");
+    let summary: serde_json::Value = serde_json::from_slice(&run(&b, &["--restart"]).stdout).unwrap();
+    assert!(summary["miou"].as_f64().unwrap() > 0.0);
+    // Bad input.
+    let e = fails(&["train-head", "--backbone", "resnet", "--data", orbit_s, "-o", "x"]);
+    assert!(e.contains("--backbone") && e.contains("dinov2:"), "{e}");
+    let e = fails(&["train-head", "--backbone", "dinov2:/nonexistent.onnx", "--data", orbit_s, "-o", "x"]);
+    assert!(e.contains("/nonexistent.onnx"), "{e}");
+    let e = fails(&["train-head", "--backbone", "pixels", "--data", "/nonexistent", "-o", "x"]);
+    assert!(e.contains("/nonexistent") && e.contains("labels/"), "{e}");
+    let e = fails(&["train-head", "--backbone", "pixels", "--data", orbit_s, "--lr", "7", "-o", "x"]);
+    assert!(e.contains("learning rate"), "{e}");
+}

@@ -241,14 +241,13 @@ pub fn checkerboard_split(s: &Sample, tile: usize) -> (Sample, Sample) {
     let Target::Labels(l) = &s.target else { return (s.clone(), s.clone()) };
     let w = s.image.width() as usize;
     let (mut a, mut b) = (l.clone(), l.clone());
-    for (i, v) in l.iter().enumerate() {
+    for i in 0..l.len() {
         let (x, y) = (i % w, i / w);
-        if (x / tile + y / tile) % 2 == 0 {
+        if (x / tile + y / tile).is_multiple_of(2) {
             b[i] = IGNORE;
         } else {
             a[i] = IGNORE;
         }
-        let _ = v;
     }
     let mk = |t, suffix: &str| Sample {
         name: format!("{}-{suffix}", s.name),

@@ -317,12 +317,11 @@ impl Trainer {
         let r0 = rng.gen_range(0..=gh - rows);
         let c0 = rng.gen_range(0..=gw - cols);
         let flip = o.flip && rng.gen_bool(0.5);
-        let features = if o.jitter > 0.0 && backbone.is_some() {
-            let img = jitter(&ex.sample.image, o.jitter, rng);
-            let f = backbone.expect("checked").extract(&img);
-            f.crop(r0, c0, rows, cols, flip)
-        } else {
-            ex.features.crop(r0, c0, rows, cols, flip)
+        let features = match backbone {
+            Some(bb) if o.jitter > 0.0 => {
+                bb.extract(&jitter(&ex.sample.image, o.jitter, rng)).crop(r0, c0, rows, cols, flip)
+            }
+            _ => ex.features.crop(r0, c0, rows, cols, flip),
         };
         let w = ex.sample.image.width() as usize;
         let (ph, pw) = (rows * p, cols * p);
@@ -371,14 +370,14 @@ impl Trainer {
             let loss = self.train_step(&batch, lr);
             self.step += 1;
             let mut validation = None;
-            if self.step % per_epoch == 0 {
+            if self.step.is_multiple_of(per_epoch) {
                 let mut v = self.validate(val);
                 v.epoch = self.step / per_epoch;
                 self.history.push(v);
                 validation = Some(v);
             }
             if let Some(dir) = checkpoint {
-                if self.step % self.options.checkpoint_every.max(1) == 0 || validation.is_some() {
+                if self.step.is_multiple_of(self.options.checkpoint_every.max(1)) || validation.is_some() {
                     self.save(dir)?;
                 }
             }
