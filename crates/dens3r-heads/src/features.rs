@@ -7,6 +7,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::dinov2::{Dinov2, IMAGENET_MEAN, IMAGENET_STD};
 use dens3r_backbone::Dens3r;
+pub use dens3r_scene::hash::fnv1a;
 use image::RgbImage;
 use std::path::Path;
 
@@ -81,16 +82,6 @@ pub fn normalised_planes(image: &RgbImage, mean: [f32; 3], std: [f32; 3]) -> Vec
     out
 }
 
-/// FNV-1a, 64 bit: a stable content hash for cache keys and backbone ids.
-pub fn fnv1a(bytes: &[u8], seed: u64) -> u64 {
-    let mut h = 0xcbf29ce484222325u64 ^ seed;
-    for &b in bytes {
-        h ^= b as u64;
-        h = h.wrapping_mul(0x100000001b3);
-    }
-    h
-}
-
 fn file_hash(path: &Path) -> std::io::Result<u64> {
     Ok(fnv1a(&std::fs::read(path)?, 0))
 }
@@ -133,21 +124,7 @@ impl Backbone for Dinov2Backbone {
         let x = Tensor::<4>::from_data(TensorData::new(planes, [1, 3, h, w]), self.model.device());
         let (hooks, grid) = self.model.forward(x, &self.hooks);
         let d = self.model.config.dim;
-        let layers = hooks
-            .into_iter()
-            .map(|t| {
-                // (1, N, D) -> (D, N)
-                let v = to_vec(t);
-                let n = grid.0 * grid.1;
-                let mut out = vec![0.0; d * n];
-                for (i, tok) in v.chunks_exact(d).enumerate() {
-                    for (c, &x) in tok.iter().enumerate() {
-                        out[c * n + i] = x;
-                    }
-                }
-                out
-            })
-            .collect();
+        let layers = hooks.into_iter().map(|t| planes_from_tokens(&to_vec(t), d)).collect();
         FeatureMaps { grid, dims: self.dims(), layers }
     }
 }
@@ -242,21 +219,13 @@ impl Backbone for Dens3rBackbone {
         let x = Tensor::<4>::from_data(TensorData::new(planes, [1, 3, h, w]), self.model.device());
         let f = self.model.encode_self(x);
         let v = &f.views[0];
-        let n = v.grid.0 * v.grid.1;
         let layers = self
             .layers
             .iter()
             .map(|&l| {
                 let t = v.layer(l);
                 let d = t.dims()[2];
-                let vals = to_vec(t);
-                let mut out = vec![0.0; d * n];
-                for (i, tok) in vals.chunks_exact(d).enumerate() {
-                    for (c, &x) in tok.iter().enumerate() {
-                        out[c * n + i] = x;
-                    }
-                }
-                out
+                planes_from_tokens(&to_vec(t), d)
             })
             .collect();
         FeatureMaps { grid: v.grid, dims: self.dims(), layers }
@@ -266,4 +235,16 @@ impl Backbone for Dens3rBackbone {
 /// A tensor's values as f32.
 pub fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_into_vec::<f32>().expect("f32 tensor")
+}
+
+/// Token-major `(N, D)` values to channel-major `(D, N)` planes.
+fn planes_from_tokens(tokens: &[f32], d: usize) -> Vec<f32> {
+    let n = tokens.len() / d;
+    let mut out = vec![0.0; d * n];
+    for (i, tok) in tokens.chunks_exact(d).enumerate() {
+        for (c, &x) in tok.iter().enumerate() {
+            out[c * n + i] = x;
+        }
+    }
+    out
 }

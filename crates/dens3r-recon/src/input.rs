@@ -45,15 +45,7 @@ impl InputImage {
     }
 }
 
-/// FNV-1a, 64 bit: a stable content hash (std's hasher may change between Rust versions).
-pub fn fnv1a(bytes: &[u8], seed: u64) -> u64 {
-    let mut h = 0xcbf2_9ce4_8422_2325u64 ^ seed;
-    for &b in bytes {
-        h ^= b as u64;
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    h
-}
+pub use dens3r_scene::hash::fnv1a;
 
 /// The photos of a folder (sorted by file name), or the given files as they are.
 pub fn list_images(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, ReconError> {

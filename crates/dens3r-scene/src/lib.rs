@@ -23,6 +23,7 @@
 mod cameras;
 mod error;
 pub mod export;
+pub mod hash;
 pub mod npy;
 mod reader;
 pub mod visibility;
