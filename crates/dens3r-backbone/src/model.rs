@@ -492,6 +492,12 @@ impl Dens3r {
         self.view_heads(&self.head1, &f.views[0])
     }
 
+    /// View 1's heads on self-pair features ([`Dens3r::encode_self`]): with the features
+    /// kept, other heads can read the same backbone pass.
+    pub fn mono_heads(&self, v: &ViewFeatures) -> ViewPrediction {
+        self.view_heads(&self.head1, v)
+    }
+
     /// Runs the heads on backbone features.
     pub fn heads(&self, f: &Features) -> Predictions {
         let [v1, v2] = &f.views;

@@ -1,7 +1,7 @@
 //! Single-image and pair prediction (spec section 2 "Single image" and 3.2), mapped back to
 //! the un-rotated image frame, optionally at the original resolution, in our conventions.
 
-use crate::model::{Dens3r, ViewPrediction};
+use crate::model::{Dens3r, ViewFeatures, ViewPrediction};
 use crate::preprocess::{rescale_to_original, rotate_map_clockwise, unrotate_vector, PrepInfo, Prepared};
 use burn::tensor::Tensor;
 use dens3r_geom::{NormalConvention, Raster, Vec3};
@@ -63,8 +63,9 @@ fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
 }
 
 /// An `(H, W, C)` network-frame map in the image's own orientation (rotated back if the image
-/// was portrait) and at the requested resolution; returns it with its `(H, W)`.
-fn to_image_grid<T: Copy>(
+/// was portrait) and at the requested resolution; returns it with its `(H, W)`. The same
+/// mapping as the predicted maps, for maps of other heads run on the same input.
+pub fn to_image_grid<T: Copy>(
     flat: Vec<T>,
     c: usize,
     (h, w): (usize, usize),
@@ -121,6 +122,15 @@ fn view_maps(v: &ViewPrediction, prep: &Prepared, frame: usize, frame_rotated: b
 pub fn predict_mono(model: &Dens3r, prep: &Prepared, res: Resolution) -> MonoPrediction {
     let pred = model.forward_mono(prep.tensor(model.device()));
     view_maps(&pred, prep, 0, prep.info.rotated, res)
+}
+
+/// [`predict_mono`] that also returns view 1's backbone features (network frame), so trained
+/// heads can run on the same pass.
+pub fn predict_mono_features(model: &Dens3r, prep: &Prepared, res: Resolution) -> (MonoPrediction, ViewFeatures) {
+    let f = model.encode_self(prep.tensor(model.device()));
+    let [v, _] = f.views;
+    let pred = model.mono_heads(&v);
+    (view_maps(&pred, prep, 0, prep.info.rotated, res), v)
 }
 
 /// Runs the pair `(first, second)`: both pointmaps in the first camera's frame (`pred1`,

@@ -1,20 +1,47 @@
 //! `dens3r predict`: images -> scene folder (depth, normals, confidence, intrinsics, pointmaps,
-//! visualisations).
+//! visualisations), and trained heads (`--head`) on the same backbone pass.
 
-use anyhow::{bail, Result};
+use crate::model_args::ModelArgs;
+use anyhow::{bail, Context, Result};
 use clap::Args;
-use dens3r_backbone::predict::{predict_mono, Resolution};
-use dens3r_backbone::preprocess::{open_oriented, preprocess};
+use dens3r_backbone::predict::{predict_mono, predict_mono_features, to_image_grid, MonoPrediction, Resolution};
+use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
 use dens3r_geom::{focal_from_pointmap, DMat4, FocalMode, Intrinsics, NormalConvention, PinholeCamera, Raster, Vec3};
+use dens3r_heads::data::resize_nearest;
+use dens3r_heads::features::file_hash;
+use dens3r_heads::infer::{check_head, infer, overlay, write_label_png, HeadOutput};
+use dens3r_heads::{Backbone, Dens3rBackbone, Head, Task};
 use dens3r_mesh::TriMesh;
 use dens3r_scene::{Frame, SceneWriter};
-use std::collections::HashSet;
-use std::path::PathBuf;
+use std::collections::{BTreeMap, HashSet};
+use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct PredictArgs {
-    #[command(flatten)]
-    model: crate::model_args::ModelArgs,
+    /// Dens3R checkpoint (.safetensors) for depth, normals, confidence, intrinsics and
+    /// pointmaps; may be left out when only --head outputs are wanted.
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// JSON with the head counts (enc_num_heads, dec_num_heads, or the converter's "args");
+    /// default: head dim 64.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Long side of the network input (512, or 1024 for more detail).
+    #[arg(long, default_value_t = 512)]
+    size: u32,
+    /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them.
+    #[arg(long)]
+    keep_portrait: bool,
+    /// A head written by `dens3r train-head` (its .json); repeat for several. Every head runs
+    /// on the same backbone pass: the Dens3R network of --weights for heads trained on it,
+    /// else the backbone of --backbone. Outputs go to OUTPUT/heads/HEAD/ (label PNGs with
+    /// the VOC palette + classes.json, or depth .npy) and OUTPUT/viz/.
+    #[arg(long = "head")]
+    heads: Vec<PathBuf>,
+    /// Backbone of the heads when it is not the --weights network: `dinov2:MODEL.onnx`,
+    /// `dens3r:WEIGHTS.safetensors` or `pixels`, as given to train-head.
+    #[arg(long)]
+    backbone: Option<String>,
     /// Write every map at the original image size (the official `rescale_to_orig`: edge
     /// padding, nearest neighbour) with the original pixels as colours, so depth, normals and
     /// intrinsics line up with the input photos (COLMAP, nerfstudio). Default: network size.
@@ -23,9 +50,23 @@ pub struct PredictArgs {
     /// Input images (PNG or JPEG).
     #[arg(required = true)]
     images: Vec<PathBuf>,
-    /// Output scene folder.
+    /// Output folder (a scene folder when --weights is given).
     #[arg(short, long)]
     output: PathBuf,
+}
+
+/// A loaded head and where its outputs go.
+struct NamedHead {
+    stem: String,
+    head: Head,
+}
+
+/// The backbone the heads read.
+enum HeadFeatures {
+    /// The Dens3R network of --weights: its own pass.
+    Network,
+    /// Another backbone, run on the image resized to the heads' training size.
+    Other(Box<dyn Backbone>, u32),
 }
 
 pub fn run(a: PredictArgs) -> Result<()> {
@@ -34,73 +75,243 @@ pub fn run(a: PredictArgs) -> Result<()> {
             bail!("{}: image not found", p.display());
         }
     }
-    let model = a.model.load()?;
+    let model = a.weights.clone().map(|weights| ModelArgs {
+        weights,
+        config: a.config.clone(),
+        size: a.size,
+        keep_portrait: a.keep_portrait,
+    });
+    if model.is_none() && a.heads.is_empty() {
+        bail!("nothing to predict: give --weights (the Dens3R network) and/or --head HEAD.json");
+    }
+    let heads = load_heads(&a.heads)?;
+    let other = a.backbone.as_deref().map(|b| crate::train_head::open_backbone(b, a.config.as_deref())).transpose()?;
+    if !heads.is_empty() && model.is_none() && other.is_none() {
+        bail!(
+            "{}: the head needs its backbone ({}): give --backbone (dinov2:MODEL.onnx, pixels) or --weights",
+            a.heads[0].display(),
+            heads[0].head.config.backbone
+        );
+    }
+    let feats = match other {
+        Some(b) => {
+            let size = heads.iter().map(|h| h.head.config.size).find(|&s| s > 0).unwrap_or(224);
+            HeadFeatures::Other(b, size)
+        }
+        None => HeadFeatures::Network,
+    };
+    // The network, wrapped as a feature backbone so heads trained on it read its pass.
+    let net = match &model {
+        Some(m) => {
+            let model = m.load()?;
+            let hash = if heads.is_empty() || !matches!(feats, HeadFeatures::Network) {
+                0
+            } else {
+                file_hash(&m.weights).with_context(|| format!("{}: cannot read", m.weights.display()))?
+            };
+            Some(Dens3rBackbone::new(model, None, hash).map_err(anyhow::Error::msg)?)
+        }
+        None => None,
+    };
+    for (h, path) in heads.iter().zip(&a.heads) {
+        let (id, dims) = match (&feats, &net) {
+            (HeadFeatures::Other(b, _), _) => (b.id(), b.dims()),
+            (HeadFeatures::Network, Some(n)) => (n.id(), n.dims()),
+            (HeadFeatures::Network, None) => unreachable!("checked above"),
+        };
+        check_head(path, &h.head, &id, &dims).map_err(anyhow::Error::msg)?;
+    }
+
     // Decode and preprocess everything first: a bad image fails before anything is written.
+    let (size, keep_portrait) = (a.size, a.keep_portrait);
     let mut inputs = Vec::new();
     let mut names = HashSet::new();
     for p in &a.images {
         let img = open_oriented(p).map_err(anyhow::Error::msg)?;
-        let prep = preprocess(&img, a.model.size, !a.model.keep_portrait)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+        let prep = preprocess(&img, size, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
         let name = dens3r_recon::input::unique_name(p, &mut names);
-        let source = a.original_size.then(|| img.to_rgb8());
-        inputs.push((name, prep, source));
+        inputs.push((name, prep, img.to_rgb8()));
     }
-    let mut writer = SceneWriter::create(&a.output)?;
-    writer.set_extra("generator", serde_json::json!("dens3r predict"));
+    let mut writer = match &net {
+        Some(_) => {
+            let mut w = SceneWriter::create(&a.output)?;
+            w.set_extra("generator", serde_json::json!("dens3r predict"));
+            Some(w)
+        }
+        None => {
+            std::fs::create_dir_all(&a.output).with_context(|| format!("{}: cannot create", a.output.display()))?;
+            None
+        }
+    };
+    for h in &heads {
+        let dir = a.output.join("heads").join(&h.stem);
+        std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+        if let Task::Seg { classes } = &h.head.config.task {
+            let map: BTreeMap<String, &String> = classes.iter().enumerate().map(|(i, c)| (i.to_string(), c)).collect();
+            dens3r_heads::io::save_json(&dir.join("classes.json"), &serde_json::json!(map))
+                .map_err(anyhow::Error::msg)?;
+        }
+    }
     let bar = indicatif::ProgressBar::new(inputs.len() as u64).with_style(
         indicatif::ProgressStyle::with_template("predict {bar:30} {pos}/{len} images [{elapsed} < {eta}]")
             .expect("valid template"),
     );
     let res = if a.original_size { Resolution::Original } else { Resolution::Network };
+    let device = burn::tensor::Device::flex();
     for (name, prep, source) in &inputs {
-        let mut pred = predict_mono(&model, prep, res);
-        if let Some(src) = source {
-            pred.rgb = src.clone();
-        }
-        let (w, h) = (pred.depth.width(), pred.depth.height());
-        let pp = (w as f64 / 2.0, h as f64 / 2.0);
-        let estimated =
-            focal_from_pointmap(&pred.points, pp, FocalMode::Weiszfeld).filter(|f| f.is_finite() && *f > 0.0);
-        let intrinsics = match estimated {
-            Some(f) => Intrinsics { fx: f, fy: f, cx: pp.0, cy: pp.1 },
-            None => {
-                eprintln!("warning: {name}: the pointmap gives no positive focal (untrained weights?); using a 60-degree field of view");
-                Intrinsics::from_hfov(w, h, 60.0)
+        // Size of every map written for this image.
+        let mut out_size = (source.width() as usize, source.height() as usize);
+        if let (Some(net), Some(writer)) = (&net, writer.as_mut()) {
+            let (pred, features) = if heads.is_empty() || !matches!(feats, HeadFeatures::Network) {
+                (predict_mono(net.model(), prep, res), None)
+            } else {
+                let (p, v) = predict_mono_features(net.model(), prep, res);
+                (p, Some(net.maps(&v)))
+            };
+            out_size = (pred.depth.width(), pred.depth.height());
+            write_network_outputs(writer, &a.output, name, prep, pred, a.original_size.then_some(source))?;
+            if let Some(f) = features {
+                for h in &heads {
+                    // The network frame back to the image's orientation and map size.
+                    let net_size = (f.grid.0 * h.head.config.patch, f.grid.1 * h.head.config.patch);
+                    let (out, hh, w) = match infer(&h.head, &f, &device) {
+                        HeadOutput::Labels(l) => {
+                            let (g, hh, w) = to_image_grid(l, 1, net_size, &prep.info, res);
+                            (HeadOutput::Labels(g), hh, w)
+                        }
+                        HeadOutput::Depth(d) => {
+                            let (g, hh, w) = to_image_grid(d, 1, net_size, &prep.info, res);
+                            (HeadOutput::Depth(g), hh, w)
+                        }
+                    };
+                    let rgb = resized_rgb(source, w, hh);
+                    write_head_output(&a.output, h, name, out, &rgb)?;
+                }
             }
-        };
-        let cam = PinholeCamera { intrinsics, width: w, height: h, cam_to_world: DMat4::IDENTITY };
-        let mut frame = Frame::new(name, &cam);
-        frame.extra.insert("focal_estimated".into(), serde_json::json!(estimated.is_some()));
-        frame.extra.insert("source".into(), serde_json::json!(prep.info.original));
-        frame.extra.insert("rotated".into(), serde_json::json!(prep.info.rotated));
-        writer.add_frame(frame, &pred.rgb)?;
-        writer.write_depth(name, &pred.depth)?;
-        if let Some(n) = &pred.normals {
-            writer.write_normals(name, n)?;
-            dens3r_scene::write_rgb_png(&a.output.join("viz").join(format!("{name}_normal.png")), &normal_viz(n))?;
+        } else if !a.original_size {
+            // Heads only, at their input size.
+            if let HeadFeatures::Other(b, long) = &feats {
+                let (w, h) = dens3r_heads::data::patch_size(source.width(), source.height(), *long, b.patch() as u32);
+                out_size = (w as usize, h as usize);
+            }
         }
-        if let Some(c) = &pred.conf {
-            writer.write_conf(name, c)?;
+        if let HeadFeatures::Other(b, long) = &feats {
+            let img = dens3r_heads::data::resize_to_patches(source.clone(), *long, b.patch() as u32);
+            let f = b.extract(&img);
+            let (iw, ih) = (img.width() as usize, img.height() as usize);
+            let (ow, oh) = out_size;
+            let rgb = resized_rgb(source, ow, oh);
+            for h in &heads {
+                let out = match infer(&h.head, &f, &device) {
+                    HeadOutput::Labels(l) => HeadOutput::Labels(resize_nearest(&l, iw, ih, ow, oh)),
+                    HeadOutput::Depth(d) => HeadOutput::Depth(resize_nearest(&d, iw, ih, ow, oh)),
+                };
+                write_head_output(&a.output, h, name, out, &rgb)?;
+            }
         }
-        dens3r_scene::write_rgb_png(&a.output.join("viz").join(format!("{name}_depth.png")), &depth_viz(&pred.depth))?;
-        let mut cloud =
-            TriMesh::new(pred.points.data().iter().copied().filter(|p| p.is_finite()).collect(), Vec::new());
-        let colors: Vec<[u8; 3]> =
-            pred.points.data().iter().zip(pred.rgb.pixels()).filter(|(p, _)| p.is_finite()).map(|(_, c)| c.0).collect();
-        cloud.colors = Some(colors);
-        dens3r_mesh::write_mesh(&a.output.join("pointmaps").join(format!("{name}.ply")), &cloud)?;
         bar.inc(1);
     }
-    writer.finish()?;
+    if let Some(w) = writer {
+        w.finish()?;
+    }
     bar.finish_and_clear();
+    let what = match (&net, heads.len()) {
+        (Some(_), 0) => "depth, normals, confidence, intrinsics and pointmaps".to_string(),
+        (Some(_), n) => format!("depth, normals, confidence, intrinsics, pointmaps and {n} head(s)"),
+        (None, n) => format!("{n} head(s)"),
+    };
     println!(
-        "predicted {} images into {} (network size {}, maps at {} size, normals in the OpenCV camera frame)",
+        "predicted {what} for {} images into {} (maps at {} size{})",
         inputs.len(),
         a.output.display(),
-        a.model.size,
-        if a.original_size { "original" } else { "network" }
+        if a.original_size { "original" } else { "network" },
+        if net.is_some() { ", normals in the OpenCV camera frame" } else { "" }
     );
+    Ok(())
+}
+
+/// Reads every head, naming its outputs after its file stem (made unique).
+fn load_heads(paths: &[PathBuf]) -> Result<Vec<NamedHead>> {
+    let mut stems = HashSet::new();
+    paths
+        .iter()
+        .map(|p| {
+            let head = Head::load(p).map_err(anyhow::Error::msg)?;
+            let stem = dens3r_recon::input::unique_name(p, &mut stems);
+            Ok(NamedHead { stem, head })
+        })
+        .collect()
+}
+
+/// The source image resampled to `(w, h)` for overlays.
+fn resized_rgb(src: &image::RgbImage, w: usize, h: usize) -> image::RgbImage {
+    if (src.width() as usize, src.height() as usize) == (w, h) {
+        return src.clone();
+    }
+    image::imageops::resize(src, w as u32, h as u32, image::imageops::FilterType::Triangle)
+}
+
+/// `heads/HEAD/NAME.png` (labels) or `.npy` (depth), and `viz/NAME_HEAD.png`.
+fn write_head_output(root: &Path, h: &NamedHead, name: &str, out: HeadOutput, rgb: &image::RgbImage) -> Result<()> {
+    let dir = root.join("heads").join(&h.stem);
+    let viz = root.join("viz").join(format!("{name}_{}.png", h.stem));
+    let (w, hh) = (rgb.width(), rgb.height());
+    match out {
+        HeadOutput::Labels(l) => {
+            write_label_png(&dir.join(format!("{name}.png")), &l, w, hh).map_err(anyhow::Error::msg)?;
+            dens3r_scene::write_rgb_png(&viz, &overlay(rgb, &l))?;
+        }
+        HeadOutput::Depth(d) => {
+            dens3r_scene::npy::write_f32(&dir.join(format!("{name}.npy")), &[hh as usize, w as usize], &d)?;
+            let r = Raster::from_vec(w as usize, hh as usize, d).expect("sizes follow the image");
+            dens3r_scene::write_rgb_png(&viz, &depth_viz(&r))?;
+        }
+    }
+    Ok(())
+}
+
+/// The Dens3R maps of one image into the scene folder.
+fn write_network_outputs(
+    writer: &mut SceneWriter,
+    root: &Path,
+    name: &str,
+    prep: &Prepared,
+    mut pred: MonoPrediction,
+    source: Option<&image::RgbImage>,
+) -> Result<()> {
+    if let Some(src) = source {
+        pred.rgb = src.clone();
+    }
+    let (w, h) = (pred.depth.width(), pred.depth.height());
+    let pp = (w as f64 / 2.0, h as f64 / 2.0);
+    let estimated = focal_from_pointmap(&pred.points, pp, FocalMode::Weiszfeld).filter(|f| f.is_finite() && *f > 0.0);
+    let intrinsics = match estimated {
+        Some(f) => Intrinsics { fx: f, fy: f, cx: pp.0, cy: pp.1 },
+        None => {
+            eprintln!("warning: {name}: the pointmap gives no positive focal (untrained weights?); using a 60-degree field of view");
+            Intrinsics::from_hfov(w, h, 60.0)
+        }
+    };
+    let cam = PinholeCamera { intrinsics, width: w, height: h, cam_to_world: DMat4::IDENTITY };
+    let mut frame = Frame::new(name, &cam);
+    frame.extra.insert("focal_estimated".into(), serde_json::json!(estimated.is_some()));
+    frame.extra.insert("source".into(), serde_json::json!(prep.info.original));
+    frame.extra.insert("rotated".into(), serde_json::json!(prep.info.rotated));
+    writer.add_frame(frame, &pred.rgb)?;
+    writer.write_depth(name, &pred.depth)?;
+    if let Some(n) = &pred.normals {
+        writer.write_normals(name, n)?;
+        dens3r_scene::write_rgb_png(&root.join("viz").join(format!("{name}_normal.png")), &normal_viz(n))?;
+    }
+    if let Some(c) = &pred.conf {
+        writer.write_conf(name, c)?;
+    }
+    dens3r_scene::write_rgb_png(&root.join("viz").join(format!("{name}_depth.png")), &depth_viz(&pred.depth))?;
+    let mut cloud = TriMesh::new(pred.points.data().iter().copied().filter(|p| p.is_finite()).collect(), Vec::new());
+    let colors: Vec<[u8; 3]> =
+        pred.points.data().iter().zip(pred.rgb.pixels()).filter(|(p, _)| p.is_finite()).map(|(_, c)| c.0).collect();
+    cloud.colors = Some(colors);
+    dens3r_mesh::write_mesh(&root.join("pointmaps").join(format!("{name}.ply")), &cloud)?;
     Ok(())
 }
 

@@ -39,6 +39,9 @@ pub struct TrainHeadArgs {
     /// `dens3r:WEIGHTS.safetensors`, or `pixels` (raw pixel patches: the baseline).
     #[arg(long)]
     backbone: String,
+    /// JSON with the head counts of a `dens3r:` backbone (as `dens3r predict --config`).
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// Training folders: `images/` + `labels/` (or `depth/`), e.g. dens3r scene folders.
     #[arg(long, num_args = 1..)]
     data: Vec<PathBuf>,
@@ -79,6 +82,9 @@ pub struct TrainHeadArgs {
     /// Colour jitter strength in [0, 1) (re-runs the backbone at every step).
     #[arg(long, default_value_t = 0.0)]
     jitter: f32,
+    /// Channel dropout on the input features in [0, 1) (regularises heads on small datasets).
+    #[arg(long, default_value_t = 0.0)]
+    dropout: f32,
     /// DPT width.
     #[arg(long, default_value_t = 64)]
     width: usize,
@@ -111,13 +117,15 @@ pub struct TrainHeadArgs {
     output: PathBuf,
 }
 
-/// Opens the backbone named by a `--backbone` value.
-pub fn open_backbone(spec: &str) -> Result<Box<dyn Backbone>> {
+/// Opens the backbone named by a `--backbone` value (`config`: head counts of a Dens3R one).
+pub fn open_backbone(spec: &str, config: Option<&Path>) -> Result<Box<dyn Backbone>> {
     let (kind, path) = spec.split_once(':').unwrap_or((spec, ""));
     Ok(match kind {
         "pixels" => Box::new(dens3r_heads::PixelBackbone { patch: 14 }),
         "dinov2" => Box::new(dens3r_heads::Dinov2Backbone::load(Path::new(path), None).map_err(|e| anyhow!(e))?),
-        "dens3r" => Box::new(dens3r_heads::Dens3rBackbone::load(Path::new(path), None).map_err(|e| anyhow!(e))?),
+        "dens3r" => {
+            Box::new(dens3r_heads::Dens3rBackbone::load(Path::new(path), config, None).map_err(|e| anyhow!(e))?)
+        }
         _ => bail!("--backbone {spec:?}: expected dinov2:MODEL.onnx, dens3r:WEIGHTS.safetensors or pixels"),
     })
 }
@@ -146,6 +154,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         crop,
         flip: !a.no_flip,
         jitter: a.jitter,
+        dropout: a.dropout,
         class_weights: None,
         depth_loss: match a.depth_loss {
             DepthLossArg::Silog => DepthLoss::Silog,
@@ -156,7 +165,10 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         ..TrainOptions::default()
     };
     options.check().map_err(|e| anyhow!(e))?;
-    let backbone = open_backbone(&a.backbone)?;
+    if a.config.is_some() && !a.backbone.starts_with("dens3r:") {
+        bail!("--config gives the head counts of a dens3r:WEIGHTS backbone; --backbone is {:?}", a.backbone);
+    }
+    let backbone = open_backbone(&a.backbone, a.config.as_deref())?;
     let patch = backbone.patch() as u32;
     let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
     let mut train: Vec<Sample> = Vec::new();
@@ -259,6 +271,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         in_dims: layers.iter().map(|&l| dims[l]).collect(),
         layers,
         width: a.width,
+        size: a.size,
     };
     let head = Head::new(config, a.seed).map_err(|e| anyhow!(e))?;
     let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());
@@ -279,16 +292,29 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     );
     bar.set_position(trainer.step as u64);
     let seg = a.kind == Kind::Seg;
+    let (mut epoch_loss, mut epoch_steps) = (0.0f64, 0usize);
     let mut report = |p: Progress| {
         bar.set_position(p.step as u64);
         bar.set_message(format!("loss {:.4} lr {:.2e}", p.loss, p.lr));
+        if p.loss.is_finite() {
+            (epoch_loss, epoch_steps) = (epoch_loss + p.loss as f64, epoch_steps + 1);
+        }
         if let Some(v) = p.validation {
+            let train = epoch_loss / epoch_steps.max(1) as f64;
+            (epoch_loss, epoch_steps) = (0.0, 0);
             let line = if seg {
-                format!("epoch {}: val mIoU {:.4} pixel acc {:.4}", v.epoch, v.miou, v.pixel_accuracy)
+                format!(
+                    "epoch {}: train loss {train:.4}, val mIoU {:.4} pixel acc {:.4}",
+                    v.epoch, v.miou, v.pixel_accuracy
+                )
             } else {
-                format!("epoch {}: val AbsRel {:.4} delta1 {:.4}", v.epoch, v.abs_rel, v.delta1)
+                format!("epoch {}: train loss {train:.4}, val AbsRel {:.4} delta1 {:.4}", v.epoch, v.abs_rel, v.delta1)
             };
-            bar.println(line);
+            if bar.is_hidden() {
+                eprintln!("{line}"); // not a terminal: a log keeps every epoch
+            } else {
+                bar.println(line);
+            }
         }
     };
     let jitter_backbone = (a.jitter > 0.0).then_some(backbone.as_ref());

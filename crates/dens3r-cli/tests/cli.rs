@@ -536,3 +536,104 @@ fn train_head_resumes_mid_epoch_and_rejects_bad_input() {
     let e = fails(&["train-head", "--backbone", "pixels", "--data", orbit_s, "--lr", "7", "-o", "x"]);
     assert!(e.contains("learning rate"), "{e}");
 }
+
+/// Share of labelled pixels (not 255) where two label maps agree.
+fn agreement(a: &[u16], b: &[u16]) -> (usize, usize) {
+    let n = b.iter().filter(|&&g| g != 255).count();
+    (a.iter().zip(b).filter(|(p, g)| **g != 255 && p == g).count(), n)
+}
+
+#[test]
+fn predict_runs_trained_heads_on_the_backbone_pass() {
+    use dens3r_heads::data::{read_label_png, resize_nearest};
+    let dir = tempfile::tempdir().unwrap();
+    let samples = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data-samples");
+    let room = samples.join("room");
+    let p = |x: &Path| x.to_str().unwrap().to_string();
+    // A linear probe on raw pixels; every 4th view (0003, 0007) held out.
+    let lin = dir.path().join("lin");
+    let args = ["train-head", "--backbone", "pixels", "--head", "linear", "--data", &p(&room)];
+    let mut args: Vec<&str> = args.to_vec();
+    let (lin_s, cache) = (p(&lin), p(&dir.path().join("cache")));
+    args.extend(["--val-every", "4", "--size", "112", "--epochs", "4", "--cache", &cache, "-o", &lin_s]);
+    let summary = json(&args);
+    let val_acc = summary["pixel_accuracy"].as_f64().unwrap();
+    assert!(val_acc > 0.3, "{summary}");
+
+    // Heads only: the held-out views at the head's input size (112 x 84), labels as palette
+    // PNGs. Their accuracy against the ground truth is the one train-head's validation reported.
+    let out = dir.path().join("out");
+    let (v3, v7) = (room.join("images/0003.png"), room.join("images/0007.png"));
+    let head = p(&lin.with_extension("json"));
+    ok(&["predict", "--head", &head, "--backbone", "pixels", &p(&v3), &p(&v7), "-o", &p(&out)]);
+    let (mut right, mut all) = (0, 0);
+    for name in ["0003", "0007"] {
+        let (pred, w, h) = read_label_png(&out.join(format!("heads/lin/{name}.png"))).unwrap();
+        assert_eq!((w, h), (112, 84));
+        let (gt, gw, gh) = read_label_png(&room.join(format!("labels/{name}.png"))).unwrap();
+        let gt = resize_nearest(&gt, gw as usize, gh as usize, 112, 84);
+        let (r, n) = agreement(&pred, &gt);
+        (right, all) = (right + r, all + n);
+        assert!(out.join(format!("viz/{name}_lin.png")).is_file());
+    }
+    let acc = right as f64 / all as f64;
+    assert!((acc - val_acc).abs() < 1e-9, "predict gives pixel accuracy {acc}, train-head's validation {val_acc}");
+    let classes: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("heads/lin/classes.json")).unwrap()).unwrap();
+    assert_eq!(classes["1"], "floor");
+    // --original-size: the same labels sampled at pixel centres up to 160 x 120.
+    let full = dir.path().join("full");
+    ok(&["predict", "--head", &head, "--backbone", "pixels", "--original-size", &p(&v3), "-o", &p(&full)]);
+    let (small, _, _) = read_label_png(&out.join("heads/lin/0003.png")).unwrap();
+    let (big, bw, bh) = read_label_png(&full.join("heads/lin/0003.png")).unwrap();
+    assert_eq!((bw, bh), (160, 120));
+    for y in 0..120 {
+        for x in 0..160 {
+            let (sx, sy) = ((x * 2 + 1) * 112 / 320, (y * 2 + 1) * 84 / 240);
+            assert_eq!(big[y * 160 + x], small[sy * 112 + sx], "({x},{y})");
+        }
+    }
+
+    // On the Dens3R network: the head reads the pass that gives depth and normals. A portrait
+    // photo's labels are the landscape ones rotated back, like its depth.
+    let a = fixture("A_shared_dec_48x64");
+    let (w, c) = (p(&a.join("weights.safetensors")), p(&a.join("config.json")));
+    let d3 = p(&dir.path().join("d3"));
+    let orbit = p(&samples.join("orbit"));
+    let backbone = format!("dens3r:{w}");
+    let args = ["train-head", "--backbone", &backbone, "--config", &c, "--head", "dpt", "--width", "8", "--data"];
+    let mut args: Vec<&str> = args.to_vec();
+    args.extend([orbit.as_str(), "--size", "64", "--epochs", "2", "--cache", &cache, "-o", &d3]);
+    ok(&args);
+    let img = samples.join("room/images/0000.png");
+    let portrait = dir.path().join("portrait.png");
+    image::imageops::rotate90(&image::open(&img).unwrap().to_rgb8()).save(&portrait).unwrap();
+    let scene = dir.path().join("scene");
+    let d3_head = format!("{d3}.json");
+    let base = ["predict", "--weights", &w, "--config", &c, "--size", "64", "--head", &d3_head];
+    let mut args: Vec<&str> = base.to_vec();
+    let (img_s, portrait_s, scene_s) = (p(&img), p(&portrait), p(&scene));
+    args.extend([img_s.as_str(), &portrait_s, "-o", &scene_s]);
+    ok(&args);
+    assert!(dens3r_scene::Scene::open(&scene).unwrap().frames().len() == 2);
+    let (l0, w0, h0) = read_label_png(&scene.join("heads/d3/0000.png")).unwrap();
+    let (lp, wp, hp) = read_label_png(&scene.join("heads/d3/portrait.png")).unwrap();
+    assert_eq!((w0, h0, wp, hp), (64, 48, 48, 64));
+    for y in 0..64 {
+        for x in 0..48 {
+            assert_eq!(lp[y * 48 + x], l0[(47 - x) * 64 + y], "({x},{y})");
+        }
+    }
+
+    // Bad input: nothing is written.
+    let bad = p(&dir.path().join("bad"));
+    let e = fails(&["predict", "--weights", &w, "--config", &c, "--head", &head, &img_s, "-o", &bad]);
+    assert!(e.contains("lin.json") && e.contains("pixels-p14") && e.contains("trained on features"), "{e}");
+    let e = fails(&["predict", "--head", &head, &img_s, "-o", &bad]);
+    assert!(e.contains("--backbone"), "{e}");
+    let e = fails(&["predict", "--head", "/no/head.json", "--backbone", "pixels", &img_s, "-o", &bad]);
+    assert!(e.contains("/no/head.json") && e.contains("train-head"), "{e}");
+    let e = fails(&["predict", &img_s, "-o", &bad]);
+    assert!(e.contains("nothing to predict"), "{e}");
+    assert!(!Path::new(&bad).exists(), "failed runs leave no output folder");
+}

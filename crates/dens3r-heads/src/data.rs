@@ -61,10 +61,21 @@ pub fn resize_nearest<T: Copy>(v: &[T], w: usize, h: usize, ow: usize, oh: usize
     out
 }
 
-fn resized(image: RgbImage, target: Target, long: u32, patch: u32, name: String) -> Sample {
+/// The image resized (bilinear) to [`patch_size`]: what heads are trained and run on.
+pub fn resize_to_patches(image: RgbImage, long: u32, patch: u32) -> RgbImage {
     let (w, h) = image.dimensions();
     let (ow, oh) = patch_size(w, h, long, patch);
-    let image = if (ow, oh) == (w, h) { image } else { image::imageops::resize(&image, ow, oh, FilterType::Triangle) };
+    if (ow, oh) == (w, h) {
+        image
+    } else {
+        image::imageops::resize(&image, ow, oh, FilterType::Triangle)
+    }
+}
+
+fn resized(image: RgbImage, target: Target, long: u32, patch: u32, name: String) -> Sample {
+    let (w, h) = image.dimensions();
+    let image = resize_to_patches(image, long, patch);
+    let (ow, oh) = image.dimensions();
     let (wu, hu, owu, ohu) = (w as usize, h as usize, ow as usize, oh as usize);
     let target = match target {
         Target::Labels(l) => Target::Labels(resize_nearest(&l, wu, hu, owu, ohu)),

@@ -6,7 +6,7 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::dinov2::{Dinov2, IMAGENET_MEAN, IMAGENET_STD};
-use dens3r_backbone::Dens3r;
+use dens3r_backbone::{Dens3r, ViewFeatures};
 pub use dens3r_scene::hash::fnv1a;
 use image::RgbImage;
 use std::path::Path;
@@ -82,8 +82,21 @@ pub fn normalised_planes(image: &RgbImage, mean: [f32; 3], std: [f32; 3]) -> Vec
     out
 }
 
-fn file_hash(path: &Path) -> std::io::Result<u64> {
-    Ok(fnv1a(&std::fs::read(path)?, 0))
+/// [`fnv1a`] of a file's bytes, read in chunks (checkpoints are gigabytes).
+pub fn file_hash(path: &Path) -> std::io::Result<u64> {
+    use std::io::Read;
+    const BASIS: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut file = std::fs::File::open(path)?;
+    let mut buf = vec![0u8; 1 << 22];
+    let mut h = fnv1a(&[], 0);
+    loop {
+        let n = file.read(&mut buf)?;
+        if n == 0 {
+            return Ok(h);
+        }
+        // fnv1a starts from BASIS ^ seed: this seed continues from state `h`.
+        h = fnv1a(&buf[..n], h ^ BASIS);
+    }
 }
 
 /// DINOv2 patch tokens of blocks `hooks` (1-based), through the final LayerNorm.
@@ -191,13 +204,31 @@ impl Dens3rBackbone {
         Ok(Self { model, layers, hash: weights_hash })
     }
 
-    /// Loads a safetensors checkpoint on the flex CPU device.
-    pub fn load(path: &Path, layers: Option<Vec<usize>>) -> Result<Self, String> {
-        let w = dens3r_backbone::Weights::from_safetensors(path).map_err(|e| e.to_string())?;
-        let config = dens3r_backbone::ModelConfig::from_weights(&w, None).map_err(|e| e.to_string())?;
-        let (model, _) = Dens3r::load(&w, config, &Device::flex()).map_err(|e| e.to_string())?;
+    /// Loads a safetensors checkpoint on the flex CPU device; `config` is the optional JSON
+    /// with the head counts (as `dens3r predict --config`).
+    pub fn load(path: &Path, config: Option<&Path>, layers: Option<Vec<usize>>) -> Result<Self, String> {
+        let (model, _) = dens3r_backbone::verify::load_model(path, config, &Device::flex())?;
         let hash = file_hash(path).map_err(|e| format!("{}: {e}", path.display()))?;
         Self::new(model, layers, hash)
+    }
+
+    /// The wrapped network (to run its own heads on the same pass).
+    pub fn model(&self) -> &Dens3r {
+        &self.model
+    }
+
+    /// Feature maps from view features of this network's [`Dens3r::encode_self`].
+    pub fn maps(&self, v: &ViewFeatures) -> FeatureMaps {
+        let layers = self
+            .layers
+            .iter()
+            .map(|&l| {
+                let t = v.layer(l);
+                let d = t.dims()[2];
+                planes_from_tokens(&to_vec(t), d)
+            })
+            .collect();
+        FeatureMaps { grid: v.grid, dims: self.dims(), layers }
     }
 }
 
@@ -218,17 +249,7 @@ impl Backbone for Dens3rBackbone {
         let planes = normalised_planes(image, [0.5; 3], [0.5; 3]);
         let x = Tensor::<4>::from_data(TensorData::new(planes, [1, 3, h, w]), self.model.device());
         let f = self.model.encode_self(x);
-        let v = &f.views[0];
-        let layers = self
-            .layers
-            .iter()
-            .map(|&l| {
-                let t = v.layer(l);
-                let d = t.dims()[2];
-                planes_from_tokens(&to_vec(t), d)
-            })
-            .collect();
-        FeatureMaps { grid: v.grid, dims: self.dims(), layers }
+        self.maps(&f.views[0])
     }
 }
 

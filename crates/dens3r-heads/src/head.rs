@@ -55,6 +55,10 @@ pub struct HeadConfig {
     pub in_dims: Vec<usize>,
     /// Hidden width (DPT features; unused by the linear probe).
     pub width: usize,
+    /// Long side of the training inputs in pixels (0: not recorded); inference without the
+    /// Dens3R network resizes images to it.
+    #[serde(default)]
+    pub size: u32,
 }
 
 /// An architecture: parameter shapes and the forward pass.

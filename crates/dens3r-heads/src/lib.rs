@@ -5,13 +5,15 @@
 //! [`FeatureMaps`]; [`cache`] stores them on disk once per image; [`head`] holds the head
 //! architectures (registry: `linear`, `dpt`) and their safetensors + JSON files; [`loss`] and
 //! [`metrics`] the objectives and scores; [`data`] the labelled images; [`train`] AdamW
-//! training with validation, checkpoints and resume. The backbone is never trained: only head
+//! training with validation, checkpoints and resume; [`infer`] runs saved heads (one backbone
+//! pass feeds every head) and writes label PNGs. The backbone is never trained: only head
 //! parameters are tracked by autodiff.
 
 pub mod cache;
 pub mod data;
 pub mod features;
 pub mod head;
+pub mod infer;
 pub mod io;
 pub mod loss;
 pub mod metrics;

@@ -1,6 +1,7 @@
 //! Losses on burn tensors (differentiable on an autodiff device): cross-entropy with an ignore
 //! index and class weights, scale-invariant log depth (SILog, Eigen et al.), and the
-//! affine-invariant depth loss (per-image least-squares scale and shift, MiDaS).
+//! affine-invariant depth loss (per-image median and mean-absolute-deviation normalisation,
+//! MiDaS).
 
 use burn::tensor::activation::log_softmax;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -62,34 +63,51 @@ pub fn silog(log_pred: Tensor<4>, gt: &[f32]) -> Option<Tensor<1>> {
     Some((m2 - m1.square().mul_scalar(0.85)).clamp_min(1e-12).sqrt())
 }
 
-/// Affine-invariant depth loss: per image, the prediction `exp(log_pred)` is aligned to the
-/// ground truth by the least-squares scale and shift over valid pixels, then the mean absolute
-/// residual is divided by the mean ground truth.
+/// Median and mean absolute deviation from it of `v` over `valid`; the median's index.
+fn median_mad(v: &[f32], valid: &[usize]) -> (usize, f32, f32) {
+    let mut order: Vec<usize> = valid.to_vec();
+    order.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
+    let k = order[(order.len() - 1) / 2];
+    let m = v[k];
+    let mad = valid.iter().map(|&i| (v[i] - m).abs()).sum::<f32>() / valid.len() as f32;
+    (k, m, mad)
+}
+
+/// Affine-invariant depth loss (MiDaS's scale-and-shift-invariant loss, Ranftl et al. 2020):
+/// per image, the prediction `exp(log_pred)` and the ground truth are each shifted by their
+/// median and divided by their mean absolute deviation from it over valid pixels; the loss is
+/// the mean absolute difference. The normalisation keeps the sign of the scale, so an inverted
+/// prediction is penalised (a least-squares fit would flip it for free). The gradient flows
+/// through the median element, as with `torch.median`.
 pub fn affine_invariant(log_pred: Tensor<4>, gt: &[f32]) -> Option<Tensor<1>> {
     let [b, _, h, w] = log_pred.dims();
+    let n = h * w;
     let device = log_pred.device();
-    let pred = log_pred.exp();
+    let pred = log_pred.exp().reshape([b, n]);
+    let host = crate::features::to_vec(pred.clone());
     let mut losses = Vec::new();
     for bi in 0..b {
-        let g = &gt[bi * h * w..(bi + 1) * h * w];
-        let Some((mask, _, n)) = depth_targets(g, [1, 1, h, w], &device) else { continue };
-        let gt_t = Tensor::<4>::from_data(
-            TensorData::new(
-                g.iter().map(|&d| if d.is_finite() && d > 0.0 { d } else { 0.0 }).collect::<Vec<_>>(),
-                [1, 1, h, w],
-            ),
-            &device,
-        );
-        let p = pred.clone().slice([bi..bi + 1, 0..1, 0..h, 0..w]) * mask.clone();
-        // Normal equations of min sum (s p + t - g)^2 over the mask.
-        let (sp, sg) = (p.clone().sum(), gt_t.clone().sum());
-        let (spp, spg) = (p.clone().square().sum(), (p.clone() * gt_t.clone()).sum());
-        let det = spp.clone().mul_scalar(n) - sp.clone().square();
-        let det = det.clamp_min(1e-12);
-        let s = (spg.clone().mul_scalar(n) - sp.clone() * sg.clone()) / det.clone();
-        let t = (spp * sg.clone() - sp * spg) / det;
-        let r = ((p * s.reshape([1, 1, 1, 1]) + t.reshape([1, 1, 1, 1])) * mask.clone() - gt_t).abs() * mask;
-        losses.push(r.sum() / sg);
+        let g = &gt[bi * n..(bi + 1) * n];
+        let valid: Vec<usize> = (0..n).filter(|&i| g[i].is_finite() && g[i] > 0.0).collect();
+        if valid.len() < 2 {
+            continue;
+        }
+        let (_, gm, gmad) = median_mad(g, &valid);
+        let (k, _, _) = median_mad(&host[bi * n..(bi + 1) * n], &valid);
+        let mut mask = vec![0f32; n];
+        let mut g_hat = vec![0f32; n];
+        for &i in &valid {
+            mask[i] = 1.0;
+            g_hat[i] = (g[i] - gm) / gmad.max(1e-12);
+        }
+        let mask = Tensor::<2>::from_data(TensorData::new(mask, [1, n]), &device);
+        let g_hat = Tensor::<2>::from_data(TensorData::new(g_hat, [1, n]), &device);
+        let p = pred.clone().slice([bi..bi + 1, 0..n]);
+        let med = p.clone().slice([0..1, k..k + 1]);
+        let centred = (p - med) * mask.clone();
+        let mad = centred.clone().abs().sum().div_scalar(valid.len() as f32).clamp_min(1e-12);
+        let p_hat = centred / mad.reshape([1, 1]);
+        losses.push(((p_hat - g_hat) * mask).abs().sum().div_scalar(valid.len() as f32));
     }
     if losses.is_empty() {
         return None;

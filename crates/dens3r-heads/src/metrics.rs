@@ -1,4 +1,5 @@
-//! Validation metrics: confusion-matrix mIoU and pixel accuracy; AbsRel and delta < 1.25.
+//! Validation metrics: confusion-matrix mIoU and pixel accuracy; AbsRel and delta < 1.25, with
+//! the least-squares scale-and-shift alignment used for relative (affine-invariant) depth.
 
 /// A `K x K` confusion matrix (rows = ground truth).
 #[derive(Debug, Clone)]
@@ -82,4 +83,28 @@ impl DepthStats {
     pub fn delta1(&self) -> f64 {
         self.delta1 / self.n.max(1) as f64
     }
+}
+
+/// `s * pred + t` with the least-squares scale and shift over valid pixels (ground truth finite
+/// and > 0): how a relative (affine-invariant) depth prediction is scored. Unchanged when fewer
+/// than two pixels are valid or the prediction is constant on them.
+pub fn align_affine(pred: &[f32], gt: &[f32]) -> Vec<f32> {
+    let (mut n, mut sp, mut sg, mut spp, mut spg) = (0f64, 0f64, 0f64, 0f64, 0f64);
+    for (&p, &g) in pred.iter().zip(gt) {
+        if g.is_finite() && g > 0.0 && p.is_finite() {
+            let (p, g) = (p as f64, g as f64);
+            n += 1.0;
+            sp += p;
+            sg += g;
+            spp += p * p;
+            spg += p * g;
+        }
+    }
+    let det = n * spp - sp * sp;
+    if n < 2.0 || det.abs() <= 1e-12 * n * spp.max(1e-300) {
+        return pred.to_vec();
+    }
+    let s = (n * spg - sp * sg) / det;
+    let t = (spp * sg - sp * spg) / det;
+    pred.iter().map(|&p| (s * p as f64 + t) as f32).collect()
 }

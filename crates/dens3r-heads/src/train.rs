@@ -49,6 +49,11 @@ pub struct TrainOptions {
     /// Colour jitter strength (brightness / contrast / saturation factors in `1 +- jitter`);
     /// needs the backbone at every step.
     pub jitter: f32,
+    /// Channel dropout on the input features (each feature channel of a training crop is
+    /// zeroed with this probability, the rest scaled by `1 / (1 - p)`); a regulariser for small
+    /// datasets.
+    #[serde(default)]
+    pub dropout: f32,
     /// Per-class loss weights.
     pub class_weights: Option<Vec<f32>>,
     /// Depth loss.
@@ -70,6 +75,7 @@ impl Default for TrainOptions {
             crop: None,
             flip: true,
             jitter: 0.0,
+            dropout: 0.0,
             class_weights: None,
             depth_loss: DepthLoss::Silog,
             seed: 0,
@@ -87,8 +93,8 @@ impl TrainOptions {
         if !(self.lr.is_finite() && self.lr > 0.0 && self.lr < 1.0) {
             return Err(format!("learning rate {} must be in (0, 1)", self.lr));
         }
-        if !(0.0..1.0).contains(&self.warmup) || !(0.0..1.0).contains(&self.jitter) {
-            return Err("warm-up and jitter must be in [0, 1)".into());
+        if ![self.warmup, self.jitter, self.dropout].iter().all(|v| (0.0..1.0).contains(v)) {
+            return Err("warm-up, jitter and dropout must be in [0, 1)".into());
         }
         if self.crop.is_some_and(|(r, c)| r == 0 || c == 0) {
             return Err("crop sizes must be at least one token".into());
@@ -317,12 +323,22 @@ impl Trainer {
         let r0 = rng.gen_range(0..=gh - rows);
         let c0 = rng.gen_range(0..=gw - cols);
         let flip = o.flip && rng.gen_bool(0.5);
-        let features = match backbone {
+        let mut features = match backbone {
             Some(bb) if o.jitter > 0.0 => {
                 bb.extract(&jitter(&ex.sample.image, o.jitter, rng)).crop(r0, c0, rows, cols, flip)
             }
             _ => ex.features.crop(r0, c0, rows, cols, flip),
         };
+        if o.dropout > 0.0 {
+            let keep = 1.0 / (1.0 - o.dropout);
+            let n = rows * cols;
+            for layer in &mut features.layers {
+                for plane in layer.chunks_exact_mut(n) {
+                    let s = if rng.gen_bool(o.dropout as f64) { 0.0 } else { keep };
+                    plane.iter_mut().for_each(|v| *v *= s);
+                }
+            }
+        }
         let w = ex.sample.image.width() as usize;
         let (ph, pw) = (rows * p, cols * p);
         let pick = |x: usize, y: usize| {
@@ -388,12 +404,14 @@ impl Trainer {
 
     /// Metrics of the current head on whole validation images.
     pub fn validate(&self, val: &[Example]) -> Validation {
-        evaluate(&self.head, val)
+        evaluate(&self.head, val, self.options.depth_loss)
     }
 }
 
 /// Segmentation or depth metrics of a head on examples (whole images, plain CPU device).
-pub fn evaluate(head: &Head, examples: &[Example]) -> Validation {
+/// Depth is scored as predicted for SILog heads, and after the per-image least-squares scale
+/// and shift ([`crate::metrics::align_affine`]) for affine-invariant ones.
+pub fn evaluate(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> Validation {
     let device = Device::flex();
     let params = head.tensors(&device);
     let mut conf = Confusion::new(head.config.task.channels());
@@ -404,7 +422,13 @@ pub fn evaluate(head: &Head, examples: &[Example]) -> Validation {
         let out = head.forward_with(&params, &feats, (h, w));
         match &ex.sample.target {
             Target::Labels(l) => conf.add(&argmax_channels(&to_vec(out), conf.k, h * w), l),
-            Target::Depth(d) => depth.add(&to_vec(out.exp()), d),
+            Target::Depth(d) => {
+                let pred = to_vec(out.exp());
+                match depth_loss {
+                    DepthLoss::Silog => depth.add(&pred, d),
+                    DepthLoss::AffineInvariant => depth.add(&crate::metrics::align_affine(&pred, d), d),
+                }
+            }
         }
     }
     Validation {
