@@ -82,9 +82,6 @@ pub struct TrainHeadArgs {
     /// Colour jitter strength in [0, 1) (re-runs the backbone at every step).
     #[arg(long, default_value_t = 0.0)]
     jitter: f32,
-    /// Channel dropout on the input features in [0, 1) (regularises heads on small datasets).
-    #[arg(long, default_value_t = 0.0)]
-    dropout: f32,
     /// DPT width.
     #[arg(long, default_value_t = 64)]
     width: usize,
@@ -154,7 +151,6 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         crop,
         flip: !a.no_flip,
         jitter: a.jitter,
-        dropout: a.dropout,
         class_weights: None,
         depth_loss: match a.depth_loss {
             DepthLossArg::Silog => DepthLoss::Silog,

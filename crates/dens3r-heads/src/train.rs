@@ -49,11 +49,6 @@ pub struct TrainOptions {
     /// Colour jitter strength (brightness / contrast / saturation factors in `1 +- jitter`);
     /// needs the backbone at every step.
     pub jitter: f32,
-    /// Channel dropout on the input features (each feature channel of a training crop is
-    /// zeroed with this probability, the rest scaled by `1 / (1 - p)`); a regulariser for small
-    /// datasets.
-    #[serde(default)]
-    pub dropout: f32,
     /// Per-class loss weights.
     pub class_weights: Option<Vec<f32>>,
     /// Depth loss.
@@ -75,7 +70,6 @@ impl Default for TrainOptions {
             crop: None,
             flip: true,
             jitter: 0.0,
-            dropout: 0.0,
             class_weights: None,
             depth_loss: DepthLoss::Silog,
             seed: 0,
@@ -93,8 +87,8 @@ impl TrainOptions {
         if !(self.lr.is_finite() && self.lr > 0.0 && self.lr < 1.0) {
             return Err(format!("learning rate {} must be in (0, 1)", self.lr));
         }
-        if ![self.warmup, self.jitter, self.dropout].iter().all(|v| (0.0..1.0).contains(v)) {
-            return Err("warm-up, jitter and dropout must be in [0, 1)".into());
+        if !(0.0..1.0).contains(&self.warmup) || !(0.0..1.0).contains(&self.jitter) {
+            return Err("warm-up and jitter must be in [0, 1)".into());
         }
         if self.crop.is_some_and(|(r, c)| r == 0 || c == 0) {
             return Err("crop sizes must be at least one token".into());
@@ -323,22 +317,12 @@ impl Trainer {
         let r0 = rng.gen_range(0..=gh - rows);
         let c0 = rng.gen_range(0..=gw - cols);
         let flip = o.flip && rng.gen_bool(0.5);
-        let mut features = match backbone {
+        let features = match backbone {
             Some(bb) if o.jitter > 0.0 => {
                 bb.extract(&jitter(&ex.sample.image, o.jitter, rng)).crop(r0, c0, rows, cols, flip)
             }
             _ => ex.features.crop(r0, c0, rows, cols, flip),
         };
-        if o.dropout > 0.0 {
-            let keep = 1.0 / (1.0 - o.dropout);
-            let n = rows * cols;
-            for layer in &mut features.layers {
-                for plane in layer.chunks_exact_mut(n) {
-                    let s = if rng.gen_bool(o.dropout as f64) { 0.0 } else { keep };
-                    plane.iter_mut().for_each(|v| *v *= s);
-                }
-            }
-        }
         let w = ex.sample.image.width() as usize;
         let (ph, pw) = (rows * p, cols * p);
         let pick = |x: usize, y: usize| {
