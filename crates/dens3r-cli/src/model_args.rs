@@ -1,10 +1,12 @@
-//! The model options shared by the commands that run the network.
+//! The model options shared by the commands that run the network, and the frozen backbones
+//! of `--backbone` (train-head, predict --head).
 
-use anyhow::Result;
+use anyhow::{anyhow, bail, Result};
 use clap::Args;
 use dens3r_backbone::verify::load_model;
 use dens3r_backbone::Dens3r;
-use std::path::PathBuf;
+use dens3r_heads::Backbone;
+use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct ModelArgs {
@@ -38,4 +40,17 @@ impl ModelArgs {
         }
         Ok(model)
     }
+}
+
+/// Opens the backbone named by a `--backbone` value (`config`: head counts of a Dens3R one).
+pub fn open_backbone(spec: &str, config: Option<&Path>) -> Result<Box<dyn Backbone>> {
+    let (kind, path) = spec.split_once(':').unwrap_or((spec, ""));
+    Ok(match kind {
+        "pixels" => Box::new(dens3r_heads::PixelBackbone { patch: 14 }),
+        "dinov2" => Box::new(dens3r_heads::Dinov2Backbone::load(Path::new(path), None).map_err(|e| anyhow!(e))?),
+        "dens3r" => {
+            Box::new(dens3r_heads::Dens3rBackbone::load(Path::new(path), config, None).map_err(|e| anyhow!(e))?)
+        }
+        _ => bail!("--backbone {spec:?}: expected dinov2:MODEL.onnx, dens3r:WEIGHTS.safetensors or pixels"),
+    })
 }

@@ -1,7 +1,7 @@
 //! `dens3r predict`: images -> scene folder (depth, normals, confidence, intrinsics, pointmaps,
 //! visualisations), and trained heads (`--head`) on the same backbone pass.
 
-use crate::model_args::ModelArgs;
+use crate::model_args::{open_backbone, ModelArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use dens3r_backbone::predict::{predict_mono, predict_mono_features, to_image_grid, MonoPrediction, Resolution};
@@ -13,7 +13,7 @@ use dens3r_heads::infer::{check_head, infer, overlay, write_label_png, HeadOutpu
 use dens3r_heads::{Backbone, Dens3rBackbone, Head, Task};
 use dens3r_mesh::TriMesh;
 use dens3r_scene::{Frame, SceneWriter};
-use std::collections::{BTreeMap, HashSet};
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 #[derive(Args)]
@@ -61,14 +61,6 @@ struct NamedHead {
     head: Head,
 }
 
-/// The backbone the heads read.
-enum HeadFeatures {
-    /// The Dens3R network of --weights: its own pass.
-    Network,
-    /// Another backbone, run on the image resized to the heads' training size.
-    Other(Box<dyn Backbone>, u32),
-}
-
 pub fn run(a: PredictArgs) -> Result<()> {
     for p in &a.images {
         if !p.is_file() {
@@ -85,7 +77,14 @@ pub fn run(a: PredictArgs) -> Result<()> {
         bail!("nothing to predict: give --weights (the Dens3R network) and/or --head HEAD.json");
     }
     let heads = load_heads(&a.heads)?;
-    let other = a.backbone.as_deref().map(|b| crate::train_head::open_backbone(b, a.config.as_deref())).transpose()?;
+    // Heads on another backbone: it runs on each image resized to the heads' training size.
+    let other = match a.backbone.as_deref() {
+        Some(spec) => {
+            let size = heads.iter().map(|h| h.head.config.size).find(|&s| s > 0).unwrap_or(224);
+            Some((open_backbone(spec, a.config.as_deref())?, size))
+        }
+        None => None,
+    };
     if !heads.is_empty() && model.is_none() && other.is_none() {
         bail!(
             "{}: the head needs its backbone ({}): give --backbone (dinov2:MODEL.onnx, pixels) or --weights",
@@ -93,44 +92,41 @@ pub fn run(a: PredictArgs) -> Result<()> {
             heads[0].head.config.backbone
         );
     }
-    let feats = match other {
-        Some(b) => {
-            let size = heads.iter().map(|h| h.head.config.size).find(|&s| s > 0).unwrap_or(224);
-            HeadFeatures::Other(b, size)
-        }
-        None => HeadFeatures::Network,
-    };
-    // The network, wrapped as a feature backbone so heads trained on it read its pass.
+    // Heads on the network's own pass: it is wrapped as a feature backbone.
+    let heads_on_net = !heads.is_empty() && other.is_none();
     let net = match &model {
         Some(m) => {
             let model = m.load()?;
-            let hash = if heads.is_empty() || !matches!(feats, HeadFeatures::Network) {
-                0
-            } else {
+            let hash = if heads_on_net {
                 file_hash(&m.weights).with_context(|| format!("{}: cannot read", m.weights.display()))?
+            } else {
+                0
             };
             Some(Dens3rBackbone::new(model, None, hash).map_err(anyhow::Error::msg)?)
         }
         None => None,
     };
-    for (h, path) in heads.iter().zip(&a.heads) {
-        let (id, dims) = match (&feats, &net) {
-            (HeadFeatures::Other(b, _), _) => (b.id(), b.dims()),
-            (HeadFeatures::Network, Some(n)) => (n.id(), n.dims()),
-            (HeadFeatures::Network, None) => unreachable!("checked above"),
-        };
-        check_head(path, &h.head, &id, &dims).map_err(anyhow::Error::msg)?;
+    let head_backbone: Option<&dyn Backbone> = match (&other, &net) {
+        (Some((b, _)), _) => Some(b.as_ref()),
+        (None, n) => n.as_ref().map(|n| n as &dyn Backbone),
+    };
+    if let Some(b) = head_backbone {
+        let (id, dims) = (b.id(), b.dims());
+        for (h, path) in heads.iter().zip(&a.heads) {
+            check_head(path, &h.head, &id, &dims).map_err(anyhow::Error::msg)?;
+        }
     }
 
     // Decode and preprocess everything first: a bad image fails before anything is written.
-    let (size, keep_portrait) = (a.size, a.keep_portrait);
+    // The photo itself is kept only where it is read again (original size, another backbone).
+    let keep_source = a.original_size || other.is_some();
     let mut inputs = Vec::new();
     let mut names = HashSet::new();
     for p in &a.images {
         let img = open_oriented(p).map_err(anyhow::Error::msg)?;
-        let prep = preprocess(&img, size, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+        let prep = preprocess(&img, a.size, !a.keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
         let name = dens3r_recon::input::unique_name(p, &mut names);
-        inputs.push((name, prep, img.to_rgb8()));
+        inputs.push((name, prep, keep_source.then(|| img.to_rgb8())));
     }
     let mut writer = match &net {
         Some(_) => {
@@ -147,9 +143,8 @@ pub fn run(a: PredictArgs) -> Result<()> {
         let dir = a.output.join("heads").join(&h.stem);
         std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
         if let Task::Seg { classes } = &h.head.config.task {
-            let map: BTreeMap<String, &String> = classes.iter().enumerate().map(|(i, c)| (i.to_string(), c)).collect();
-            dens3r_heads::io::save_json(&dir.join("classes.json"), &serde_json::json!(map))
-                .map_err(anyhow::Error::msg)?;
+            let map = classes.iter().enumerate().map(|(i, c)| (i as u16, c.clone())).collect();
+            dens3r_scene::write_classes(&dir.join("classes.json"), &map)?;
         }
     }
     let bar = indicatif::ProgressBar::new(inputs.len() as u64).with_style(
@@ -159,54 +154,45 @@ pub fn run(a: PredictArgs) -> Result<()> {
     let res = if a.original_size { Resolution::Original } else { Resolution::Network };
     let device = burn::tensor::Device::flex();
     for (name, prep, source) in &inputs {
-        // Size of every map written for this image.
-        let mut out_size = (source.width() as usize, source.height() as usize);
+        // The picture every map of this image is written at (overlays are drawn on it).
+        let mut picture = None;
         if let (Some(net), Some(writer)) = (&net, writer.as_mut()) {
-            let (pred, features) = if heads.is_empty() || !matches!(feats, HeadFeatures::Network) {
-                (predict_mono(net.model(), prep, res), None)
-            } else {
+            let (mut pred, features) = if heads_on_net {
                 let (p, v) = predict_mono_features(net.model(), prep, res);
                 (p, Some(net.maps(&v)))
+            } else {
+                (predict_mono(net.model(), prep, res), None)
             };
-            out_size = (pred.depth.width(), pred.depth.height());
-            write_network_outputs(writer, &a.output, name, prep, pred, a.original_size.then_some(source))?;
+            if let Some(src) = source.as_ref().filter(|_| a.original_size) {
+                pred.rgb = src.clone();
+            }
+            write_network_outputs(writer, &a.output, name, prep, &pred)?;
             if let Some(f) = features {
                 for h in &heads {
                     // The network frame back to the image's orientation and map size.
-                    let net_size = (f.grid.0 * h.head.config.patch, f.grid.1 * h.head.config.patch);
-                    let (out, hh, w) = match infer(&h.head, &f, &device) {
-                        HeadOutput::Labels(l) => {
-                            let (g, hh, w) = to_image_grid(l, 1, net_size, &prep.info, res);
-                            (HeadOutput::Labels(g), hh, w)
-                        }
-                        HeadOutput::Depth(d) => {
-                            let (g, hh, w) = to_image_grid(d, 1, net_size, &prep.info, res);
-                            (HeadOutput::Depth(g), hh, w)
-                        }
+                    let size = (f.grid.0 * h.head.config.patch, f.grid.1 * h.head.config.patch);
+                    let out = match infer(&h.head, &f, &device) {
+                        HeadOutput::Labels(l) => HeadOutput::Labels(to_image_grid(l, 1, size, &prep.info, res).0),
+                        HeadOutput::Depth(d) => HeadOutput::Depth(to_image_grid(d, 1, size, &prep.info, res).0),
                     };
-                    let rgb = resized_rgb(source, w, hh);
-                    write_head_output(&a.output, h, name, out, &rgb)?;
+                    write_head_output(&a.output, h, name, out, &pred.rgb)?;
                 }
             }
-        } else if !a.original_size {
-            // Heads only, at their input size.
-            if let HeadFeatures::Other(b, long) = &feats {
-                let (w, h) = dens3r_heads::data::patch_size(source.width(), source.height(), *long, b.patch() as u32);
-                out_size = (w as usize, h as usize);
-            }
+            picture = Some(pred.rgb);
         }
-        if let HeadFeatures::Other(b, long) = &feats {
-            let img = dens3r_heads::data::resize_to_patches(source.clone(), *long, b.patch() as u32);
+        if let (Some((b, long)), Some(src)) = (&other, source) {
+            let img = dens3r_heads::data::resize_to_patches(src.clone(), *long, b.patch() as u32);
             let f = b.extract(&img);
+            // Heads only: at their input size, or the photo's with --original-size.
+            let picture = picture.unwrap_or_else(|| if a.original_size { src.clone() } else { img.clone() });
             let (iw, ih) = (img.width() as usize, img.height() as usize);
-            let (ow, oh) = out_size;
-            let rgb = resized_rgb(source, ow, oh);
+            let (ow, oh) = (picture.width() as usize, picture.height() as usize);
             for h in &heads {
                 let out = match infer(&h.head, &f, &device) {
                     HeadOutput::Labels(l) => HeadOutput::Labels(resize_nearest(&l, iw, ih, ow, oh)),
                     HeadOutput::Depth(d) => HeadOutput::Depth(resize_nearest(&d, iw, ih, ow, oh)),
                 };
-                write_head_output(&a.output, h, name, out, &rgb)?;
+                write_head_output(&a.output, h, name, out, &picture)?;
             }
         }
         bar.inc(1);
@@ -243,14 +229,6 @@ fn load_heads(paths: &[PathBuf]) -> Result<Vec<NamedHead>> {
         .collect()
 }
 
-/// The source image resampled to `(w, h)` for overlays.
-fn resized_rgb(src: &image::RgbImage, w: usize, h: usize) -> image::RgbImage {
-    if (src.width() as usize, src.height() as usize) == (w, h) {
-        return src.clone();
-    }
-    image::imageops::resize(src, w as u32, h as u32, image::imageops::FilterType::Triangle)
-}
-
 /// `heads/HEAD/NAME.png` (labels) or `.npy` (depth), and `viz/NAME_HEAD.png`.
 fn write_head_output(root: &Path, h: &NamedHead, name: &str, out: HeadOutput, rgb: &image::RgbImage) -> Result<()> {
     let dir = root.join("heads").join(&h.stem);
@@ -276,12 +254,8 @@ fn write_network_outputs(
     root: &Path,
     name: &str,
     prep: &Prepared,
-    mut pred: MonoPrediction,
-    source: Option<&image::RgbImage>,
+    pred: &MonoPrediction,
 ) -> Result<()> {
-    if let Some(src) = source {
-        pred.rgb = src.clone();
-    }
     let (w, h) = (pred.depth.width(), pred.depth.height());
     let pp = (w as f64 / 2.0, h as f64 / 2.0);
     let estimated = focal_from_pointmap(&pred.points, pp, FocalMode::Weiszfeld).filter(|f| f.is_finite() && *f > 0.0);

@@ -5,9 +5,9 @@ use clap::{Args, ValueEnum};
 use dens3r_heads::cache::{FeatureCache, Precision};
 use dens3r_heads::data::{self, Sample, Want};
 use dens3r_heads::train::{DepthLoss, Progress};
-use dens3r_heads::{Backbone, Example, Head, HeadConfig, Task, TrainOptions, Trainer};
+use dens3r_heads::{Example, Head, HeadConfig, Task, TrainOptions, Trainer};
 use indicatif::{ProgressBar, ProgressStyle};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// What the head predicts.
 #[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
@@ -114,19 +114,6 @@ pub struct TrainHeadArgs {
     output: PathBuf,
 }
 
-/// Opens the backbone named by a `--backbone` value (`config`: head counts of a Dens3R one).
-pub fn open_backbone(spec: &str, config: Option<&Path>) -> Result<Box<dyn Backbone>> {
-    let (kind, path) = spec.split_once(':').unwrap_or((spec, ""));
-    Ok(match kind {
-        "pixels" => Box::new(dens3r_heads::PixelBackbone { patch: 14 }),
-        "dinov2" => Box::new(dens3r_heads::Dinov2Backbone::load(Path::new(path), None).map_err(|e| anyhow!(e))?),
-        "dens3r" => {
-            Box::new(dens3r_heads::Dens3rBackbone::load(Path::new(path), config, None).map_err(|e| anyhow!(e))?)
-        }
-        _ => bail!("--backbone {spec:?}: expected dinov2:MODEL.onnx, dens3r:WEIGHTS.safetensors or pixels"),
-    })
-}
-
 fn parse_crop(s: &str) -> Result<(usize, usize)> {
     let (r, c) = s.split_once('x').ok_or_else(|| anyhow!("--crop {s:?}: expected ROWSxCOLS tokens, e.g. 8x8"))?;
     Ok((r.parse().context("--crop rows")?, c.parse().context("--crop cols")?))
@@ -164,7 +151,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     if a.config.is_some() && !a.backbone.starts_with("dens3r:") {
         bail!("--config gives the head counts of a dens3r:WEIGHTS backbone; --backbone is {:?}", a.backbone);
     }
-    let backbone = open_backbone(&a.backbone, a.config.as_deref())?;
+    let backbone = crate::model_args::open_backbone(&a.backbone, a.config.as_deref())?;
     let patch = backbone.patch() as u32;
     let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
     let mut train: Vec<Sample> = Vec::new();

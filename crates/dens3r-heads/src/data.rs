@@ -8,7 +8,6 @@
 
 use crate::loss::IGNORE;
 use image::{imageops::FilterType, RgbImage};
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// Per-pixel training target at the image's size.
@@ -116,17 +115,11 @@ pub fn read_label_png(path: &Path) -> Result<(Vec<u16>, u32, u32), String> {
 pub fn class_names(dir: &Path) -> Result<Option<Vec<String>>, String> {
     let json = dir.join("classes.json");
     if json.is_file() {
-        let text = std::fs::read_to_string(&json).map_err(|e| format!("{}: {e}", json.display()))?;
-        let map: BTreeMap<String, String> = serde_json::from_str(&text)
-            .map_err(|e| format!("{}: expected {{\"id\": \"name\"}} ({e})", json.display()))?;
-        let mut ids: Vec<(usize, String)> = Vec::new();
-        for (k, v) in map {
-            ids.push((k.parse().map_err(|_| format!("{}: class id {k:?} is not a number", json.display()))?, v));
-        }
-        let n = ids.iter().map(|(i, _)| i + 1).max().unwrap_or(0);
+        let map = dens3r_scene::read_classes(&json).map_err(|e| e.to_string())?;
+        let n = map.keys().map(|&i| i as usize + 1).max().unwrap_or(0);
         let mut names: Vec<String> = (0..n).map(|i| format!("class{i}")).collect();
-        for (i, v) in ids {
-            names[i] = v;
+        for (i, v) in map {
+            names[i as usize] = v;
         }
         return Ok(Some(names));
     }

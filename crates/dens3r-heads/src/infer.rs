@@ -67,24 +67,20 @@ pub fn palette(i: u16) -> [u8; 3] {
 
 /// Writes class ids as a label PNG (atomically): 8-bit palette indices with the VOC colours
 /// when every id is below 256 (what VOC-style tools and [`crate::data::read_label_png`] read),
-/// else 16-bit grey.
+/// else 16-bit grey ([`dens3r_scene::write_id_png`]).
 pub fn write_label_png(path: &Path, ids: &[u16], width: u32, height: u32) -> Result<(), String> {
+    if ids.iter().any(|&v| v > 255) {
+        return dens3r_scene::write_id_png(path, ids, width, height).map_err(|e| e.to_string());
+    }
     let err = |e: png::EncodingError| format!("{}: cannot encode ({e})", path.display());
     let mut bytes = Vec::new();
     {
         let mut enc = png::Encoder::new(&mut bytes, width, height);
-        let data: Vec<u8> = if ids.iter().all(|&v| v < 256) {
-            enc.set_color(png::ColorType::Indexed);
-            enc.set_depth(png::BitDepth::Eight);
-            enc.set_palette((0..256).flat_map(|i| palette(i as u16)).collect::<Vec<u8>>());
-            ids.iter().map(|&v| v as u8).collect()
-        } else {
-            enc.set_color(png::ColorType::Grayscale);
-            enc.set_depth(png::BitDepth::Sixteen);
-            ids.iter().flat_map(|v| v.to_be_bytes()).collect()
-        };
+        enc.set_color(png::ColorType::Indexed);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_palette((0..256).flat_map(|i| palette(i as u16)).collect::<Vec<u8>>());
         let mut w = enc.write_header().map_err(err)?;
-        w.write_image_data(&data).map_err(err)?;
+        w.write_image_data(&ids.iter().map(|&v| v as u8).collect::<Vec<u8>>()).map_err(err)?;
         w.finish().map_err(err)?;
     }
     crate::io::write_atomic(path, &bytes)

@@ -5,6 +5,7 @@
 
 use burn::tensor::activation::log_softmax;
 use burn::tensor::{Device, Tensor, TensorData};
+use dens3r_geom::pointmap::depth_valid;
 
 /// Label value that is ignored (VOC's border colour).
 pub const IGNORE: u16 = 255;
@@ -39,12 +40,12 @@ pub fn cross_entropy(logits: Tensor<4>, labels: &[u16], class_weights: Option<&[
 
 /// Mask and log of valid ground-truth depths (finite, > 0).
 fn depth_targets(gt: &[f32], shape: [usize; 4], device: &Device) -> Option<(Tensor<4>, Tensor<4>, f32)> {
-    let mask: Vec<f32> = gt.iter().map(|&d| (d.is_finite() && d > 0.0) as u8 as f32).collect();
+    let mask: Vec<f32> = gt.iter().map(|&d| depth_valid(d) as u8 as f32).collect();
     let n: f32 = mask.iter().sum();
     if n < 2.0 {
         return None;
     }
-    let log_gt: Vec<f32> = gt.iter().map(|&d| if d.is_finite() && d > 0.0 { d.ln() } else { 0.0 }).collect();
+    let log_gt: Vec<f32> = gt.iter().map(|&d| if depth_valid(d) { d.ln() } else { 0.0 }).collect();
     Some((
         Tensor::from_data(TensorData::new(mask, shape), device),
         Tensor::from_data(TensorData::new(log_gt, shape), device),
@@ -88,7 +89,7 @@ pub fn affine_invariant(log_pred: Tensor<4>, gt: &[f32]) -> Option<Tensor<1>> {
     let mut losses = Vec::new();
     for bi in 0..b {
         let g = &gt[bi * n..(bi + 1) * n];
-        let valid: Vec<usize> = (0..n).filter(|&i| g[i].is_finite() && g[i] > 0.0).collect();
+        let valid: Vec<usize> = (0..n).filter(|&i| depth_valid(g[i])).collect();
         if valid.len() < 2 {
             continue;
         }

@@ -1,5 +1,8 @@
-//! Validation metrics: confusion-matrix mIoU and pixel accuracy; AbsRel and delta < 1.25, with
-//! the least-squares scale-and-shift alignment used for relative (affine-invariant) depth.
+//! Validation metrics: confusion-matrix mIoU and pixel accuracy; AbsRel and delta < 1.25
+//! accumulated over images from dens3r-geom's depth metrics.
+
+use dens3r_geom::metrics::{depth_metrics, DepthAlign};
+use dens3r_geom::Raster;
 
 /// A `K x K` confusion matrix (rows = ground truth).
 #[derive(Debug, Clone)]
@@ -55,7 +58,8 @@ impl Confusion {
     }
 }
 
-/// Sums for AbsRel (`mean |p - g| / g`) and delta1 (`max(p/g, g/p) < 1.25`) over valid pixels.
+/// AbsRel and delta < 1.25 over images, pixel-weighted; each image is scored by
+/// [`dens3r_geom::metrics::depth_metrics`] (pixels valid in both maps, optional alignment).
 #[derive(Debug, Clone, Default)]
 pub struct DepthStats {
     abs_rel: f64,
@@ -64,15 +68,16 @@ pub struct DepthStats {
 }
 
 impl DepthStats {
-    /// Adds predicted vs ground-truth depths (ground truth finite and > 0 counts).
-    pub fn add(&mut self, pred: &[f32], gt: &[f32]) {
-        for (&p, &g) in pred.iter().zip(gt) {
-            if g.is_finite() && g > 0.0 && p.is_finite() && p > 0.0 {
-                let (p, g) = (p as f64, g as f64);
-                self.abs_rel += (p - g).abs() / g;
-                self.delta1 += ((p / g).max(g / p) < 1.25) as u8 as f64;
-                self.n += 1;
-            }
+    /// Adds one `w x h` image: `DepthAlign::None` for metric predictions, `ScaleShift` for
+    /// relative (affine-invariant) ones. An image without valid pixels adds nothing.
+    pub fn add(&mut self, pred: Vec<f32>, gt: &[f32], w: usize, h: usize, align: DepthAlign) {
+        let (Ok(p), Ok(g)) = (Raster::from_vec(w, h, pred), Raster::from_vec(w, h, gt.to_vec())) else {
+            return;
+        };
+        if let Ok(m) = depth_metrics(&p, &g, None, align) {
+            self.abs_rel += m.abs_rel * m.count as f64;
+            self.delta1 += m.delta[0] * m.count as f64;
+            self.n += m.count as u64;
         }
     }
     /// AbsRel.
@@ -83,28 +88,4 @@ impl DepthStats {
     pub fn delta1(&self) -> f64 {
         self.delta1 / self.n.max(1) as f64
     }
-}
-
-/// `s * pred + t` with the least-squares scale and shift over valid pixels (ground truth finite
-/// and > 0): how a relative (affine-invariant) depth prediction is scored. Unchanged when fewer
-/// than two pixels are valid or the prediction is constant on them.
-pub fn align_affine(pred: &[f32], gt: &[f32]) -> Vec<f32> {
-    let (mut n, mut sp, mut sg, mut spp, mut spg) = (0f64, 0f64, 0f64, 0f64, 0f64);
-    for (&p, &g) in pred.iter().zip(gt) {
-        if g.is_finite() && g > 0.0 && p.is_finite() {
-            let (p, g) = (p as f64, g as f64);
-            n += 1.0;
-            sp += p;
-            sg += g;
-            spp += p * p;
-            spg += p * g;
-        }
-    }
-    let det = n * spp - sp * sp;
-    if n < 2.0 || det.abs() <= 1e-12 * n * spp.max(1e-300) {
-        return pred.to_vec();
-    }
-    let s = (n * spg - sp * sg) / det;
-    let t = (spp * sg - sp * spg) / det;
-    pred.iter().map(|&p| (s * p as f64 + t) as f32).collect()
 }

@@ -13,6 +13,7 @@ use crate::head::{Head, Task};
 use crate::loss::{affine_invariant, cross_entropy, silog};
 use crate::metrics::{Confusion, DepthStats};
 use burn::tensor::{Device, Tensor};
+use dens3r_geom::metrics::DepthAlign;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -394,7 +395,7 @@ impl Trainer {
 
 /// Segmentation or depth metrics of a head on examples (whole images, plain CPU device).
 /// Depth is scored as predicted for SILog heads, and after the per-image least-squares scale
-/// and shift ([`crate::metrics::align_affine`]) for affine-invariant ones.
+/// and shift for affine-invariant ones.
 pub fn evaluate(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> Validation {
     let device = Device::flex();
     let params = head.tensors(&device);
@@ -407,11 +408,11 @@ pub fn evaluate(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> Val
         match &ex.sample.target {
             Target::Labels(l) => conf.add(&argmax_channels(&to_vec(out), conf.k, h * w), l),
             Target::Depth(d) => {
-                let pred = to_vec(out.exp());
-                match depth_loss {
-                    DepthLoss::Silog => depth.add(&pred, d),
-                    DepthLoss::AffineInvariant => depth.add(&crate::metrics::align_affine(&pred, d), d),
-                }
+                let align = match depth_loss {
+                    DepthLoss::Silog => DepthAlign::None,
+                    DepthLoss::AffineInvariant => DepthAlign::ScaleShift,
+                };
+                depth.add(to_vec(out.exp()), d, w, h, align);
             }
         }
     }

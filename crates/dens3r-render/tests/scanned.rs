@@ -10,29 +10,15 @@ use dens3r_geom::{focal_from_pointmap, FocalMode, Intrinsics, PinholeCamera};
 use dens3r_mesh::{mesh_metrics, read_mesh, MeshMetricsOptions};
 use dens3r_render::procedural::single_object;
 use dens3r_render::{path, World};
-use std::path::PathBuf;
 
-fn mesh_path(name: &str) -> Option<PathBuf> {
-    let dir = std::env::var_os("DENS3R_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.cache/data"));
-    let p = dir.join("meshes").join(name);
-    if p.is_file() {
-        return Some(p);
-    }
-    let msg =
-        format!("{} is absent: run scripts/fetch-data.sh (Debian's libcgal-demo) to enable this test", p.display());
-    if std::env::var_os("CI").is_some() {
-        panic!("{msg}");
-    }
-    eprintln!("SKIPPED: {msg}");
-    None
-}
+#[path = "../../../tests/support/fetched.rs"]
+mod fetched;
+use fetched::fetched;
 
 #[test]
 fn scanned_meshes_render_consistently() {
     for name in ["bunny00.off", "armadillo.off", "ChineseDragon-10kv.off"] {
-        let Some(p) = mesh_path(name) else { return };
+        let Some(p) = fetched(&format!("meshes/{name}"), "Debian's libcgal-demo") else { return };
         let mesh = read_mesh(&p).unwrap();
         assert!(mesh.indices.len() > 10_000, "{name}: {} triangles", mesh.indices.len());
         let world = World::new(single_object(mesh.clone(), 0)).unwrap();

@@ -21,6 +21,7 @@
 //! never looks like a complete scene.
 
 mod cameras;
+mod classes;
 mod error;
 pub mod export;
 pub mod hash;
@@ -30,6 +31,7 @@ pub mod visibility;
 mod writer;
 
 pub use cameras::{CamerasFile, Frame, MAX_IMAGE_SIDE};
+pub use classes::{read_classes, write_classes};
 pub use error::SceneError;
 pub use reader::{Layer, Scene};
-pub use writer::{write_rgb_png, SceneWriter};
+pub use writer::{write_id_png, write_rgb_png, SceneWriter};

@@ -190,16 +190,7 @@ impl Scene {
         if !path.is_file() {
             return Ok(BTreeMap::new());
         }
-        let text = std::fs::read_to_string(&path).map_err(|e| SceneError::new(&path, format!("cannot read: {e}")))?;
-        let raw: BTreeMap<String, String> = serde_json::from_str(&text)
-            .map_err(|e| SceneError::new(&path, format!("must map ids to names, {{\"1\": \"wall\"}}: {e}")))?;
-        raw.into_iter()
-            .map(|(k, v)| {
-                k.parse::<u16>()
-                    .map(|k| (k, v))
-                    .map_err(|_| SceneError::new(&path, format!("key '{k}' is not a class id (0..65535)")))
-            })
-            .collect()
+        crate::read_classes(&path)
     }
 
     /// The ground-truth mesh `gt_mesh.ply`, if present.

@@ -91,11 +91,7 @@ impl SceneWriter {
 
     /// Writes `classes.json`.
     pub fn write_classes(&self, classes: &BTreeMap<u16, String>) -> Result<(), SceneError> {
-        let map: BTreeMap<String, &String> = classes.iter().map(|(k, v)| (k.to_string(), v)).collect();
-        let text = serde_json::to_string_pretty(&map).expect("string map serialises");
-        let path = self.root.join("classes.json");
-        write_atomic(&path, |w| std::io::Write::write_all(w, text.as_bytes()))?;
-        Ok(())
+        crate::write_classes(&self.root.join("classes.json"), classes)
     }
 
     /// Writes the ground-truth mesh `gt_mesh.ply` (world coordinates).
@@ -142,15 +138,19 @@ impl SceneWriter {
     fn write_ids(&self, name: &str, layer: Layer, ids: &Raster<u16>) -> Result<(), SceneError> {
         let (path, f) = self.target(name, layer)?;
         self.check_size(&path, f, ids.width(), ids.height())?;
-        let (w, h) = (f.width as u32, f.height as u32);
-        if ids.data().iter().all(|&v| v <= 255) {
-            let px: Vec<u8> = ids.data().iter().map(|&v| v as u8).collect();
-            write_png(&path, &px, w, h, image::ExtendedColorType::L8)
-        } else {
-            // PNG stores 16-bit samples big-endian; the encoder takes native-endian bytes.
-            let px: Vec<u8> = ids.data().iter().flat_map(|v| v.to_ne_bytes()).collect();
-            write_png(&path, &px, w, h, image::ExtendedColorType::L16)
-        }
+        write_id_png(&path, ids.data(), f.width as u32, f.height as u32)
+    }
+}
+
+/// Writes per-pixel ids as a grey PNG atomically: 8-bit when every id fits, else 16-bit.
+pub fn write_id_png(path: &Path, ids: &[u16], w: u32, h: u32) -> Result<(), SceneError> {
+    if ids.iter().all(|&v| v <= 255) {
+        let px: Vec<u8> = ids.iter().map(|&v| v as u8).collect();
+        write_png(path, &px, w, h, image::ExtendedColorType::L8)
+    } else {
+        // PNG stores 16-bit samples big-endian; the encoder takes native-endian bytes.
+        let px: Vec<u8> = ids.iter().flat_map(|v| v.to_ne_bytes()).collect();
+        write_png(path, &px, w, h, image::ExtendedColorType::L16)
     }
 }
 
