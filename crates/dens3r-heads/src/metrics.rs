@@ -26,24 +26,20 @@ impl Confusion {
             }
         }
     }
-    /// Mean IoU over the classes present in the ground truth or the predictions.
+    /// IoU of class `c`; `None` when it is absent from the ground truth.
+    pub fn iou(&self, c: usize) -> Option<f64> {
+        let tp = self.counts[c * self.k + c] as f64;
+        let row: u64 = self.counts[c * self.k..(c + 1) * self.k].iter().sum();
+        let col: u64 = (0..self.k).map(|r| self.counts[r * self.k + c]).sum();
+        (row > 0).then(|| tp / (row as f64 + col as f64 - tp))
+    }
+    /// Mean IoU over the classes present in the ground truth.
     pub fn miou(&self) -> f64 {
-        let mut sum = 0.0;
-        let mut n = 0;
-        for c in 0..self.k {
-            let tp = self.counts[c * self.k + c] as f64;
-            let row: u64 = self.counts[c * self.k..(c + 1) * self.k].iter().sum();
-            let col: u64 = (0..self.k).map(|r| self.counts[r * self.k + c]).sum();
-            let union = row as f64 + col as f64 - tp;
-            if row > 0 {
-                sum += tp / union;
-                n += 1;
-            }
-        }
-        if n == 0 {
+        let ious: Vec<f64> = (0..self.k).filter_map(|c| self.iou(c)).collect();
+        if ious.is_empty() {
             0.0
         } else {
-            sum / n as f64
+            ious.iter().sum::<f64>() / ious.len() as f64
         }
     }
     /// Fraction of labelled pixels predicted right.

@@ -1,7 +1,8 @@
 //! Head training on cached frozen features: AdamW with linear warm-up and cosine decay,
-//! mini-batches, augmentation (left-right flip and token-aligned random crops in feature space;
-//! colour jitter, which needs the backbone re-run, when a backbone is given), validation after
-//! every epoch (mIoU and pixel accuracy, or AbsRel and delta1), checkpoints and resume.
+//! mini-batches, augmentation (left-right flip and token-aligned random crops in feature space,
+//! as many per image and epoch as tile it once; colour jitter, which needs the backbone re-run,
+//! when a backbone is given), validation after every epoch (mIoU and pixel accuracy, or AbsRel
+//! and delta1), checkpoints and resume.
 //!
 //! Determinism: the sample order of an epoch is drawn from `(seed, epoch)` and a step's
 //! augmentation from `(seed, step)`, so a run resumed from a checkpoint takes the same steps as
@@ -45,6 +46,11 @@ pub struct TrainOptions {
     pub warmup: f32,
     /// Random crop size in tokens `(rows, cols)`; `None` trains on whole images.
     pub crop: Option<(usize, usize)>,
+    /// Crops drawn from each training image per epoch; `None`: enough to cover its token grid
+    /// once (`ceil(rows / crop rows) * ceil(cols / crop cols)`), so an epoch is a pass over the
+    /// pixels whatever the crop size (1 without cropping).
+    #[serde(default)]
+    pub crops_per_image: Option<usize>,
     /// Random left-right flips.
     pub flip: bool,
     /// Colour jitter strength (brightness / contrast / saturation factors in `1 +- jitter`);
@@ -69,6 +75,7 @@ impl Default for TrainOptions {
             weight_decay: 1e-4,
             warmup: 0.05,
             crop: None,
+            crops_per_image: None,
             flip: true,
             jitter: 0.0,
             class_weights: None,
@@ -94,6 +101,9 @@ impl TrainOptions {
         if self.crop.is_some_and(|(r, c)| r == 0 || c == 0) {
             return Err("crop sizes must be at least one token".into());
         }
+        if self.crops_per_image == Some(0) {
+            return Err("crops per image must be at least 1".into());
+        }
         Ok(())
     }
 }
@@ -105,6 +115,17 @@ pub struct Example {
     pub sample: Sample,
     /// Its frozen features.
     pub features: FeatureMaps,
+}
+
+/// One augmented training draw: cropped (and flipped) features and target.
+#[derive(Debug, Clone)]
+pub struct Draw {
+    /// Features of the crop.
+    pub features: FeatureMaps,
+    /// Target at the crop's pixels.
+    pub target: Target,
+    /// Crop size in pixels `(rows, cols)`.
+    pub size: (usize, usize),
 }
 
 /// Validation result of one epoch.
@@ -233,9 +254,28 @@ impl Trainer {
         crate::io::save_json(&sp, &serde_json::to_value(&state).map_err(|e| e.to_string())?)
     }
 
-    /// Steps per epoch for `n` training examples.
-    pub fn steps_per_epoch(&self, n: usize) -> usize {
-        n.div_ceil(self.options.batch)
+    /// Crops drawn from an example per epoch (see [`TrainOptions::crops_per_image`]).
+    pub fn crops_per_epoch(&self, ex: &Example) -> usize {
+        let (gh, gw) = ex.features.grid;
+        match (self.options.crops_per_image, self.options.crop) {
+            (Some(k), _) => k,
+            (None, Some((r, c))) => gh.div_ceil(r.min(gh)) * gw.div_ceil(c.min(gw)),
+            (None, None) => 1,
+        }
+    }
+
+    /// An epoch's draws: example indices, each repeated [`Trainer::crops_per_epoch`] times,
+    /// shuffled by `(seed, epoch)`.
+    fn epoch_order(&self, train: &[Example], epoch: usize) -> Vec<usize> {
+        let mut order: Vec<usize> =
+            train.iter().enumerate().flat_map(|(i, ex)| std::iter::repeat_n(i, self.crops_per_epoch(ex))).collect();
+        order.shuffle(&mut ChaCha8Rng::seed_from_u64(self.options.seed ^ (0x9e37_79b9 * (epoch as u64 + 1))));
+        order
+    }
+
+    /// Optimiser steps per epoch on `train`.
+    pub fn steps_per_epoch(&self, train: &[Example]) -> usize {
+        train.iter().map(|ex| self.crops_per_epoch(ex)).sum::<usize>().div_ceil(self.options.batch)
     }
 
     /// Learning rate at a step: linear warm-up, then cosine decay to zero.
@@ -250,13 +290,8 @@ impl Trainer {
     }
 
     /// The loss of one (augmented) example with parameter tensors `params`.
-    pub fn example_loss(
-        &self,
-        params: &[Tensor<1>],
-        f: &FeatureMaps,
-        target: &Target,
-        size: (usize, usize),
-    ) -> Option<Tensor<1>> {
+    pub fn example_loss(&self, params: &[Tensor<1>], d: &Draw) -> Option<Tensor<1>> {
+        let (f, target, size) = (&d.features, &d.target, d.size);
         let feats: Vec<Tensor<4>> = self.head.config.layers.iter().map(|&l| f.tensor(l, &self.device)).collect();
         let out = self.head.forward_with(params, &feats, size);
         match (target, &self.head.config.task) {
@@ -271,10 +306,9 @@ impl Trainer {
 
     /// One AdamW step on a batch of examples; returns the mean loss (`None` when no example
     /// had a usable target).
-    fn train_step(&mut self, batch: &[(FeatureMaps, Target, (usize, usize))], lr: f32) -> Option<f32> {
+    fn train_step(&mut self, batch: &[Draw], lr: f32) -> Option<f32> {
         let params: Vec<Tensor<1>> = self.head.tensors(&self.device).into_iter().map(|t| t.require_grad()).collect();
-        let losses: Vec<Tensor<1>> =
-            batch.iter().filter_map(|(f, t, s)| self.example_loss(&params, f, t, *s)).collect();
+        let losses: Vec<Tensor<1>> = batch.iter().filter_map(|d| self.example_loss(&params, d)).collect();
         if losses.is_empty() {
             return None;
         }
@@ -305,12 +339,7 @@ impl Trainer {
     }
 
     /// An augmented copy of an example for `step` (crop, flip, jitter).
-    fn augment(
-        &self,
-        ex: &Example,
-        rng: &mut ChaCha8Rng,
-        backbone: Option<&dyn Backbone>,
-    ) -> (FeatureMaps, Target, (usize, usize)) {
+    fn augment(&self, ex: &Example, rng: &mut ChaCha8Rng, backbone: Option<&dyn Backbone>) -> Draw {
         let o = &self.options;
         let p = self.head.config.patch;
         let (gh, gw) = ex.features.grid;
@@ -334,7 +363,7 @@ impl Trainer {
             Target::Labels(l) => Target::Labels((0..ph * pw).map(|i| l[pick(i % pw, i / pw)]).collect()),
             Target::Depth(d) => Target::Depth((0..ph * pw).map(|i| d[pick(i % pw, i / pw)]).collect()),
         };
-        (features, target, (ph, pw))
+        Draw { features, target, size: (ph, pw) }
     }
 
     /// Trains to the end of `options.epochs`, validating after every epoch, checkpointing to
@@ -353,15 +382,14 @@ impl Trainer {
         if train.is_empty() {
             return Err("no training examples".into());
         }
-        let per_epoch = self.steps_per_epoch(train.len());
+        let per_epoch = self.steps_per_epoch(train);
         let total = per_epoch * self.options.epochs;
         while self.step < total {
             if stop_after.is_some_and(|s| self.step >= s) {
                 return Ok(());
             }
             let epoch = self.step / per_epoch;
-            let mut order: Vec<usize> = (0..train.len()).collect();
-            order.shuffle(&mut ChaCha8Rng::seed_from_u64(self.options.seed ^ (0x9e37_79b9 * (epoch as u64 + 1))));
+            let order = self.epoch_order(train, epoch);
             let within = self.step % per_epoch;
             let idx = &order[within * self.options.batch..((within + 1) * self.options.batch).min(order.len())];
             let mut rng =
@@ -397,6 +425,12 @@ impl Trainer {
 /// Depth is scored as predicted for SILog heads, and after the per-image least-squares scale
 /// and shift for affine-invariant ones.
 pub fn evaluate(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> Validation {
+    evaluate_confusion(head, examples, depth_loss).0
+}
+
+/// [`evaluate`], with the segmentation confusion matrix (rows = ground truth) for per-class
+/// IoU.
+pub fn evaluate_confusion(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> (Validation, Confusion) {
     let device = Device::flex();
     let params = head.tensors(&device);
     let mut conf = Confusion::new(head.config.task.channels());
@@ -416,13 +450,14 @@ pub fn evaluate(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> Val
             }
         }
     }
-    Validation {
+    let v = Validation {
         epoch: 0,
         miou: conf.miou(),
         pixel_accuracy: conf.pixel_accuracy(),
         abs_rel: depth.abs_rel(),
         delta1: depth.delta1(),
-    }
+    };
+    (v, conf)
 }
 
 /// Per-pixel argmax over `k` channel planes of `n` pixels.

@@ -7,6 +7,7 @@ use dens3r_heads::cache::{FeatureCache, Precision};
 use dens3r_heads::data::{self, Sample, Target};
 use dens3r_heads::features::to_vec;
 use dens3r_heads::loss::{affine_invariant, cross_entropy, silog, IGNORE};
+use dens3r_heads::metrics::Confusion;
 use dens3r_heads::train::{evaluate, DepthLoss};
 use dens3r_heads::{Backbone, Example, FeatureMaps, Head, HeadConfig, PixelBackbone, Task, TrainOptions, Trainer};
 use rand::{Rng, SeedableRng};
@@ -272,6 +273,73 @@ fn training_learns_and_resume_repeats_the_uninterrupted_run() {
     std::fs::write(ck.join("head.safetensors"), b"garbage").unwrap();
     let e = Trainer::resume(&ck, &head, &options, ad()).err().unwrap();
     assert!(e.contains("head.safetensors"), "{e}");
+}
+
+/// An epoch draws enough crops of each image to tile its token grid once (so its meaning does
+/// not shrink with the crop), or `crops_per_image` when given; one validation per epoch.
+#[test]
+fn epochs_cover_every_image() {
+    let train = linear_rule_examples(12, 1); // 4 x 5 token grids
+    let head = Head::new(config("linear", seg(3), &[6], vec![0], 4, 1), 5).unwrap();
+    let steps = |crop, crops_per_image| {
+        let options = TrainOptions { batch: 3, crop, crops_per_image, epochs: 1, ..TrainOptions::default() };
+        Trainer::new(head.clone(), options, ad()).unwrap().steps_per_epoch(&train)
+    };
+    // 3x4 crops: ceil(4/3) * ceil(5/4) = 4 per image, 48 draws in batches of 3.
+    assert_eq!(steps(Some((3, 4)), None), 16);
+    assert_eq!(steps(Some((2, 5)), None), 8); // 2 x 1 per image
+    assert_eq!(steps(Some((9, 9)), None), 4); // larger than the grid: the whole image once
+    assert_eq!(steps(None, None), 4);
+    assert_eq!(steps(Some((3, 4)), Some(1)), 4);
+    assert_eq!(steps(Some((3, 4)), Some(5)), 20);
+    let bad = TrainOptions { crops_per_image: Some(0), ..TrainOptions::default() };
+    assert!(Trainer::new(head.clone(), bad, ad()).is_err());
+    // fit takes exactly that many steps and validates once at the end of the epoch.
+    let options = TrainOptions { batch: 3, crop: Some((3, 4)), epochs: 1, ..TrainOptions::default() };
+    let mut t = Trainer::new(head, options, ad()).unwrap();
+    let (mut calls, mut validations) = (0, 0);
+    t.fit(&train, &train[..2], None, None, None, &mut |p| {
+        calls += 1;
+        validations += p.validation.is_some() as usize;
+        assert_eq!(p.validation.is_some(), p.step == 16, "step {}", p.step);
+    })
+    .unwrap();
+    assert_eq!((calls, validations, t.step), (16, 1, 16));
+}
+
+/// Per-class IoU and mIoU of a confusion matrix against hand-counted values.
+#[test]
+fn confusion_scores_by_hand() {
+    let mut c = Confusion::new(4);
+    // Ground truth 0 0 1 1 2 (and an ignored pixel); predictions 0 1 1 1 0 3.
+    c.add(&[0, 1, 1, 1, 0, 3], &[0, 0, 1, 1, 2, IGNORE]);
+    // Class 0: 1 hit, 2 true, 2 predicted -> 1/3; class 1: 2 / (2 + 3 - 2); class 2: 0;
+    // class 3: absent from the ground truth (its one prediction is on an ignored pixel).
+    assert_eq!(c.iou(0), Some(1.0 / 3.0));
+    assert_eq!(c.iou(1), Some(2.0 / 3.0));
+    assert_eq!(c.iou(2), Some(0.0));
+    assert_eq!(c.iou(3), None);
+    assert!((c.miou() - 1.0 / 3.0).abs() < 1e-12);
+    assert!((c.pixel_accuracy() - 3.0 / 5.0).abs() < 1e-12);
+}
+
+/// Sources with their own class numbering merge by name: VOC's `background` and arc2017's
+/// `_background_` are one class, the first source keeps its ids, new names are appended.
+#[test]
+fn class_lists_merge_by_name() {
+    let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    let mut u = data::ClassUnion::default();
+    assert_eq!(u.add(&names(&["background", "bottle", "Chair"])), [0, 1, 2]);
+    assert_eq!(u.add(&names(&["_background_", "chair", "mouse_traps"])), [0, 2, 3]);
+    assert_eq!(u.names, names(&["background", "bottle", "Chair", "mouse_traps"]));
+    let mut s = Sample {
+        name: "x".into(),
+        image: image::RgbImage::new(5, 1),
+        target: Target::Labels(vec![0, 1, 2, IGNORE, 7]),
+    };
+    data::remap_labels(&mut s, &[0, 2, 3]);
+    // Ignored pixels and ids beyond the source's list are kept.
+    assert_eq!(s.target, Target::Labels(vec![0, 2, 3, IGNORE, 7]));
 }
 
 #[test]
