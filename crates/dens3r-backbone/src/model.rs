@@ -488,8 +488,7 @@ impl Dens3r {
     /// View 1 of the self-pair (`pred1` of `forward(img, img)`), the single-image prediction,
     /// at about half the cost: [`Dens3r::encode_self`] and view 1's heads only.
     pub fn forward_mono(&self, img: Tensor<4>) -> ViewPrediction {
-        let f = self.encode_self(img);
-        self.view_heads(&self.head1, &f.views[0])
+        self.mono_heads(&self.encode_self(img).views[0])
     }
 
     /// View 1's heads on self-pair features ([`Dens3r::encode_self`]): with the features

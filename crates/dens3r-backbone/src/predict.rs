@@ -120,8 +120,7 @@ fn view_maps(v: &ViewPrediction, prep: &Prepared, frame: usize, frame_rotated: b
 
 /// Runs the self-pair and reads view 1 (`pred1`), as the official pipeline does.
 pub fn predict_mono(model: &Dens3r, prep: &Prepared, res: Resolution) -> MonoPrediction {
-    let pred = model.forward_mono(prep.tensor(model.device()));
-    view_maps(&pred, prep, 0, prep.info.rotated, res)
+    predict_mono_features(model, prep, res).0
 }
 
 /// [`predict_mono`] that also returns view 1's backbone features (network frame), so trained

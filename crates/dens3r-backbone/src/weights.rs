@@ -3,6 +3,7 @@
 //! wrong or partial checkpoint is reported with its missing, unexpected and mis-shaped keys.
 
 use burn::tensor::{Device, Tensor, TensorData};
+use safetensors::tensor::{Dtype, SafeTensorError, TensorView};
 use std::cell::RefCell;
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -154,16 +155,9 @@ impl Weights {
             all.push((k.clone(), (shape.clone(), self.read(e).map_err(|e| err(format!("reading '{k}': {e}")))?)));
         }
         all.extend(generated.iter().cloned());
-        let bytes: Vec<(String, Vec<u8>, Vec<usize>)> =
-            all.into_iter().map(|(k, (s, v))| (k, v.iter().flat_map(|x| x.to_le_bytes()).collect(), s)).collect();
-        let views = bytes
-            .iter()
-            .map(|(k, b, s)| {
-                let view = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, s.clone(), b);
-                Ok((k.clone(), view.map_err(|e| err(e.to_string()))?))
-            })
-            .collect::<Result<Vec<_>, WeightsError>>()?;
-        let data = safetensors::serialize(views, None).map_err(|e| err(e.to_string()))?;
+        let named: Vec<(String, Vec<usize>, &[f32])> =
+            all.iter().map(|(k, (s, v))| (k.clone(), s.clone(), v.as_slice())).collect();
+        let data = f32_safetensors(&named).map_err(|e| err(e.to_string()))?;
         dens3r_mesh::io::write_atomic(path, |w| std::io::Write::write_all(w, &data)).map_err(|e| err(e.to_string()))
     }
 
@@ -316,4 +310,16 @@ fn preview(v: &[String]) -> String {
         s += &format!(", ... ({} more)", v.len() - 8);
     }
     s
+}
+
+/// Serialises named f32 tensors `(name, shape, values)` as safetensors bytes.
+pub fn f32_safetensors(tensors: &[(String, Vec<usize>, &[f32])]) -> Result<Vec<u8>, SafeTensorError> {
+    let bytes: Vec<Vec<u8>> =
+        tensors.iter().map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect()).collect();
+    let views = tensors
+        .iter()
+        .zip(&bytes)
+        .map(|((n, s, _), b)| Ok((n.clone(), TensorView::new(Dtype::F32, s.clone(), b)?)))
+        .collect::<Result<Vec<_>, SafeTensorError>>()?;
+    safetensors::serialize(views, None)
 }

@@ -326,7 +326,11 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     });
     if let Task::Seg { classes } = &trainer.head.config.task {
         // Per-class IoU on the validation pixels, for the classes they contain.
-        let (_, conf) = evaluate_confusion(&trainer.head, &val, trainer.options.depth_loss);
+        // The last epoch's, unless this call resumed a finished run and validated nothing.
+        let conf = match trainer.confusion.take() {
+            Some(c) => c,
+            None => evaluate_confusion(&trainer.head, &val, trainer.options.depth_loss).1,
+        };
         let ious: serde_json::Map<String, serde_json::Value> =
             (0..conf.k).filter_map(|c| conf.iou(c).map(|v| (classes[c].clone(), v.into()))).collect();
         summary["class_iou"] = ious.into();

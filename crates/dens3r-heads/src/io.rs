@@ -1,6 +1,6 @@
 //! Atomic safetensors / JSON files for heads and checkpoints, with checked reads.
 
-use safetensors::tensor::{Dtype, TensorView};
+use safetensors::tensor::Dtype;
 use safetensors::SafeTensors;
 use std::io::Write;
 use std::path::Path;
@@ -13,15 +13,7 @@ pub fn write_atomic(path: &Path, data: &[u8]) -> Result<(), String> {
 
 /// Writes named f32 tensors as safetensors.
 pub fn save_tensors(path: &Path, tensors: &[(String, Vec<usize>, &[f32])]) -> Result<(), String> {
-    let bytes: Vec<Vec<u8>> =
-        tensors.iter().map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect()).collect();
-    let views = tensors
-        .iter()
-        .zip(&bytes)
-        .map(|((n, s, _), b)| Ok((n.clone(), TensorView::new(Dtype::F32, s.clone(), b)?)))
-        .collect::<Result<Vec<_>, safetensors::SafeTensorError>>()
-        .map_err(|e| format!("{}: {e}", path.display()))?;
-    let data = safetensors::serialize(views, None).map_err(|e| format!("{}: {e}", path.display()))?;
+    let data = dens3r_backbone::weights::f32_safetensors(tensors).map_err(|e| format!("{}: {e}", path.display()))?;
     write_atomic(path, &data)
 }
 

@@ -181,6 +181,8 @@ pub struct Trainer {
     pub step: usize,
     /// Validation after each finished epoch.
     pub history: Vec<Validation>,
+    /// Confusion matrix of the last validation this trainer ran (segmentation; per-class IoU).
+    pub confusion: Option<Confusion>,
     device: Device,
 }
 
@@ -195,7 +197,7 @@ impl Trainer {
     pub fn new(head: Head, options: TrainOptions, device: Device) -> Result<Self, String> {
         options.check()?;
         let zeros: Vec<Vec<f32>> = head.values.iter().map(|v| vec![0.0; v.len()]).collect();
-        Ok(Self { head, options, m: zeros.clone(), v: zeros, step: 0, history: Vec::new(), device })
+        Ok(Self { head, options, m: zeros.clone(), v: zeros, step: 0, history: Vec::new(), confusion: None, device })
     }
 
     /// Resumes from a checkpoint folder written by [`Trainer::save`], if one is there and was
@@ -384,12 +386,16 @@ impl Trainer {
         }
         let per_epoch = self.steps_per_epoch(train);
         let total = per_epoch * self.options.epochs;
+        let mut order: Option<(usize, Vec<usize>)> = None; // (epoch, its draws)
         while self.step < total {
             if stop_after.is_some_and(|s| self.step >= s) {
                 return Ok(());
             }
             let epoch = self.step / per_epoch;
-            let order = self.epoch_order(train, epoch);
+            if order.as_ref().is_none_or(|(e, _)| *e != epoch) {
+                order = Some((epoch, self.epoch_order(train, epoch)));
+            }
+            let order = &order.as_ref().expect("set above").1;
             let within = self.step % per_epoch;
             let idx = &order[within * self.options.batch..((within + 1) * self.options.batch).min(order.len())];
             let mut rng =
@@ -400,7 +406,8 @@ impl Trainer {
             self.step += 1;
             let mut validation = None;
             if self.step.is_multiple_of(per_epoch) {
-                let mut v = self.validate(val);
+                let (mut v, confusion) = evaluate_confusion(&self.head, val, self.options.depth_loss);
+                self.confusion = Some(confusion);
                 v.epoch = self.step / per_epoch;
                 self.history.push(v);
                 validation = Some(v);
@@ -413,11 +420,6 @@ impl Trainer {
             progress(Progress { step: self.step, steps: total, loss: loss.unwrap_or(f32::NAN), lr, validation });
         }
         Ok(())
-    }
-
-    /// Metrics of the current head on whole validation images.
-    pub fn validate(&self, val: &[Example]) -> Validation {
-        evaluate(&self.head, val, self.options.depth_loss)
     }
 }
 
