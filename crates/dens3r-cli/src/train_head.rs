@@ -79,6 +79,10 @@ pub struct TrainHeadArgs {
     /// Crops per training image per epoch (default: enough to cover the image once).
     #[arg(long)]
     crops_per_image: Option<usize>,
+    /// Tokens of unlabelled context features around each crop (so the DPT's convolutions see
+    /// real neighbours at crop edges, as on whole images).
+    #[arg(long, default_value_t = 2)]
+    crop_context: usize,
     /// No random flips.
     #[arg(long)]
     no_flip: bool,
@@ -140,6 +144,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         weight_decay: a.weight_decay,
         crop,
         crops_per_image: a.crops_per_image,
+        crop_context: a.crop_context,
         flip: !a.no_flip,
         jitter: a.jitter,
         class_weights: None,

