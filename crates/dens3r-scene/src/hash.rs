@@ -22,6 +22,7 @@ mod tests {
     /// The published FNV-1a 64-bit test vectors, whole and in chunks.
     #[test]
     fn fnv1a_matches_the_reference_vectors() {
+        assert_eq!(fnv1a(b"", 0), 0xcbf2_9ce4_8422_2325);
         assert_eq!(fnv1a(b"a", 0), 0xaf63_dc4c_8601_ec8c);
         assert_eq!(fnv1a(b"foobar", 0), 0x8594_4171_f739_67e8);
         assert_eq!(fnv1a_update(fnv1a(b"foo", 0), b"bar"), 0x8594_4171_f739_67e8);
