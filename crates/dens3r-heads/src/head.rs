@@ -5,7 +5,8 @@
 //! registry. Two are registered: `linear` (the DINOv2-style linear probe: a per-token linear
 //! map of the concatenated layers, upsampled bilinearly) and `dpt` (reassemble four layers at
 //! 4x, 2x, 1x and 1/2x the token grid, fuse coarse to fine with residual conv units, a conv
-//! head, bilinear upsampling). A head saves as safetensors (parameters) + JSON (config).
+//! head, bilinear upsampling) and `pointmap` (the network's own DPT layout, which can start
+//! from a checkpoint's pointmap head: [`crate::pointmap`]). A head saves as safetensors (parameters) + JSON (config).
 
 use burn::tensor::module::{conv2d, interpolate};
 use burn::tensor::ops::{ConvOptions, InterpolateMode, InterpolateOptions};
@@ -55,6 +56,10 @@ pub struct HeadConfig {
     pub in_dims: Vec<usize>,
     /// Hidden width (DPT features; unused by the linear probe).
     pub width: usize,
+    /// Further widths of architectures that have several (`pointmap`: the four reassembly
+    /// widths, then the head's two); empty for the others.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub widths: Vec<usize>,
     /// Long side of the training inputs in pixels (0: not recorded); inference without the
     /// Dens3R network resizes images to it.
     #[serde(default)]
@@ -76,7 +81,7 @@ pub trait HeadArch: Sync {
 }
 
 /// The registered architectures.
-pub static ARCHS: &[&dyn HeadArch] = &[&LinearProbe, &Dpt];
+pub static ARCHS: &[&dyn HeadArch] = &[&LinearProbe, &Dpt, &crate::pointmap::PointmapDpt];
 
 /// Looks an architecture up by name.
 pub fn arch(name: &str) -> Result<&'static dyn HeadArch, String> {
@@ -184,7 +189,14 @@ pub fn resize(x: Tensor<4>, size: (usize, usize)) -> Tensor<4> {
 }
 
 /// Convolution with a flat weight `(out, in, k, k)` and bias.
-fn conv(x: Tensor<4>, w: &Tensor<1>, b: Option<&Tensor<1>>, out: usize, k: usize, stride: usize) -> Tensor<4> {
+pub(crate) fn conv(
+    x: Tensor<4>,
+    w: &Tensor<1>,
+    b: Option<&Tensor<1>>,
+    out: usize,
+    k: usize,
+    stride: usize,
+) -> Tensor<4> {
     let inp = x.dims()[1];
     let w = w.clone().reshape([out, inp, k, k]);
     conv2d(x, w, b.cloned(), ConvOptions::new([stride; 2], [k / 2; 2], [1, 1], 1))

@@ -3,7 +3,8 @@
 //!
 //! [`features`] is the seam: a [`Backbone`] (Dens3R, DINOv2 or raw pixels) turns an image into
 //! [`FeatureMaps`]; [`cache`] stores them on disk once per image; [`head`] holds the head
-//! architectures (registry: `linear`, `dpt`) and their safetensors + JSON files; [`loss`] and
+//! architectures (registry: `linear`, `dpt`, and [`pointmap`], the network's own DPT that can
+//! start from a checkpoint's pointmap head) and their safetensors + JSON files; [`loss`] and
 //! [`metrics`] the objectives and scores; [`data`] the labelled images; [`train`] AdamW
 //! training with validation, checkpoints and resume; [`infer`] runs saved heads (one backbone
 //! pass feeds every head) and writes label PNGs. The backbone is never trained: only head
@@ -17,6 +18,7 @@ pub mod infer;
 pub mod io;
 pub mod loss;
 pub mod metrics;
+pub mod pointmap;
 pub mod train;
 
 pub use features::{Backbone, Dens3rBackbone, Dinov2Backbone, FeatureMaps, PixelBackbone};

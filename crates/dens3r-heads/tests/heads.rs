@@ -40,6 +40,7 @@ fn config(kind: &str, task: Task, dims: &[usize], layers: Vec<usize>, width: usi
         in_dims: layers.iter().map(|&l| dims[l]).collect(),
         layers,
         width,
+        widths: Vec::new(),
         size: 0,
     }
 }
@@ -70,10 +71,29 @@ fn head_gradients_match_finite_differences() {
         ("dpt", Task::Depth, vec![0, 1, 1, 0], "silog"),
         ("dpt", Task::Depth, vec![1, 0, 0, 1], "affine"),
         ("linear", Task::Depth, vec![1], "affine"),
+        ("pointmap", seg(3), vec![0, 1, 1, 0], "ce"),
+        ("pointmap", Task::Depth, vec![1, 0, 1, 0], "silog"),
     ];
     let device = ad();
     for (kind, task, layers, loss_kind) in cases {
-        let head = Head::new(config(kind, task, &dims, layers.clone(), 4, patch), 3).unwrap();
+        let mut c = config(kind, task, &dims, layers.clone(), 4, patch);
+        if kind == "pointmap" {
+            c.widths = vec![2, 3, 4, 5, 3, 2];
+        }
+        let mut head = Head::new(c, 3).unwrap();
+        if kind == "pointmap" {
+            // Eleven convs deep with zero biases, its late activations are ~1e-3, so a finite
+            // step crosses ReLU kinks; random biases move them off zero.
+            for ((name, _), v) in head.param_shapes().iter().zip(head.values.iter_mut()) {
+                if name.ends_with(".bias") {
+                    v.iter_mut().for_each(|b| *b = rng.gen_range(-0.2..0.2));
+                }
+                // Depth: points in front of the camera (z = 1 + noise), as a checkpoint's are.
+                if name == "head.4.bias" && v.len() == 3 {
+                    v[2] = 1.0;
+                }
+            }
+        }
         let loss_of = |params: &[Tensor<1>]| {
             let f: Vec<Tensor<4>> = layers.iter().map(|&l| feats.tensor(l, &device)).collect();
             let out = head.forward_with(params, &f, size);
@@ -113,6 +133,9 @@ fn head_gradients_match_finite_differences() {
                 "{kind}/{loss_kind} {}: autodiff {analytic} vs differences {fd} (|g| {gnorm})",
                 shapes[i].0
             );
+            // A zero gradient would pass trivially (a pointmap head whose points all lie behind
+            // the camera, clamped): every tensor must get a real one.
+            assert!(gnorm > 0.0, "{kind}/{loss_kind} {}: zero gradient", shapes[i].0);
             checked += 1;
         }
         assert_eq!(checked, shapes.len(), "{kind}");
@@ -535,10 +558,17 @@ fn label_pngs_and_folders() {
     assert!(e.contains("labels/a.png") && e.contains("class ids"), "{e}");
     // The checkerboard split never gives a pixel to both halves.
     let smp = Sample { name: "x".into(), image: image::RgbImage::new(8, 8), target: Target::Labels(vec![1; 64]) };
-    let (a, b) = data::checkerboard_split(&smp, 4);
+    let (a, b) = data::checkerboard_split(&smp, 4, 0);
     let (Target::Labels(a), Target::Labels(b)) = (a.target, b.target) else { panic!() };
     assert!(a.iter().zip(&b).all(|(x, y)| (*x == IGNORE) != (*y == IGNORE)));
     assert_eq!(a.iter().filter(|&&v| v != IGNORE).count(), 32);
+    // Fold 0 trains on the even tiles: (0, 0) and (4, 4) by hand, not (4, 0) or (0, 4).
+    let labelled = |v: &[u16], x: usize, y: usize| v[y * 8 + x] != IGNORE;
+    assert!(labelled(&a, 0, 0) && labelled(&a, 7, 7) && !labelled(&a, 4, 0) && !labelled(&a, 0, 7));
+    // Fold 1 swaps the halves: its training pixels are fold 0's test pixels.
+    let (c, d) = data::checkerboard_split(&smp, 4, 1);
+    let (Target::Labels(c), Target::Labels(d)) = (c.target, d.target) else { panic!() };
+    assert_eq!((c, d), (b, a));
 }
 
 /// Training a head with colour jitter (the backbone runs at every step) leaves the frozen
@@ -591,4 +621,51 @@ fn dens3r_backbone_encoder_layer_matches_the_official_encoder() {
     assert_eq!(f.dims.len(), 4);
     assert!(f.dims[1..].iter().all(|&x| x == *dshape.last().unwrap()), "{:?} vs {dshape:?}", f.dims);
     assert!(f.layers.iter().all(|l| l.iter().all(|v| v.is_finite())));
+}
+
+/// A `pointmap` head started from a checkpoint's pointmap head predicts that network's own
+/// depth: on parity fixture A, `exp` of its output equals the z of the network's pointmap
+/// (dens3r-backbone's DPT, checked against the official code by the parity tests); a head
+/// whose widths do not fit the checkpoint is refused by name.
+#[test]
+fn pointmap_head_starts_at_the_networks_depth() {
+    let a = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/parity/A_shared_dec_48x64");
+    let weights = a.join("weights.safetensors");
+    let (shape, img) = dens3r_scene::npy::read_f32(&a.join("img1.npy")).unwrap();
+    let bb = dens3r_heads::Dens3rBackbone::load(&weights, Some(&a.join("config.json")), None).unwrap();
+    let x = Tensor::<4>::from_data(TensorData::new(img, [shape[0], shape[1], shape[2], shape[3]]), &Device::flex());
+    let [view, _] = bb.model().encode_self(x).views;
+    let f = bb.maps(&view);
+    let (h, w) = (shape[2], shape[3]);
+    let z: Vec<f32> = to_vec(bb.model().mono_heads(&view).pts3d.narrow(3, 2, 1));
+    assert_eq!(z.len(), h * w);
+
+    let (width, widths) = dens3r_heads::pointmap::pointmap_widths(&weights).unwrap();
+    assert_eq!((width, widths.clone()), (32, vec![16, 24, 32, 48, 16, 16]));
+    let mut c = config("pointmap", Task::Depth, &f.dims, vec![0, 1, 2, 3], width, 16);
+    c.widths = widths;
+    let mut head = Head::new(c.clone(), 0).unwrap();
+    dens3r_heads::pointmap::init_from_pointmap(&mut head, &weights).unwrap();
+    let depth: Vec<f32> = to_vec(head.predict(&f, (h, w), &Device::flex()).exp());
+    let front = z.iter().filter(|&&v| v > 1e-3).count();
+    assert!(front > h * w / 4, "too few points in front of the camera to compare ({front})");
+    let worst =
+        z.iter().zip(&depth).filter(|(zv, _)| **zv > 1e-3).map(|(zv, d)| ((d - zv) / zv).abs()).fold(0f32, f32::max);
+    assert!(worst < 1e-3, "pointmap head depth differs from the network's z by {worst} (relative)");
+
+    // Segmentation: the trunk is the checkpoint's, the class layer stays fresh.
+    let mut s = c.clone();
+    s.task = seg(3);
+    let fresh = Head::new(s, 0).unwrap();
+    let mut started = fresh.clone();
+    dens3r_heads::pointmap::init_from_pointmap(&mut started, &weights).unwrap();
+    for ((name, _), (a, b)) in fresh.param_shapes().iter().zip(fresh.values.iter().zip(&started.values)) {
+        assert_eq!(name.starts_with("head.4."), a == b, "{name}");
+    }
+
+    // Widths that do not fit the checkpoint are refused, naming it.
+    c.widths[1] = 20;
+    let mut wrong = Head::new(c, 0).unwrap();
+    let e = dens3r_heads::pointmap::init_from_pointmap(&mut wrong, &weights).unwrap_err();
+    assert!(e.contains("weights.safetensors") && e.contains("act_postprocess.1"), "{e}");
 }
