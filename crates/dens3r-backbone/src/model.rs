@@ -10,37 +10,43 @@ use burn::tensor::{Device, Tensor};
 // ---------------------------------------------------------------------------------------------
 // Loading helpers
 
+/// Where a module's tensors come from.
+enum Source<'a> {
+    /// A checkpoint (missing and mis-shaped keys are collected by [`Weights::finish`]).
+    Weights(&'a Weights, &'a Device),
+    /// Flat tensors by name (a trainable head's parameters).
+    Flat(&'a dyn Fn(&str) -> Tensor<1>),
+}
+
 struct Loader<'a> {
-    w: &'a Weights,
-    device: &'a Device,
+    src: Source<'a>,
 }
 
 impl Loader<'_> {
+    fn get<const D: usize>(&self, name: &str, shape: [usize; D]) -> Tensor<D> {
+        match &self.src {
+            Source::Weights(w, device) => w.get(name, shape, device),
+            Source::Flat(f) => f(name).reshape(shape),
+        }
+    }
     fn linear(&self, p: &str, inp: usize, out: usize) -> Linear {
-        Linear::new(
-            self.w.get(&format!("{p}.weight"), [out, inp], self.device),
-            Some(self.w.get(&format!("{p}.bias"), [out], self.device)),
-        )
+        Linear::new(self.get(&format!("{p}.weight"), [out, inp]), Some(self.get(&format!("{p}.bias"), [out])))
     }
     fn norm(&self, p: &str, d: usize) -> LayerNorm {
-        LayerNorm {
-            gamma: self.w.get(&format!("{p}.weight"), [d], self.device),
-            beta: self.w.get(&format!("{p}.bias"), [d], self.device),
-            eps: 1e-6,
-        }
+        LayerNorm { gamma: self.get(&format!("{p}.weight"), [d]), beta: self.get(&format!("{p}.bias"), [d]), eps: 1e-6 }
     }
     fn conv(&self, p: &str, inp: usize, out: usize, k: usize, stride: usize, bias: bool) -> Conv {
         Conv::new(
-            self.w.get(&format!("{p}.weight"), [out, inp, k, k], self.device),
-            bias.then(|| self.w.get(&format!("{p}.bias"), [out], self.device)),
+            self.get(&format!("{p}.weight"), [out, inp, k, k]),
+            bias.then(|| self.get(&format!("{p}.bias"), [out])),
             stride,
             k / 2,
         )
     }
     fn conv_t(&self, p: &str, ch: usize, k: usize) -> ConvTranspose {
         ConvTranspose {
-            weight: self.w.get(&format!("{p}.weight"), [ch, ch, k, k], self.device),
-            bias: self.w.get(&format!("{p}.bias"), [ch], self.device),
+            weight: self.get(&format!("{p}.weight"), [ch, ch, k, k]),
+            bias: self.get(&format!("{p}.bias"), [ch]),
             stride: k,
         }
     }
@@ -182,7 +188,9 @@ impl ResidualConvUnit {
 }
 
 struct FusionBlock {
-    rcu1: ResidualConvUnit,
+    /// Applied to the skip input; `None` in refinenet4, which has none (its checkpoint
+    /// tensors are never used).
+    rcu1: Option<ResidualConvUnit>,
     rcu2: ResidualConvUnit,
     out_conv: Conv,
 }
@@ -190,7 +198,7 @@ struct FusionBlock {
 impl FusionBlock {
     fn forward(&self, x: Tensor<4>, skip: Option<Tensor<4>>) -> Tensor<4> {
         let x = match skip {
-            Some(s) => x + self.rcu1.forward(s),
+            Some(s) => x + self.rcu1.as_ref().expect("refinenets with a skip have rcu1").forward(s),
             None => x,
         };
         // PyTorch applies the 1x1 out_conv after the x2 upsampling; both are linear and the
@@ -200,7 +208,10 @@ impl FusionBlock {
     }
 }
 
-struct Dpt {
+/// A DPT head (DUSt3R's `DPTOutputAdapter`): reassembly of four hooked layers, fusion coarse
+/// to fine, the three-conv head. Built from a checkpoint inside [`Dens3r`], or from flat named
+/// tensors ([`Dpt::from_flat`]) as a trainable head.
+pub struct Dpt {
     /// Per hooked layer: 1x1 projection, then optional resampling.
     project: Vec<Conv>,
     up: Vec<Option<ConvTranspose>>,
@@ -233,7 +244,11 @@ impl Dpt {
                     conv1: l.conv(&format!("{r}.resConfUnit{u}.conv1"), f, f, 3, 1, true),
                     conv2: l.conv(&format!("{r}.resConfUnit{u}.conv2"), f, f, 3, 1, true),
                 };
-                FusionBlock { rcu1: rcu(1), rcu2: rcu(2), out_conv: l.conv(&format!("{r}.out_conv"), f, f, 1, 1, true) }
+                FusionBlock {
+                    rcu1: (i != 4).then(|| rcu(1)),
+                    rcu2: rcu(2),
+                    out_conv: l.conv(&format!("{r}.out_conv"), f, f, 1, 1, true),
+                }
             })
             .collect();
         Self {
@@ -248,12 +263,25 @@ impl Dpt {
         }
     }
 
+    /// A DPT from flat tensors named as in a checkpoint (`{c.prefix}.act_postprocess.0.0.weight`
+    /// and so on; refinenet4's unused `resConfUnit1` is not read), on their device.
+    pub fn from_flat(c: &DptConfig, in_dims: [usize; 4], get: &dyn Fn(&str) -> Tensor<1>) -> Self {
+        Self::load(&Loader { src: Source::Flat(get) }, c, in_dims)
+    }
+
     /// Raw output `(B, C_out, H, W)` from the four hooked token maps `(B, N, C)`.
     fn forward(&self, layers: [Tensor<3>; 4], (h, w): (usize, usize)) -> Tensor<4> {
+        self.forward_maps(layers.map(|t| {
+            let [b, _, c] = t.dims();
+            t.swap_dims(1, 2).reshape([b, c, h, w])
+        }))
+    }
+
+    /// Raw output `(B, C_out, 16 h, 16 w)` from the four hooked layers as `(B, C, h, w)` maps.
+    pub fn forward_maps(&self, layers: [Tensor<4>; 4]) -> Tensor<4> {
         let mut maps = Vec::with_capacity(4);
         for (i, t) in layers.into_iter().enumerate() {
-            let [b, _, c] = t.dims();
-            let mut x = self.project[i].forward(t.swap_dims(1, 2).reshape([b, c, h, w]));
+            let mut x = self.project[i].forward(t);
             if let Some(u) = &self.up[i] {
                 x = u.forward(x);
             }
@@ -272,6 +300,13 @@ impl Dpt {
         let x = upsample2x(self.head0.forward(path1));
         self.head4.forward(relu(self.head2.forward(x)))
     }
+}
+
+/// The pointmap activation (`depth_mode` 'exp'): `v / max(|v|, 1e-8) * expm1(|v|)` for the
+/// three raw channels `v` along `dim`.
+pub fn exp_depth_mode(v: Tensor<4>, dim: usize) -> Tensor<4> {
+    let d = v.clone().square().sum_dim(dim).sqrt();
+    v / d.clone().clamp_min(1e-8) * d.exp().sub_scalar(1.0)
 }
 
 struct PtsHead {
@@ -366,7 +401,7 @@ impl Dens3r {
     /// Builds the network from checkpoint tensors. A missing or mis-shaped key is an error
     /// listing every such key; the returned list holds unexpected (unused) keys.
     pub fn load(w: &Weights, config: ModelConfig, device: &Device) -> Result<(Self, Vec<String>), WeightsError> {
-        let l = Loader { w, device };
+        let l = Loader { src: Source::Weights(w, device) };
         let c = &config;
         let patch = l.conv("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, true);
         let patch = Conv::new(patch.weight, patch.bias, c.patch, 0);
@@ -518,9 +553,7 @@ impl Dens3r {
         // (B, C, H, W) -> (B, H, W, C)
         let fmap = raw_pts.clone().permute([0, 2, 3, 1]);
         let [b, h, w, _] = fmap.dims();
-        let v3 = fmap.clone().narrow(3, 0, 3);
-        let d = v3.clone().square().sum_dim(3).sqrt(); // (B, H, W, 1)
-        let pts3d = v3 / d.clone().clamp_min(1e-8) * d.exp().sub_scalar(1.0);
+        let pts3d = exp_depth_mode(fmap.clone().narrow(3, 0, 3), 3);
         let conf = c.has_conf.then(|| fmap.clone().narrow(3, 3, 1).exp().add_scalar(1.0).reshape([b, h, w]));
         let (desc, desc_conf) = match &raw_mlp {
             Some(m) => {

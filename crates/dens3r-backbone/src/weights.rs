@@ -239,7 +239,8 @@ impl Weights {
 
     /// Errors out listing missing and mis-shaped keys; returns the unexpected (unused) keys,
     /// ignoring the ones known to be unused at inference (`mask_token`, `atm_block.*`,
-    /// `enc_pos_embed`, `dec_pos_embed`).
+    /// `enc_pos_embed`, `dec_pos_embed`, and each DPT's `refinenet4.resConfUnit1`, which the
+    /// official forward never applies: refinenet4 has no skip input).
     pub fn finish(&self) -> Result<Vec<String>, WeightsError> {
         let (missing, misshaped) = (self.missing.borrow(), self.misshaped.borrow());
         let unreadable = self.unreadable.borrow();
@@ -266,7 +267,12 @@ impl Weights {
             .tensors
             .keys()
             .filter(|k| !used.contains(*k))
-            .filter(|k| !(k.as_str() == "mask_token" || k.starts_with("atm_block.") || k.ends_with("pos_embed")))
+            .filter(|k| {
+                !(k.as_str() == "mask_token"
+                    || k.starts_with("atm_block.")
+                    || k.ends_with("pos_embed")
+                    || k.contains(".scratch.refinenet4.resConfUnit1."))
+            })
             .cloned()
             .collect())
     }

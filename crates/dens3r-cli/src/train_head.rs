@@ -275,10 +275,6 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         ),
         _ => None,
     };
-    let (width, widths) = match &pointmap {
-        Some(w) => dens3r_heads::pointmap::pointmap_widths(w).map_err(|e| anyhow!(e))?,
-        None => (a.width, Vec::new()),
-    };
     let layers: Vec<usize> = match a.head.as_str() {
         "dpt" | "pointmap" => (0..4).map(|i| i * n_layers / 4).collect(),
         _ => (0..n_layers).collect(),
@@ -291,14 +287,15 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         patch: patch as usize,
         in_dims: layers.iter().map(|&l| dims[l]).collect(),
         layers,
-        width,
-        widths,
+        width: a.width,
+        widths: Vec::new(), // the pointmap head takes the checkpoint's
         size: a.size,
     };
-    let mut head = Head::new(config, a.seed).map_err(|e| anyhow!(e))?;
-    if let Some(w) = &pointmap {
-        dens3r_heads::pointmap::init_from_pointmap(&mut head, w).map_err(|e| anyhow!(e))?;
+    let head = match &pointmap {
+        Some(w) => dens3r_heads::pointmap::start_from_pointmap(config, w, a.seed),
+        None => Head::new(config, a.seed),
     }
+    .map_err(|e| anyhow!(e))?;
     let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());
     let ck = a.output.with_extension("ckpt");
     if a.restart && ck.exists() {

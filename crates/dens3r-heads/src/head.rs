@@ -2,11 +2,12 @@
 //!
 //! An architecture implements [`HeadArch`] (its parameter shapes and its forward pass on burn
 //! tensors, so autodiff gives the gradients) and is found by name through [`arch`], the
-//! registry. Two are registered: `linear` (the DINOv2-style linear probe: a per-token linear
+//! registry. Three are registered: `linear` (the DINOv2-style linear probe: a per-token linear
 //! map of the concatenated layers, upsampled bilinearly) and `dpt` (reassemble four layers at
 //! 4x, 2x, 1x and 1/2x the token grid, fuse coarse to fine with residual conv units, a conv
-//! head, bilinear upsampling) and `pointmap` (the network's own DPT layout, which can start
-//! from a checkpoint's pointmap head: [`crate::pointmap`]). A head saves as safetensors (parameters) + JSON (config).
+//! head, bilinear upsampling) and `pointmap` (the network's own DPT, which can start from a
+//! checkpoint's pointmap head: [`crate::pointmap`]). A head saves as safetensors (parameters)
+//! + JSON (config).
 
 use burn::tensor::module::{conv2d, interpolate};
 use burn::tensor::ops::{ConvOptions, InterpolateMode, InterpolateOptions};
@@ -189,14 +190,7 @@ pub fn resize(x: Tensor<4>, size: (usize, usize)) -> Tensor<4> {
 }
 
 /// Convolution with a flat weight `(out, in, k, k)` and bias.
-pub(crate) fn conv(
-    x: Tensor<4>,
-    w: &Tensor<1>,
-    b: Option<&Tensor<1>>,
-    out: usize,
-    k: usize,
-    stride: usize,
-) -> Tensor<4> {
+fn conv(x: Tensor<4>, w: &Tensor<1>, b: Option<&Tensor<1>>, out: usize, k: usize, stride: usize) -> Tensor<4> {
     let inp = x.dims()[1];
     let w = w.clone().reshape([out, inp, k, k]);
     conv2d(x, w, b.cloned(), ConvOptions::new([stride; 2], [k / 2; 2], [1, 1], 1))

@@ -89,7 +89,7 @@ fn head_gradients_match_finite_differences() {
                     v.iter_mut().for_each(|b| *b = rng.gen_range(-0.2..0.2));
                 }
                 // Depth: points in front of the camera (z = 1 + noise), as a checkpoint's are.
-                if name == "head.4.bias" && v.len() == 3 {
+                if name == "dpt.head.4.bias" && v.len() == 3 {
                     v[2] = 1.0;
                 }
             }
@@ -624,48 +624,49 @@ fn dens3r_backbone_encoder_layer_matches_the_official_encoder() {
 }
 
 /// A `pointmap` head started from a checkpoint's pointmap head predicts that network's own
-/// depth: on parity fixture A, `exp` of its output equals the z of the network's pointmap
-/// (dens3r-backbone's DPT, checked against the official code by the parity tests); a head
-/// whose widths do not fit the checkpoint is refused by name.
+/// depth: on parity fixture A, `exp` of its output on view 1's features equals the z of the
+/// official code's `pred1` pointmap; layers
+/// whose widths do not fit the checkpoint are refused by name.
 #[test]
 fn pointmap_head_starts_at_the_networks_depth() {
     let a = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/parity/A_shared_dec_48x64");
     let weights = a.join("weights.safetensors");
-    let (shape, img) = dens3r_scene::npy::read_f32(&a.join("img1.npy")).unwrap();
     let bb = dens3r_heads::Dens3rBackbone::load(&weights, Some(&a.join("config.json")), None).unwrap();
-    let x = Tensor::<4>::from_data(TensorData::new(img, [shape[0], shape[1], shape[2], shape[3]]), &Device::flex());
-    let [view, _] = bb.model().encode_self(x).views;
+    let image = |n: &str| {
+        let (s, v) = dens3r_scene::npy::read_f32(&a.join(n)).unwrap();
+        (Tensor::<4>::from_data(TensorData::new(v, [s[0], s[1], s[2], s[3]]), &Device::flex()), (s[2], s[3]))
+    };
+    let ((x1, (h, w)), (x2, _)) = (image("img1.npy"), image("img2.npy"));
+    // View 1's features of the pair, and the official code's pred1 pointmap (B, H, W, 3).
+    let [view, _] = bb.model().encode(x1, x2).views;
     let f = bb.maps(&view);
-    let (h, w) = (shape[2], shape[3]);
-    let z: Vec<f32> = to_vec(bb.model().mono_heads(&view).pts3d.narrow(3, 2, 1));
+    let (_, pts) = dens3r_scene::npy::read_f32(&a.join("pred1_pts3d.npy")).unwrap();
+    let z: Vec<f32> = pts.iter().skip(2).step_by(3).copied().collect();
     assert_eq!(z.len(), h * w);
 
-    let (width, widths) = dens3r_heads::pointmap::pointmap_widths(&weights).unwrap();
-    assert_eq!((width, widths.clone()), (32, vec![16, 24, 32, 48, 16, 16]));
-    let mut c = config("pointmap", Task::Depth, &f.dims, vec![0, 1, 2, 3], width, 16);
-    c.widths = widths;
-    let mut head = Head::new(c.clone(), 0).unwrap();
-    dens3r_heads::pointmap::init_from_pointmap(&mut head, &weights).unwrap();
+    let c = config("pointmap", Task::Depth, &f.dims, vec![0, 1, 2, 3], 0, 16);
+    let head = dens3r_heads::pointmap::start_from_pointmap(c.clone(), &weights, 0).unwrap();
+    assert_eq!((head.config.width, head.config.widths.clone()), (32, vec![16, 24, 32, 48, 16, 16]));
     let depth: Vec<f32> = to_vec(head.predict(&f, (h, w), &Device::flex()).exp());
     let front = z.iter().filter(|&&v| v > 1e-3).count();
     assert!(front > h * w / 4, "too few points in front of the camera to compare ({front})");
     let worst =
         z.iter().zip(&depth).filter(|(zv, _)| **zv > 1e-3).map(|(zv, d)| ((d - zv) / zv).abs()).fold(0f32, f32::max);
+    eprintln!("pointmap head vs official z: worst relative {worst}");
     assert!(worst < 1e-3, "pointmap head depth differs from the network's z by {worst} (relative)");
 
-    // Segmentation: the trunk is the checkpoint's, the class layer stays fresh.
+    // Segmentation: the trunk is the checkpoint's, the class layer stays fresh (the seed's).
     let mut s = c.clone();
     s.task = seg(3);
-    let fresh = Head::new(s, 0).unwrap();
-    let mut started = fresh.clone();
-    dens3r_heads::pointmap::init_from_pointmap(&mut started, &weights).unwrap();
+    let started = dens3r_heads::pointmap::start_from_pointmap(s, &weights, 0).unwrap();
+    let fresh = Head::new(started.config.clone(), 0).unwrap();
     for ((name, _), (a, b)) in fresh.param_shapes().iter().zip(fresh.values.iter().zip(&started.values)) {
-        assert_eq!(name.starts_with("head.4."), a == b, "{name}");
+        assert_eq!(name.starts_with("dpt.head.4."), a == b, "{name}");
     }
 
-    // Widths that do not fit the checkpoint are refused, naming it.
-    c.widths[1] = 20;
-    let mut wrong = Head::new(c, 0).unwrap();
-    let e = dens3r_heads::pointmap::init_from_pointmap(&mut wrong, &weights).unwrap_err();
+    // Layers that do not fit the checkpoint's widths are refused, naming it.
+    let mut wrong = c;
+    wrong.in_dims[1] = 20;
+    let e = dens3r_heads::pointmap::start_from_pointmap(wrong, &weights, 0).unwrap_err();
     assert!(e.contains("weights.safetensors") && e.contains("act_postprocess.1"), "{e}");
 }

@@ -135,9 +135,11 @@ pub(crate) fn direct_conv3x3(
     y
 }
 
-/// Whether `device` is the plain (non-autodiff) flex CPU device these kernels serve.
+/// Whether `device` is the plain (non-autodiff) flex CPU device these kernels serve. Burn's
+/// device equality ignores autodiff, so it is checked apart: the kernels work on host copies
+/// and would cut the gradient graph.
 pub fn serves(device: &Device) -> bool {
-    *device == Device::flex()
+    *device == Device::flex() && !device.is_autodiff()
 }
 
 /// The tensor's values in logical (row-major) order.
