@@ -26,13 +26,12 @@ $bin fuse data-samples/orbit -o "$out/orbit_tsdf.ply" --voxel 0.02
 $bin eval mesh "$out/orbit_tsdf.ply" data-samples/orbit/gt_mesh.ply
 $bin nsdf data-samples/orbit -o "$out/orbit_nsdf.ply" --iters 300 --voxel 0.02 --restart
 $bin eval mesh "$out/orbit_nsdf.ply" data-samples/orbit/gt_mesh.ply
-# The backbone: parity with the official PyTorch code on a dumped case, then predict on the
-# bundled room images. The parity fixtures hold a tiny random-weight model: the predictions
-# exercise the pipeline only. With real weights: --weights dens3r.safetensors --size 512.
-fixture=../shared/fixtures/parity/A_shared_dec_48x64
-if [ -d "$fixture" ]; then
-  $bin verify "$fixture"
-  $bin predict --weights "$fixture/weights.safetensors" --config "$fixture/config.json" --size 160 \
-    data-samples/room/images/0000.png data-samples/room/images/0004.png -o "$out/predict"
-  $bin info "$out/predict"
-fi
+# The backbone: parity with the official PyTorch code on a dumped case (bundled in
+# tests/fixtures/), then predict on the bundled room images. The parity fixture holds a tiny
+# random-weight model: the predictions exercise the pipeline only. With real weights:
+# --weights dens3r.safetensors --size 512.
+fixture=tests/fixtures/parity/A_shared_dec_48x64
+$bin verify "$fixture"
+$bin predict --weights "$fixture/weights.safetensors" --config "$fixture/config.json" --size 160 \
+  data-samples/room/images/0000.png data-samples/room/images/0004.png -o "$out/predict"
+$bin info "$out/predict"

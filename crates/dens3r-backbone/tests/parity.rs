@@ -1,21 +1,22 @@
-//! Parity with the official PyTorch code on the fixtures in `../shared/fixtures/parity/`
-//! (dumped from the reference implementation with small random weights; spec section 9).
+//! Parity with the official PyTorch code on the parity fixtures (dumped from the reference
+//! implementation with small random weights; spec section 9): fixture A and the RoPE tables
+//! from the repository, fixtures B and C and the full-size key listings from `../shared/`
+//! when it is present.
 
 use dens3r_backbone::config::RopeScaling;
 use dens3r_backbone::ops::Rope;
 use dens3r_backbone::verify::verify_dir;
 use dens3r_backbone::{Device, Tensor, TensorData};
-use std::path::PathBuf;
 
-fn fixtures() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/parity")
-}
+#[path = "../../../tests/support/fixtures.rs"]
+mod fixtures;
+use fixtures::{parity, shared, shared_parity, A};
 
 #[test]
 fn rope_matches_reference_tables() {
     let device = Device::default();
     for grid in ["3x4", "24x32", "48x64"] {
-        let dir = fixtures().join("rope");
+        let dir = parity("rope");
         let (ts, tok) = dens3r_scene::npy::read_f32(&dir.join(format!("tok_{grid}.npy"))).unwrap();
         let (_, out) = dens3r_scene::npy::read_f32(&dir.join(format!("out_{grid}.npy"))).unwrap();
         let (h, w): (usize, usize) = {
@@ -35,8 +36,12 @@ fn rope_matches_reference_tables() {
 #[test]
 fn fixtures_match_the_pytorch_reference() {
     let device = Device::default();
-    for case in ["A_shared_dec_48x64", "B_two_dec_descconf_48x64_64x48", "C_self_pair_48x64"] {
-        let results = verify_dir(&fixtures().join(case), &device).unwrap_or_else(|e| panic!("{case}: {e}"));
+    let mut cases = vec![(A, parity(A))];
+    for case in ["B_two_dec_descconf_48x64_64x48", "C_self_pair_48x64"] {
+        cases.extend(shared_parity(case, &format!("parity fixture {case}")).map(|p| (case, p)));
+    }
+    for (case, dir) in cases {
+        let results = verify_dir(&dir, &device).unwrap_or_else(|e| panic!("{case}: {e}"));
         let failed: Vec<String> = results
             .iter()
             .filter(|r| !r.pass)
@@ -58,7 +63,7 @@ fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
 #[test]
 fn verify_fails_on_a_perturbed_reference() {
     let dir = tempfile::tempdir().unwrap();
-    copy_dir(&fixtures().join("A_shared_dec_48x64"), dir.path());
+    copy_dir(&parity(A), dir.path());
     let p = dir.path().join("pred1_normal.npy");
     let (shape, mut v) = dens3r_scene::npy::read_f32(&p).unwrap();
     v[1234] += 1e-3;
@@ -73,7 +78,7 @@ fn verify_fails_on_a_perturbed_reference() {
 #[test]
 fn partial_or_misshaped_checkpoint_lists_the_keys() {
     use dens3r_backbone::{Dens3r, ModelConfig, Weights};
-    let src = std::fs::read(fixtures().join("A_shared_dec_48x64/weights.safetensors")).unwrap();
+    let src = std::fs::read(parity(A).join("weights.safetensors")).unwrap();
     let st = safetensors::SafeTensors::deserialize(&src).unwrap();
     let mut keep: Vec<(String, safetensors::tensor::TensorView)> = Vec::new();
     let odd = vec![0u8; 4 * 7];
@@ -104,4 +109,77 @@ fn partial_or_misshaped_checkpoint_lists_the_keys() {
     std::fs::write(&path, b"garbage").unwrap();
     let err = Weights::from_safetensors(&path).err().unwrap().to_string();
     assert!(err.contains("not a valid safetensors file"), "{err}");
+}
+
+/// A header-only checkpoint of a full-size key listing (`name<TAB>(d0, d1, ...)` per line): a
+/// safetensors file of zeros whose data is a hole, so no gigabytes are written.
+fn sparse_checkpoint(listing: &std::path::Path, dir: &std::path::Path) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(listing).unwrap();
+    let mut header = serde_json::Map::new();
+    let mut offset = 0u64;
+    for line in text.lines().filter(|l| !l.trim().is_empty()) {
+        let (name, shape) = line.split_once('\t').unwrap_or_else(|| panic!("{}: bad line {line:?}", listing.display()));
+        let shape: Vec<u64> = shape
+            .trim_matches(|c| c == '(' || c == ')')
+            .split(',')
+            .filter(|s| !s.trim().is_empty())
+            .map(|s| s.trim().parse().unwrap())
+            .collect();
+        let bytes = 4 * shape.iter().product::<u64>();
+        header.insert(
+            name.into(),
+            serde_json::json!({"dtype": "F32", "shape": shape, "data_offsets": [offset, offset + bytes]}),
+        );
+        offset += bytes;
+    }
+    let mut h = serde_json::to_vec(&header).unwrap();
+    h.resize(h.len().next_multiple_of(8), b' ');
+    let path = dir.join(listing.file_stem().unwrap()).with_extension("safetensors");
+    let mut bytes = (h.len() as u64).to_le_bytes().to_vec();
+    bytes.extend(h);
+    std::fs::write(&path, &bytes).unwrap();
+    std::fs::OpenOptions::new().write(true).open(&path).unwrap().set_len(bytes.len() as u64 + offset).unwrap();
+    path
+}
+
+/// The architecture read from the shapes of the official full-size checkpoints (key listings
+/// dumped from the released files): Dens3R with a shared decoder is the paper's model
+/// (`ModelConfig::dens3r_full`), the other variants differ where their files do.
+#[test]
+fn full_size_key_listings_give_the_official_architectures() {
+    use dens3r_backbone::config::ModelConfig;
+    use dens3r_backbone::Weights;
+    let Some(keys) = shared("fixtures/keys", "config from the full-size key listings") else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let config = |file: &str| {
+        let w = Weights::from_safetensors(&sparse_checkpoint(&keys.join(file), dir.path())).unwrap();
+        ModelConfig::from_weights(&w, Some((16, 12)))
+    };
+    let dens3r = config("keys_dens3r_shared_dec.txt").unwrap();
+    assert_eq!(dens3r, ModelConfig::dens3r_full());
+    let two = config("keys_dens3r_two_dec_descconf_atm.txt").unwrap();
+    assert_eq!(
+        ModelConfig { shared_decoder: true, desc_conf: false, ..two.clone() },
+        ModelConfig::dens3r_full(),
+        "only the second decoder and desc_conf differ"
+    );
+    assert!(!two.shared_decoder && two.desc_conf);
+    for file in
+        ["keys_DUSt3R_ViTLarge_BaseDecoder_512_dpt.txt", "keys_MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.txt"]
+    {
+        let c = config(file).unwrap();
+        let mast3r = file.starts_with("keys_MASt3R");
+        assert_eq!((c.enc_dim, c.enc_depth, c.dec_dim, c.dec_depth, c.patch), (1024, 24, 768, 12, 16), "{file}");
+        assert_eq!(c.rope, RopeScaling::Plain, "{file}: upstream RoPE");
+        assert!(!c.shared_decoder && c.has_conf && c.normal_head.is_none(), "{file}");
+        assert_eq!((c.head1.prefix.as_str(), c.head2.prefix.as_str()), ("downstream_head1", "downstream_head2"));
+        assert_eq!(c.head1.dpt.layer_dims, [96, 192, 384, 768], "{file}");
+        assert_eq!(
+            (c.desc_dim, c.desc_conf, c.head1.mlp_hidden.is_some()),
+            if mast3r { (24, true, true) } else { (0, false, false) }
+        );
+    }
+    let e =
+        config("keys_DUSt3R_ViTLarge_BaseDecoder_512_linear.txt").err().expect("linear heads are refused").to_string();
+    assert!(e.contains("linear-head DUSt3R checkpoints are not supported"), "{e}");
 }

@@ -7,10 +7,14 @@ use dens3r_backbone::verify::load_model;
 use dens3r_backbone::Device;
 use std::path::PathBuf;
 
+#[path = "../../../tests/support/fixtures.rs"]
+mod fixtures;
+use fixtures::{parity, shared_parity, A};
+
 #[test]
 fn pair_and_mono_agree_and_keep_orientations() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let a = root.join("../../../shared/fixtures/parity/A_shared_dec_48x64");
+    let a = parity(A);
     let device = Device::default();
     let (model, _) = load_model(&a.join("weights.safetensors"), Some(&a.join("config.json")), &device).unwrap();
     let img = image::open(root.join("../../data-samples/room/images/0000.png")).unwrap();
@@ -69,10 +73,10 @@ fn pair_and_mono_agree_and_keep_orientations() {
 /// shared decoder (fixture A) and for two decoders (fixture B).
 #[test]
 fn forward_mono_equals_the_self_pair() {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/parity");
     let device = Device::default();
-    for case in ["A_shared_dec_48x64", "B_two_dec_descconf_48x64_64x48"] {
-        let a = root.join(case);
+    let b = "B_two_dec_descconf_48x64_64x48";
+    let cases = [(A, Some(parity(A))), (b, shared_parity(b, "forward_mono with two decoders (fixture B)"))];
+    for (case, a) in cases.into_iter().filter_map(|(c, p)| Some((c, p?))) {
         let (model, _) = load_model(&a.join("weights.safetensors"), Some(&a.join("config.json")), &device).unwrap();
         let (shape, img) = dens3r_scene::npy::read_f32(&a.join("img1.npy")).unwrap();
         let shape: [usize; 4] = shape.try_into().unwrap();

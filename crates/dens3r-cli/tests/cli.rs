@@ -132,29 +132,47 @@ fn assert_no_temp_files(p: &Path) {
     }
 }
 
-fn fixture(case: &str) -> std::path::PathBuf {
-    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/parity").join(case)
+#[path = "../../../tests/support/fixtures.rs"]
+mod fixtures;
+use fixtures::{parity, shared_parity, A};
+
+/// Copies a fixture folder's files into `to`.
+fn copy_files(from: &Path, to: &Path) {
+    for f in std::fs::read_dir(from).unwrap() {
+        let f = f.unwrap();
+        std::fs::copy(f.path(), to.join(f.file_name())).unwrap();
+    }
 }
 
 #[test]
 fn verify_passes_on_fixtures_and_fails_on_a_wrong_dump() {
-    let out = ok(&["verify", fixture("B_two_dec_descconf_48x64_64x48").to_str().unwrap()]);
-    assert!(out.contains("20 arrays compared, 0 over tolerance"), "{out}");
-    // Fixture C's references (A's weights on a self-pair of img1) fed another image: must fail.
+    let out = ok(&["verify", parity(A).to_str().unwrap()]);
+    assert!(out.contains("0 over tolerance"), "{out}");
+    // A's references fed the pair the other way round: must fail.
     let dir = tempfile::tempdir().unwrap();
-    for f in std::fs::read_dir(fixture("C_self_pair_48x64")).unwrap() {
-        let f = f.unwrap();
-        std::fs::copy(f.path(), dir.path().join(f.file_name())).unwrap();
-    }
-    std::fs::copy(fixture("A_shared_dec_48x64").join("img2.npy"), dir.path().join("img1.npy")).unwrap();
+    copy_files(&parity(A), dir.path());
+    std::fs::copy(parity(A).join("img2.npy"), dir.path().join("img1.npy")).unwrap();
+    std::fs::copy(parity(A).join("img1.npy"), dir.path().join("img2.npy")).unwrap();
     let e = fails(&["verify", dir.path().to_str().unwrap()]);
     assert!(e.contains("arrays differ from the reference"), "{e}");
+    if let Some(b) = shared_parity("B_two_dec_descconf_48x64_64x48", "verify on fixture B") {
+        let out = ok(&["verify", b.to_str().unwrap()]);
+        assert!(out.contains("20 arrays compared, 0 over tolerance"), "{out}");
+    }
+    // Fixture C's references (A's weights on a self-pair of img1) fed another image: must fail.
+    if let Some(c) = shared_parity("C_self_pair_48x64", "verify refusing a wrong dump of fixture C") {
+        let dir = tempfile::tempdir().unwrap();
+        copy_files(&c, dir.path());
+        std::fs::copy(parity(A).join("img2.npy"), dir.path().join("img1.npy")).unwrap();
+        let e = fails(&["verify", dir.path().to_str().unwrap()]);
+        assert!(e.contains("arrays differ from the reference"), "{e}");
+    }
 }
 
 #[test]
 fn predict_writes_a_valid_scene_and_rejects_bad_input() {
     let dir = tempfile::tempdir().unwrap();
-    let a = fixture("A_shared_dec_48x64");
+    let a = parity(A);
     let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
     let (w, c) = (w.to_str().unwrap(), c.to_str().unwrap());
     let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples");
@@ -309,11 +327,23 @@ fn copy_tree(src: &Path, dst: &Path) {
 /// `reconstruct` end to end with the fixture-sized model (random weights: the numbers mean
 /// nothing, the plumbing does): a folder of mixed photos (landscape PNGs, a portrait, a JPEG of
 /// another size) -> scene folder, COLMAP model, transforms.json, match pictures, mesh; the
-/// second run takes every pair from the cache.
+/// second run takes every pair from the cache. On a shared decoder (fixture A), and on two
+/// decoders with a descriptor confidence (fixture B) where `../shared/` has it.
 #[test]
 fn reconstruct_runs_end_to_end_and_reuses_the_pair_cache() {
+    reconstruct_end_to_end(&parity(A));
+}
+
+#[test]
+fn reconstruct_runs_end_to_end_with_two_decoders() {
+    let b = "B_two_dec_descconf_48x64_64x48";
+    if let Some(b) = shared_parity(b, "reconstruct with two decoders and desc_conf (fixture B)") {
+        reconstruct_end_to_end(&b);
+    }
+}
+
+fn reconstruct_end_to_end(b: &Path) {
     let dir = tempfile::tempdir().unwrap();
-    let b = fixture("B_two_dec_descconf_48x64_64x48");
     let (w, c) = (b.join("weights.safetensors"), b.join("config.json"));
     let (w, c) = (w.to_str().unwrap(), c.to_str().unwrap());
     let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/room/images");
@@ -614,7 +644,7 @@ fn predict_runs_trained_heads_on_the_backbone_pass() {
 
     // On the Dens3R network: the head reads the pass that gives depth and normals. A portrait
     // photo's labels are the landscape ones rotated back, like its depth.
-    let a = fixture("A_shared_dec_48x64");
+    let a = parity(A);
     let (w, c) = (p(&a.join("weights.safetensors")), p(&a.join("config.json")));
     let d3 = p(&dir.path().join("d3"));
     let orbit = p(&samples.join("orbit"));
@@ -655,3 +685,4 @@ fn predict_runs_trained_heads_on_the_backbone_pass() {
     assert!(e.contains("nothing to predict"), "{e}");
     assert!(!Path::new(&bad).exists(), "failed runs leave no output folder");
 }
+
