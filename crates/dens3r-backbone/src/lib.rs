@@ -13,6 +13,7 @@ pub mod dinov2;
 pub mod model;
 pub mod onnx;
 pub mod ops;
+pub mod params;
 pub mod predict;
 pub mod preprocess;
 pub mod verify;
@@ -20,6 +21,7 @@ pub mod weights;
 
 pub use config::ModelConfig;
 pub use model::{Dens3r, Features, Predictions, ViewFeatures, ViewPrediction};
+pub use params::{Freeze, Params};
 pub use weights::{Weights, WeightsError};
 
 /// The tensor types of the seam (burn, device-dispatched).

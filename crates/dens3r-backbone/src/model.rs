@@ -14,8 +14,10 @@ use burn::tensor::{Device, Tensor};
 enum Source<'a> {
     /// A checkpoint (missing and mis-shaped keys are collected by [`Weights::finish`]).
     Weights(&'a Weights, &'a Device),
-    /// Flat tensors by name (a trainable head's parameters).
+    /// Flat tensors by name (a trainable head's or network's parameters).
     Flat(&'a dyn Fn(&str) -> Tensor<1>),
+    /// Records every tensor's name and shape, handing out zeros (the parameter layout).
+    Layout(std::cell::RefCell<Vec<(String, Vec<usize>)>>, &'a Device),
 }
 
 struct Loader<'a> {
@@ -27,6 +29,10 @@ impl Loader<'_> {
         match &self.src {
             Source::Weights(w, device) => w.get(name, shape, device),
             Source::Flat(f) => f(name).reshape(shape),
+            Source::Layout(names, device) => {
+                names.borrow_mut().push((name.to_string(), shape.to_vec()));
+                Tensor::zeros(shape, *device)
+            }
         }
     }
     fn linear(&self, p: &str, inp: usize, out: usize) -> Linear {
@@ -304,8 +310,11 @@ impl Dpt {
 
 /// The pointmap activation (`depth_mode` 'exp'): `v / max(|v|, 1e-8) * expm1(|v|)` for the
 /// three raw channels `v` along `dim`.
+///
+/// The norm is `sqrt(max(|v|^2, 1e-30))`: the same values, but a zero vector (a ReLU-dead
+/// region) has a zero gradient instead of NaN, as PyTorch's norm has.
 pub fn exp_depth_mode(v: Tensor<4>, dim: usize) -> Tensor<4> {
-    let d = v.clone().square().sum_dim(dim).sqrt();
+    let d = v.clone().square().sum_dim(dim).clamp_min(1e-30).sqrt();
     v / d.clone().clamp_min(1e-8) * d.exp().sub_scalar(1.0)
 }
 
@@ -401,27 +410,53 @@ impl Dens3r {
     /// Builds the network from checkpoint tensors. A missing or mis-shaped key is an error
     /// listing every such key; the returned list holds unexpected (unused) keys.
     pub fn load(w: &Weights, config: ModelConfig, device: &Device) -> Result<(Self, Vec<String>), WeightsError> {
-        let l = Loader { src: Source::Weights(w, device) };
+        let model = Self::build(&Loader { src: Source::Weights(w, device) }, config, device);
+        let unexpected = w.finish()?;
+        Ok((model, unexpected))
+    }
+
+    /// The network from flat tensors named as in a checkpoint (`enc_blocks.0.attn.qkv.weight`
+    /// and so on; see [`Dens3r::parameter_layout`]), on `device`. On an autodiff device with
+    /// tensors that require gradients this is the trainable network: the same layers and
+    /// forward as inference.
+    pub fn from_flat(config: ModelConfig, device: &Device, get: &dyn Fn(&str) -> Tensor<1>) -> Self {
+        Self::build(&Loader { src: Source::Flat(get) }, config, device)
+    }
+
+    /// Every tensor the network reads, `(checkpoint name, shape)` in load order: its
+    /// parameters. (Builds the network once on zeros, on an autodiff flex device so that no
+    /// CPU kernel is prepared.)
+    pub fn parameter_layout(config: &ModelConfig) -> Vec<(String, Vec<usize>)> {
+        let device = Device::autodiff(Device::flex());
+        let l = Loader { src: Source::Layout(Default::default(), &device) };
+        drop(Self::build(&l, config.clone(), &device));
+        match l.src {
+            Source::Layout(names, _) => names.into_inner(),
+            _ => unreachable!("a layout loader"),
+        }
+    }
+
+    fn build(l: &Loader, config: ModelConfig, device: &Device) -> Self {
         let c = &config;
         let patch = l.conv("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, true);
         let patch = Conv::new(patch.weight, patch.bias, c.patch, 0);
         let enc_blocks = (0..c.enc_depth)
-            .map(|i| EncoderBlock::load(&l, &format!("enc_blocks.{i}"), c.enc_dim, c.enc_heads, c.mlp_hidden.0))
+            .map(|i| EncoderBlock::load(l, &format!("enc_blocks.{i}"), c.enc_dim, c.enc_heads, c.mlp_hidden.0))
             .collect();
         let dec = |name: &str| {
             (0..c.dec_depth)
-                .map(|i| DecoderBlock::load(&l, &format!("{name}.{i}"), c.dec_dim, c.dec_heads, c.mlp_hidden.1))
+                .map(|i| DecoderBlock::load(l, &format!("{name}.{i}"), c.dec_dim, c.dec_heads, c.mlp_hidden.1))
                 .collect::<Vec<_>>()
         };
         let in_dims = [c.enc_dim, c.dec_dim, c.dec_dim, c.dec_dim];
         let pts_head = |h: &PtsHeadConfig| PtsHead {
-            dpt: Dpt::load(&l, &h.dpt, in_dims),
+            dpt: Dpt::load(l, &h.dpt, in_dims),
             mlp: h.mlp_hidden.map(|hidden| {
                 let out = (c.desc_dim + c.desc_conf as usize) * c.patch * c.patch;
-                Mlp::load(&l, &format!("{}.head_local_features", h.prefix), c.enc_dim + c.dec_dim, hidden, out)
+                Mlp::load(l, &format!("{}.head_local_features", h.prefix), c.enc_dim + c.dec_dim, hidden, out)
             }),
         };
-        let model = Self {
+        Self {
             device: device.clone(),
             patch,
             enc_blocks,
@@ -432,11 +467,9 @@ impl Dens3r {
             dec_norm: l.norm("dec_norm", c.dec_dim),
             head1: pts_head(&c.head1),
             head2: pts_head(&c.head2),
-            normal_head: c.normal_head.as_ref().map(|d| Dpt::load(&l, d, in_dims)),
+            normal_head: c.normal_head.as_ref().map(|d| Dpt::load(l, d, in_dims)),
             config,
-        };
-        let unexpected = w.finish()?;
-        Ok((model, unexpected))
+        }
     }
 
     /// The device the weights live on.
@@ -576,7 +609,8 @@ impl Dens3r {
         };
         let normal = raw_normal.as_ref().map(|r| {
             let n = r.clone().permute([0, 2, 3, 1]).clamp(-1.0, 1.0);
-            let len = n.clone().square().sum_dim(3).sqrt().clamp_min(1e-12);
+            // max(|n|, 1e-12), with a zero gradient (not NaN) at a zero vector.
+            let len = n.clone().square().sum_dim(3).clamp_min(1e-24).sqrt();
             n / len
         });
         ViewPrediction { pts3d, conf, desc, desc_conf, normal, raw_pts, raw_normal, raw_mlp }

@@ -165,7 +165,7 @@ impl Weights {
         let cell = self.synthetic.as_ref()?;
         let mut st = cell.borrow_mut();
         let n: usize = shape.iter().product();
-        if name.split('.').any(|p| p.starts_with("norm") || p == "enc_norm" || p == "dec_norm") {
+        if is_layer_norm(name) {
             return Some(vec![if name.ends_with(".weight") { 1.0 } else { 0.0 }; n]);
         }
         let std = st.1 as f64;
@@ -211,12 +211,20 @@ impl Weights {
     /// recorded (see [`Weights::finish`]) and a zero tensor of the expected shape returned, so
     /// every problem is reported at once.
     pub fn get<const D: usize>(&self, name: &str, expect: [usize; D], device: &Device) -> Tensor<D> {
+        match self.values(name, &expect) {
+            Some(values) => Tensor::from_data(TensorData::new(values, expect), device),
+            None => Tensor::zeros(expect, device),
+        }
+    }
+
+    /// The values of `name` (f32, row-major) when it has shape `expect`; a missing, mis-shaped
+    /// or unreadable key is recorded as by [`Weights::get`] and gives `None`.
+    pub fn values(&self, name: &str, expect: &[usize]) -> Option<Vec<f32>> {
         if self.resolve(name).is_none() {
-            if let Some(values) = self.generate(name, &expect) {
-                let t = Tensor::from_data(TensorData::new(values.clone(), expect), device);
-                self.generated.borrow_mut().push((name.to_string(), (expect.to_vec(), values)));
+            if let Some(values) = self.generate(name, expect) {
+                self.generated.borrow_mut().push((name.to_string(), (expect.to_vec(), values.clone())));
                 self.used.borrow_mut().insert(name.to_string());
-                return t;
+                return Some(values);
             }
         }
         match self.resolve(name) {
@@ -226,7 +234,7 @@ impl Weights {
                 self.mark_used(name, key);
                 if shape.as_slice() == expect {
                     match self.read(extent) {
-                        Ok(values) => return Tensor::from_data(TensorData::new(values, expect), device),
+                        Ok(values) => return Some(values),
                         Err(e) => self.unreadable.borrow_mut().push(format!("{name}: {e}")),
                     }
                 } else {
@@ -234,7 +242,7 @@ impl Weights {
                 }
             }
         }
-        Tensor::zeros(expect, device)
+        None
     }
 
     /// Errors out listing missing and mis-shaped keys; returns the unexpected (unused) keys,
@@ -295,6 +303,12 @@ impl Weights {
             used.insert(a);
         }
     }
+}
+
+/// Whether `name` is a LayerNorm's tensor (`enc_norm`, `dec_norm`, a block's `norm1`..`norm3`
+/// or `norm_y`): not a DPT or normal-head convolution, whose names also start with "norm".
+pub fn is_layer_norm(name: &str) -> bool {
+    name.split('.').any(|p| matches!(p, "enc_norm" | "dec_norm" | "norm1" | "norm2" | "norm3" | "norm_y"))
 }
 
 fn alias_of(name: &str) -> Option<String> {

@@ -180,6 +180,6 @@ fn full_size_key_listings_give_the_official_architectures() {
         );
     }
     let e =
-        config("keys_DUSt3R_ViTLarge_BaseDecoder_512_linear.txt").err().expect("linear heads are refused").to_string();
+        config("keys_DUSt3R_ViTLarge_BaseDecoder_512_linear.txt").expect_err("linear heads are refused").to_string();
     assert!(e.contains("linear-head DUSt3R checkpoints are not supported"), "{e}");
 }

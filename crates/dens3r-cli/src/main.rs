@@ -12,6 +12,7 @@ mod nsdf;
 mod predict;
 mod reconstruct;
 mod render;
+mod train;
 mod train_head;
 mod verify;
 
@@ -49,6 +50,8 @@ enum Command {
     Fuse(fuse::FuseArgs),
     /// Train a neural SDF (NeuS-style, normal- and depth-supervised) on a scene folder and mesh it.
     Nsdf(nsdf::NsdfArgs),
+    /// Train the network (stage 1: pointmaps + matching; stage 2: + normal head) on scene folders.
+    Train(train::TrainArgs),
     /// Train a segmentation or depth head on frozen backbone features (Dens3R, DINOv2, raw pixels).
     TrainHead(train_head::TrainHeadArgs),
     /// Benchmarks against peers measured in the same run (PyTorch for the backbone).
@@ -74,6 +77,7 @@ fn main() {
         Command::Fuse(a) => fuse::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),
         Command::Nsdf(a) => nsdf::run(a),
+        Command::Train(a) => train::run(a),
         Command::TrainHead(a) => train_head::run(a),
         Command::Bench(c) => bench::run(c),
     };

@@ -686,3 +686,54 @@ fn predict_runs_trained_heads_on_the_backbone_pass() {
     assert!(!Path::new(&bad).exists(), "failed runs leave no output folder");
 }
 
+/// `dens3r train` end to end: a fresh tiny network trained a few steps on the bundled orbit,
+/// its weights read back by `predict` (with its config), a rerun resumes without training
+/// again, and bad input is one line naming the file.
+#[test]
+fn train_writes_weights_predict_reads_and_rerun_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let (arch, orbit) = (root.join("configs/tiny.toml"), root.join("data-samples/orbit"));
+    let run_dir = dir.path().join("run");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let (arch_s, orbit_s, run_s) = (s(&arch), s(&orbit), s(&run_dir));
+    let args = ["train", "--arch", &arch_s, "--data", &orbit_s, "-o", &run_s, "--size", "32x32", "--steps", "3"];
+    let args: Vec<&str> = args.iter().copied().chain(["--batch", "1", "--checkpoint-every", "2"]).collect();
+    let out = ok(&args);
+    assert!(out.contains("3 steps in"), "{out}");
+    let log = std::fs::read_to_string(run_dir.join("log.jsonl")).unwrap();
+    let lines: Vec<serde_json::Value> = log.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.len(), 3);
+    assert!(lines.iter().all(|l| l["loss"].as_f64().is_some_and(f64::is_finite) && l["match"].is_number()));
+    for f in ["model.safetensors", "model.json", "loss.png", "ckpt/state.json"] {
+        assert!(run_dir.join(f).is_file(), "{f}");
+    }
+    let again = ok(&args);
+    assert!(again.contains("3 steps in"), "{again}");
+    assert_eq!(std::fs::read_to_string(run_dir.join("log.jsonl")).unwrap(), log, "nothing retrained");
+    // The trained weights run through predict with their config.
+    let (w, c) = (s(&run_dir.join("model.safetensors")), s(&run_dir.join("model.json")));
+    let img = s(&orbit.join("images/0000.png"));
+    let pred = s(&dir.path().join("pred"));
+    ok(&["predict", "--weights", &w, "--config", &c, "--size", "32", &img, "-o", &pred]);
+    assert_eq!(dens3r_scene::Scene::open(Path::new(&pred)).unwrap().frames().len(), 1);
+    // Stage 2 from the stage-1 weights (--init with its config).
+    let run2 = s(&dir.path().join("run2"));
+    let args2 = ["train", "--stage", "2", "--init", &w, "--config", &c, "--data", &orbit_s, "-o", &run2];
+    let out = ok(&[&args2[..], &["--size", "32x32", "--steps", "2", "--batch", "1"]].concat());
+    assert!(out.contains("2 steps in"), "{out}");
+    // Bad input: other options on the same folder, a config whose head counts do not fit, a
+    // scene without depth.
+    let e = fails(&[&args[..], &["--lr", "0.01"]].concat());
+    assert!(e.contains("state.json") && e.contains("other settings"), "{e}");
+    let bad_cfg = dir.path().join("bad.json");
+    std::fs::write(&bad_cfg, r#"{"enc_num_heads": 5, "dec_num_heads": 2}"#).unwrap();
+    let e = fails(&["train", "--init", &w, "--config", &s(&bad_cfg), "--data", &orbit_s, "-o", &run2]);
+    assert!(e.contains("model.safetensors") && e.contains("head counts"), "{e}");
+    let nodepth = dir.path().join("nodepth");
+    copy_tree(&orbit, &nodepth);
+    std::fs::remove_dir_all(nodepth.join("depth")).unwrap();
+    let e = fails(&["train", "--arch", &arch_s, "--data", &s(&nodepth), "-o", &s(&dir.path().join("r3"))]);
+    assert!(e.contains("depth/0000.npy") && e.contains("needs depth"), "{e}");
+    assert!(!dir.path().join("r3").exists(), "a refused run writes nothing");
+}

@@ -12,7 +12,6 @@ use dens3r_heads::train::{evaluate, DepthLoss};
 use dens3r_heads::{Backbone, Example, FeatureMaps, Head, HeadConfig, PixelBackbone, Task, TrainOptions, Trainer};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use std::path::PathBuf;
 
 #[path = "../../../tests/support/fetched.rs"]
 mod fetched;

@@ -1,0 +1,151 @@
+//! `dens3r train`: the network trained on scene folders, stage 1 or 2 (dens3r-train).
+
+use anyhow::{anyhow, bail, Result};
+use clap::Args;
+use dens3r_backbone::{Freeze, ModelConfig, Params, Weights};
+use dens3r_train::{Arch, Dataset, Stage, TrainConfig};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+
+#[derive(Args)]
+pub struct TrainArgs {
+    /// 1: scale-invariant pointmaps + matching; 2: normal head added (normal supervision).
+    #[arg(long, default_value_t = 1)]
+    stage: u8,
+    /// Scene folders with images, depth, poses (and normals for stage 2).
+    #[arg(long, num_args = 1.., required = true)]
+    data: Vec<PathBuf>,
+    /// A fresh network described by the official constructor's keywords (TOML or JSON).
+    #[arg(long, conflicts_with = "init")]
+    arch: Option<PathBuf>,
+    /// Start from a checkpoint (read as `predict --weights` reads it).
+    #[arg(long)]
+    init: Option<PathBuf>,
+    /// Head counts of `--init` (as `predict --config`).
+    #[arg(long, requires = "init")]
+    config: Option<PathBuf>,
+    /// Run folder: checkpoints, log.jsonl, loss.png, model.safetensors + model.json. A rerun
+    /// with the same folder and options resumes.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Network input WxH (multiples of the patch size).
+    #[arg(long, default_value = "224x160")]
+    size: String,
+    /// Optimiser steps.
+    #[arg(long, default_value_t = 1000)]
+    steps: usize,
+    /// Pairs per step.
+    #[arg(long, default_value_t = 2)]
+    batch: usize,
+    /// Peak learning rate (AdamW, warm-up then cosine).
+    #[arg(long, default_value_t = 1e-4)]
+    lr: f32,
+    /// What stays fixed: none, encoder, encoder-but-N (the last N blocks train), heads-only.
+    #[arg(long, default_value = "none")]
+    freeze: String,
+    /// Ground-truth correspondences per pair for the matching loss.
+    #[arg(long, default_value_t = 256)]
+    n_corres: usize,
+    /// Colour jitter amplitude.
+    #[arg(long, default_value_t = 0.2)]
+    jitter: f32,
+    /// Steps between checkpoints.
+    #[arg(long, default_value_t = 50)]
+    checkpoint_every: usize,
+    /// Seed of pair draws, correspondences and augmentation (and of a fresh network).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Start over, discarding the run folder's checkpoint.
+    #[arg(long)]
+    restart: bool,
+}
+
+fn parse_size(s: &str) -> Result<(usize, usize)> {
+    let (w, h) = s.split_once('x').ok_or_else(|| anyhow!("--size {s:?}: expected WxH, e.g. 224x160"))?;
+    Ok((
+        w.trim().parse().map_err(|_| anyhow!("--size {s:?}: bad width"))?,
+        h.trim().parse().map_err(|_| anyhow!("--size {s:?}: bad height"))?,
+    ))
+}
+
+pub fn run(a: TrainArgs) -> Result<()> {
+    let stage = match a.stage {
+        1 => Stage::One,
+        2 => Stage::Two,
+        s => bail!("--stage {s}: expected 1 or 2"),
+    };
+    let freeze = Freeze::parse(&a.freeze)
+        .ok_or_else(|| anyhow!("--freeze {:?}: expected none, encoder, encoder-but-N or heads-only", a.freeze))?;
+    let config = TrainConfig {
+        stage,
+        size: parse_size(&a.size)?,
+        steps: a.steps,
+        batch: a.batch,
+        lr: a.lr,
+        freeze,
+        n_corres: a.n_corres,
+        jitter: a.jitter,
+        checkpoint_every: a.checkpoint_every,
+        seed: a.seed,
+        ..Default::default()
+    };
+    let params = match (&a.arch, &a.init) {
+        (Some(arch), None) => Params::init(&Arch::read(arch).map_err(|e| anyhow!(e))?.config(), a.seed),
+        (None, Some(init)) => {
+            let w = Weights::from_safetensors(init)?;
+            let heads = match &a.config {
+                Some(c) if !c.is_file() => bail!("{}: config file not found", c.display()),
+                Some(c) => dens3r_backbone::verify::heads_from_config(c).map_err(|e| anyhow!(e))?,
+                None => None,
+            };
+            let cfg = ModelConfig::from_weights(&w, heads)?;
+            Params::from_weights(&w, &cfg)?
+        }
+        _ => bail!("give the network: --arch small.toml (fresh) or --init W.safetensors"),
+    };
+    config.check(params.config.patch).map_err(|e| anyhow!(e))?;
+    let data = Dataset::load(&a.data, config.size, config.covis).map_err(|e| anyhow!(e))?;
+    if a.restart && a.output.join("ckpt").exists() {
+        std::fs::remove_dir_all(a.output.join("ckpt"))
+            .map_err(|e| anyhow!("{}: cannot remove ({e})", a.output.join("ckpt").display()))?;
+        let _ = std::fs::remove_file(a.output.join("log.jsonl"));
+    }
+    println!(
+        "training {} parameters ({} trained) on {} pairs from {} scenes, stage {}, {}x{}",
+        params.count(),
+        params
+            .names
+            .iter()
+            .zip(&params.values)
+            .filter(|(n, _)| freeze.trains(n, params.config.enc_depth))
+            .map(|(_, v)| v.len())
+            .sum::<usize>(),
+        data.pairs.len(),
+        data.scenes.len(),
+        a.stage,
+        config.size.0,
+        config.size.1
+    );
+    let bar = ProgressBar::new(config.steps as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} steps, {elapsed} elapsed, ETA {eta} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());
+    let start = std::time::Instant::now();
+    let t = dens3r_train::run::run(&a.output, params, &data, &config, device, &mut |step, _, line| {
+        bar.set_position(step as u64);
+        bar.set_message(format!("loss {:.4}", line.terms.loss));
+    })
+    .map_err(|e| anyhow!(e))?;
+    bar.finish_and_clear();
+    let last = dens3r_train::run::read_log(&a.output.join("log.jsonl")).map_err(|e| anyhow!(e))?;
+    let last = last.last().map(|l| serde_json::to_string(&l.terms).unwrap_or_default()).unwrap_or_default();
+    println!(
+        "{} steps in {:.1} s; last: {last}; weights: {}",
+        t.step,
+        start.elapsed().as_secs_f64(),
+        a.output.join("model.safetensors").display()
+    );
+    Ok(())
+}

@@ -1,0 +1,154 @@
+//! A network architecture described by the official constructor's keywords (`--arch
+//! small.toml`), turned into the [`ModelConfig`] the backbone builds.
+
+use dens3r_backbone::config::{DptConfig, PtsHeadConfig, RopeScaling};
+use dens3r_backbone::ModelConfig;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Widths and depths of a Dens3R network (unify mode: two point + descriptor heads and a
+/// normal head). Field names follow the official constructor.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Arch {
+    /// Patch size.
+    #[serde(default = "patch")]
+    pub patch_size: usize,
+    /// Encoder width.
+    pub enc_embed_dim: usize,
+    /// Encoder blocks.
+    pub enc_depth: usize,
+    /// Encoder heads.
+    pub enc_num_heads: usize,
+    /// Decoder width.
+    pub dec_embed_dim: usize,
+    /// Decoder blocks.
+    pub dec_depth: usize,
+    /// Decoder heads.
+    pub dec_num_heads: usize,
+    /// MLP hidden width over block width.
+    #[serde(default = "mlp_ratio")]
+    pub mlp_ratio: usize,
+    /// One decoder shared by both views.
+    #[serde(default = "yes")]
+    pub symmetrize_dec: bool,
+    /// DPT reassembly widths (full size 96, 192, 384, 768).
+    pub layer_dims: [usize; 4],
+    /// DPT fusion width (full size 256).
+    pub feature_dim: usize,
+    /// DPT last hidden width (full size 128).
+    pub last_dim: usize,
+    /// Descriptor MLP hidden width over its input width (full size 4).
+    #[serde(default = "mlp_ratio")]
+    pub desc_mlp_ratio: usize,
+    /// Descriptor dimension (24).
+    #[serde(default = "desc_dim")]
+    pub desc_dim: usize,
+    /// A separate descriptor confidence channel.
+    #[serde(default)]
+    pub desc_conf: bool,
+}
+
+fn patch() -> usize {
+    16
+}
+fn mlp_ratio() -> usize {
+    4
+}
+fn yes() -> bool {
+    true
+}
+fn desc_dim() -> usize {
+    24
+}
+
+impl Arch {
+    /// Reads a TOML (or JSON, by extension) architecture file.
+    pub fn read(path: &Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
+        let arch: Self = if path.extension().is_some_and(|e| e == "json") {
+            serde_json::from_str(&text).map_err(|e| format!("{}: invalid architecture ({e})", path.display()))?
+        } else {
+            toml::from_str(&text).map_err(|e| format!("{}: invalid architecture ({e})", path.display()))?
+        };
+        arch.check().map_err(|e| format!("{}: {e}", path.display()))?;
+        Ok(arch)
+    }
+
+    /// Checks the widths fit together (heads divide widths, the heads' hooks exist).
+    pub fn check(&self) -> Result<(), String> {
+        let ok_heads = |d: usize, h: usize| h > 0 && d.is_multiple_of(h) && (d / h).is_multiple_of(4);
+        if !ok_heads(self.enc_embed_dim, self.enc_num_heads) || !ok_heads(self.dec_embed_dim, self.dec_num_heads) {
+            return Err("each width must split into heads whose dimension is a multiple of 4 (RoPE-2D)".into());
+        }
+        if self.enc_depth == 0 || self.dec_depth < 4 {
+            return Err("the encoder needs a block and the decoder at least 4 (the DPT hooks)".into());
+        }
+        if self.patch_size < 2 || self.layer_dims.contains(&0) || self.feature_dim < 2 || self.last_dim == 0 {
+            return Err("patch size and DPT widths must be positive".into());
+        }
+        Ok(())
+    }
+
+    /// The configuration the backbone builds.
+    pub fn config(&self) -> ModelConfig {
+        let dpt = |prefix: &str, out_channels: usize| DptConfig {
+            prefix: format!("{prefix}.dpt"),
+            layer_dims: self.layer_dims,
+            feature_dim: self.feature_dim,
+            head_dim: self.feature_dim / 2,
+            last_dim: self.last_dim,
+            out_channels,
+            up: [4, 2],
+        };
+        let pts = |prefix: &str| PtsHeadConfig {
+            prefix: prefix.into(),
+            dpt: dpt(prefix, 4),
+            mlp_hidden: Some(self.desc_mlp_ratio * (self.enc_embed_dim + self.dec_embed_dim)),
+        };
+        ModelConfig {
+            patch: self.patch_size,
+            enc_dim: self.enc_embed_dim,
+            enc_depth: self.enc_depth,
+            enc_heads: self.enc_num_heads,
+            dec_dim: self.dec_embed_dim,
+            dec_depth: self.dec_depth,
+            dec_heads: self.dec_num_heads,
+            mlp_hidden: (self.mlp_ratio * self.enc_embed_dim, self.mlp_ratio * self.dec_embed_dim),
+            shared_decoder: self.symmetrize_dec,
+            rope_base: 100.0,
+            rope: RopeScaling::Interpolated,
+            head1: pts("ptsmatch_local_head"),
+            head2: pts("ptsmatch_global_head"),
+            normal_head: Some(dpt("normal_local_head", 3)),
+            has_conf: true,
+            desc_dim: self.desc_dim,
+            desc_conf: self.desc_conf,
+        }
+    }
+}
+
+/// The `config.json` written beside a trained checkpoint: the constructor keywords the
+/// official loader and `--config` read (head counts cannot be recovered from shapes).
+pub fn config_json(c: &ModelConfig) -> serde_json::Value {
+    serde_json::json!({
+        "output_mode": "unify",
+        "head_type": "catmlp+dpt",
+        "depth_mode": ["exp", "-inf", "inf"],
+        "conf_mode": ["exp", 1, "inf"],
+        "normal_mode": ["linear", -1.0, 1.0],
+        "desc_conf": c.desc_conf,
+        "desc_conf_mode": ["exp", 0, "inf"],
+        "pos_embed": "RoPE100",
+        "patch_embed_cls": "PatchEmbedDust3R",
+        "patch_size": c.patch,
+        "enc_embed_dim": c.enc_dim,
+        "enc_depth": c.enc_depth,
+        "enc_num_heads": c.enc_heads,
+        "dec_embed_dim": c.dec_dim,
+        "dec_depth": c.dec_depth,
+        "dec_num_heads": c.dec_heads,
+        "landscape_only": false,
+        "symmetrize_dec": c.shared_decoder,
+    })
+}

@@ -1,0 +1,14 @@
+//! Training the Dens3R network (model spec sections 1 and 5): [`arch`] describes a network
+//! by the official constructor's keywords; [`pair`] turns two scene-folder frames into a
+//! training pair with ground-truth pointmaps, normals and correspondences; [`loss`] holds the
+//! losses; [`train`] the two-stage loop (AdamW, warm-up + cosine, clipping, exact resume);
+//! [`run`] a whole run into a folder (checkpoints, JSONL log, final weights).
+
+pub mod arch;
+pub mod loss;
+pub mod pair;
+pub mod run;
+pub mod train;
+
+pub use arch::Arch;
+pub use train::{Dataset, LossTerms, Stage, TrainConfig, Trainer};

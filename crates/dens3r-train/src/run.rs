@@ -1,0 +1,138 @@
+//! A whole training run into a folder: `ckpt/` (parameters, moments, state; rerunning with
+//! the same folder resumes), `log.jsonl` (one object per step, the total under `loss`),
+//! `loss.png` (the curve) and, at the end, `model.safetensors` + `model.json` (official key
+//! names and constructor keywords, read by `--weights W --config W.json`).
+
+use crate::arch::config_json;
+use crate::train::{Dataset, LogLine, TrainConfig, Trainer};
+use burn::tensor::Device;
+use dens3r_backbone::Params;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// Files of a run folder.
+pub struct RunPaths {
+    /// Checkpoint folder.
+    pub ckpt: PathBuf,
+    /// JSONL log.
+    pub log: PathBuf,
+    /// Loss-curve picture.
+    pub curve: PathBuf,
+    /// Final weights.
+    pub model: PathBuf,
+    /// Their `config.json`.
+    pub model_config: PathBuf,
+}
+
+impl RunPaths {
+    /// The files under `dir`.
+    pub fn new(dir: &Path) -> Self {
+        Self {
+            ckpt: dir.join("ckpt"),
+            log: dir.join("log.jsonl"),
+            curve: dir.join("loss.png"),
+            model: dir.join("model.safetensors"),
+            model_config: dir.join("model.json"),
+        }
+    }
+}
+
+/// Runs (or resumes) training of `params` on `data` into `dir`; `progress(step, total, line)`
+/// is called after each step. Returns the trainer at the end.
+pub fn run(
+    dir: &Path,
+    params: Params,
+    data: &Dataset,
+    config: &TrainConfig,
+    device: Device,
+    progress: &mut dyn FnMut(usize, usize, &LogLine),
+) -> Result<Trainer, String> {
+    let paths = RunPaths::new(dir);
+    std::fs::create_dir_all(dir).map_err(|e| format!("{}: cannot create ({e})", dir.display()))?;
+    let mut trainer = match Trainer::resume(&paths.ckpt, &params, config, device.clone())? {
+        Some(t) => t,
+        None => Trainer::new(params, config.clone(), device.clone())?,
+    };
+    // The log keeps exactly the steps the checkpoint holds (a killed run may have logged more).
+    let mut lines = read_log(&paths.log)?;
+    lines.truncate(trainer.step);
+    write_log(&paths.log, &lines)?;
+    let mut log = std::fs::OpenOptions::new()
+        .append(true)
+        .open(&paths.log)
+        .map_err(|e| format!("{}: cannot append ({e})", paths.log.display()))?;
+    while trainer.step < config.steps {
+        let batch = data.batch(config, trainer.step, &device);
+        let line = trainer.train_step(&batch)?;
+        writeln!(log, "{}", serde_json::to_string(&line).map_err(|e| e.to_string())?)
+            .map_err(|e| format!("{}: cannot write ({e})", paths.log.display()))?;
+        progress(trainer.step, config.steps, &line);
+        lines.push(line);
+        if trainer.step.is_multiple_of(config.checkpoint_every) || trainer.step == config.steps {
+            log.flush().map_err(|e| e.to_string())?;
+            trainer.save(&paths.ckpt)?;
+            write_curve(&paths.curve, &lines)?;
+        }
+    }
+    trainer.params.save(&paths.model).map_err(|e| e.to_string())?;
+    let cfg = serde_json::to_string_pretty(&config_json(&trainer.params.config)).map_err(|e| e.to_string())?;
+    dens3r_mesh::io::write_atomic(&paths.model_config, |w| w.write_all(cfg.as_bytes())).map_err(|e| e.to_string())?;
+    write_curve(&paths.curve, &lines)?;
+    Ok(trainer)
+}
+
+/// The log's lines (none when absent).
+pub fn read_log(path: &Path) -> Result<Vec<LogLine>, String> {
+    if !path.is_file() {
+        return Ok(Vec::new());
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    // A line cut by a kill is dropped; everything before it parses.
+    Ok(text.lines().map_while(|l| serde_json::from_str(l).ok()).collect())
+}
+
+fn write_log(path: &Path, lines: &[LogLine]) -> Result<(), String> {
+    let mut text = String::new();
+    for l in lines {
+        text += &serde_json::to_string(l).map_err(|e| e.to_string())?;
+        text.push('\n');
+    }
+    dens3r_mesh::io::write_atomic(path, |w| w.write_all(text.as_bytes())).map_err(|e| e.to_string())
+}
+
+/// The total loss per step as a PNG line plot (log scale, 640x360).
+pub fn write_curve(path: &Path, lines: &[LogLine]) -> Result<(), String> {
+    let (w, h) = (640u32, 360u32);
+    let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
+    let vals: Vec<f32> = lines.iter().map(|l| l.terms.loss).filter(|v| v.is_finite()).collect();
+    if vals.len() >= 2 {
+        // Losses can be negative (the -alpha ln c terms): plot ln(loss - min + 1e-3).
+        let lo = vals.iter().copied().fold(f32::INFINITY, f32::min);
+        let y: Vec<f32> = vals.iter().map(|v| (v - lo + 1e-3).ln()).collect();
+        let (ymin, ymax) = y.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), v| (a.min(*v), b.max(*v)));
+        let span = (ymax - ymin).max(1e-6);
+        let (m, pw, ph) = (20.0, (w - 40) as f32, (h - 40) as f32);
+        let at = |i: usize| {
+            let x = m + pw * i as f32 / (y.len() - 1) as f32;
+            let yy = m + ph * (1.0 - (y[i] - ymin) / span);
+            (x, yy)
+        };
+        for i in 1..y.len() {
+            let ((x0, y0), (x1, y1)) = (at(i - 1), at(i));
+            let n = ((x1 - x0).abs().max((y1 - y0).abs()).ceil() as usize).max(1);
+            for k in 0..=n {
+                let t = k as f32 / n as f32;
+                let (x, yy) = (x0 + (x1 - x0) * t, y0 + (y1 - y0) * t);
+                img.put_pixel((x as u32).min(w - 1), (yy as u32).min(h - 1), image::Rgb([200, 40, 40]));
+            }
+        }
+        for x in 20..w - 20 {
+            img.put_pixel(x, h - 20, image::Rgb([0, 0, 0]));
+        }
+        for yy in 20..h - 20 {
+            img.put_pixel(20, yy, image::Rgb([0, 0, 0]));
+        }
+    }
+    dens3r_mesh::io::write_atomic(path, |f| img.write_to(f, image::ImageFormat::Png).map_err(std::io::Error::other))
+        .map_err(|e| format!("{}: {e}", path.display()))
+}

@@ -1,0 +1,454 @@
+//! The training loop: pairs drawn from scene folders, the stage's weighted losses on the
+//! network's one forward (every parameter tracked by autodiff unless frozen), AdamW with
+//! warm-up and cosine decay, global gradient-norm clipping, checkpoints that resume exactly
+//! (each step's draw and augmentation are seeded by its index), and a JSONL log.
+
+use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, Matches, RegrView};
+use crate::pair::{pair_target, PairTarget, View};
+use burn::tensor::{Device, Tensor, TensorData};
+use dens3r_backbone::{Dens3r, Freeze, Params, Weights};
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Which of the paper's two stages runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Stage {
+    /// Scale-invariant pointmaps with matching: `1.0 pts_glb + 0.1 pts_n + 0.075 match`.
+    One,
+    /// Intrinsic-invariant pointmaps with normal supervision: `1.0 pts_glb + 0.1 pts_n + 1.0 n`.
+    Two,
+}
+
+impl Stage {
+    /// Loss weights `(pts_glb, pts_n, match, n)`.
+    pub fn weights(self) -> [f32; 4] {
+        match self {
+            Self::One => [1.0, 0.1, 0.075, 0.0],
+            Self::Two => [1.0, 0.1, 0.0, 1.0],
+        }
+    }
+}
+
+/// Settings of a run; a resumed run must have the same.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Stage.
+    pub stage: Stage,
+    /// Network input `(W, H)`, multiples of the patch size.
+    pub size: (usize, usize),
+    /// Optimiser steps.
+    pub steps: usize,
+    /// Pairs per step.
+    pub batch: usize,
+    /// Peak learning rate.
+    pub lr: f32,
+    /// Fraction of the steps spent warming up linearly.
+    pub warmup: f32,
+    /// Decoupled weight decay (AdamW) on weight matrices.
+    pub weight_decay: f32,
+    /// Global gradient-norm limit (0 = off).
+    pub clip: f32,
+    /// ConfLoss alpha of the 3-D regression (0.2).
+    pub alpha: f32,
+    /// InfoNCE temperature (0.05) and ConfMatchingLoss alpha (10).
+    pub match_temperature: f32,
+    /// See `match_temperature`.
+    pub match_alpha: f32,
+    /// Ground-truth correspondences sampled per pair.
+    pub n_corres: usize,
+    /// Pairs are drawn among ordered frame pairs of one scene whose co-visibility lies in
+    /// this range.
+    pub covis: (f64, f64),
+    /// Colour jitter amplitude (brightness / contrast / saturation, multiplicative).
+    pub jitter: f32,
+    /// Frozen parameters.
+    pub freeze: Freeze,
+    /// Steps between checkpoints.
+    pub checkpoint_every: usize,
+    /// Seed of the draws and augmentations.
+    pub seed: u64,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            stage: Stage::One,
+            size: (224, 160),
+            steps: 1000,
+            batch: 2,
+            lr: 1e-4,
+            warmup: 0.05,
+            weight_decay: 0.05,
+            clip: 1.0,
+            alpha: 0.2,
+            match_temperature: 0.05,
+            match_alpha: 10.0,
+            n_corres: 256,
+            covis: (0.1, 0.98),
+            jitter: 0.2,
+            freeze: Freeze::None,
+            checkpoint_every: 50,
+            seed: 0,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Checks the settings against the network's patch size.
+    pub fn check(&self, patch: usize) -> Result<(), String> {
+        let (w, h) = self.size;
+        if w == 0 || h == 0 || !w.is_multiple_of(patch) || !h.is_multiple_of(patch) || w.max(h) > 2048 {
+            return Err(format!("--size {w}x{h}: width and height must be multiples of {patch}, at most 2048"));
+        }
+        if self.batch == 0 || self.steps == 0 || !(self.lr > 0.0 && self.lr.is_finite()) {
+            return Err("steps, batch and lr must be positive".into());
+        }
+        if self.checkpoint_every == 0 {
+            return Err("checkpoint interval must be positive".into());
+        }
+        Ok(())
+    }
+}
+
+/// The loss terms of one step (unweighted) and their weighted total.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LossTerms {
+    /// Weighted total.
+    pub loss: f32,
+    /// ConfLoss 3-D regression, view 2 in view 1's frame.
+    pub pts_glb: f32,
+    /// Normals of the predicted pointmaps against the ground truth.
+    pub pts_n: f32,
+    /// Matching (stage 1).
+    #[serde(rename = "match")]
+    pub matching: Option<f32>,
+    /// Normal head L1 (stage 2).
+    pub n: Option<f32>,
+}
+
+/// A batch on the device.
+pub struct Batch {
+    /// Normalised images `(B, 3, H, W)` of view 1 and view 2.
+    pub images: [Tensor<4>; 2],
+    /// Ground truth per sample.
+    pub targets: Vec<PairTarget>,
+}
+
+fn vec3_tensor(v: &[&[Vec3]], (h, w): (usize, usize), device: &Device) -> Tensor<4> {
+    let flat: Vec<f32> = v.iter().flat_map(|s| s.iter().flat_map(|p| p.to_array())).collect();
+    Tensor::from_data(TensorData::new(flat, [v.len(), h, w, 3]), device)
+}
+
+fn mask_tensor(v: &[&[bool]], (h, w): (usize, usize), device: &Device) -> Tensor<3> {
+    let flat: Vec<f32> = v.iter().flat_map(|s| s.iter().map(|&b| b as u8 as f32)).collect();
+    Tensor::from_data(TensorData::new(flat, [v.len(), h, w]), device)
+}
+
+/// `(x / 255 - 0.5) / 0.5` of RGB pixels as `(3, H, W)`.
+pub fn normalise(img: &image::RgbImage) -> Vec<f32> {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let mut out = vec![0f32; 3 * w * h];
+    for (i, p) in img.pixels().enumerate() {
+        for c in 0..3 {
+            out[c * w * h + i] = p[c] as f32 / 127.5 - 1.0;
+        }
+    }
+    out
+}
+
+/// The weighted loss of a batch under `stage` (and each term), from the network's outputs.
+pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(Tensor<1>, LossTerms), String> {
+    let device = model.device().clone();
+    let [img1, img2] = batch.images.clone();
+    let pred = model.forward(img1, img2);
+    let [p1, p2] = &pred.views;
+    let t = &batch.targets;
+    let size = t[0].size;
+    let view = |k: usize| {
+        let pts: Vec<&[Vec3]> = t.iter().map(|s| s.pts[k].as_slice()).collect();
+        let valid: Vec<&[bool]> = t.iter().map(|s| s.valid[k].as_slice()).collect();
+        (vec3_tensor(&pts, size, &device), mask_tensor(&valid, size, &device))
+    };
+    let ((g1, m1), (g2, m2)) = (view(0), view(1));
+    let no_conf = || "the network has no confidence channel; train a Dens3R with conf".to_string();
+    let regr = |p: &dens3r_backbone::ViewPrediction, gt: Tensor<4>, valid: Tensor<3>| -> Result<RegrView, String> {
+        Ok(RegrView { pred: p.pts3d.clone(), conf: p.conf.clone().ok_or_else(no_conf)?, gt, valid })
+    };
+    let pts_glb = conf_regr3d(regr(p1, g1, m1.clone())?, regr(p2, g2, m2.clone())?, cfg.alpha);
+    let n_in1 = |k: usize| {
+        let n: Vec<&[Vec3]> = t.iter().map(|s| s.normals_in1[k].as_slice()).collect();
+        vec3_tensor(&n, size, &device)
+    };
+    let pts_n =
+        pointmap_normal_loss([p1.pts3d.clone(), p2.pts3d.clone()], [n_in1(0), n_in1(1)], [m1.clone(), m2.clone()]);
+    let [w_glb, w_n, w_match, w_normal] = cfg.stage.weights();
+    let mut total = pts_glb.clone().mul_scalar(w_glb) + pts_n.clone().mul_scalar(w_n);
+    let value = |x: &Tensor<1>| x.clone().into_data().try_to_vec::<f32>().map(|v| v[0]).unwrap_or(f32::NAN);
+    let mut terms = LossTerms { pts_glb: value(&pts_glb), pts_n: value(&pts_n), ..Default::default() };
+    if w_match > 0.0 {
+        let (d1, d2) = (p1.desc.clone(), p2.desc.clone());
+        let (c1, c2) = (p1.desc_conf.clone(), p2.desc_conf.clone());
+        let (Some(d1), Some(d2), Some(c1), Some(c2)) = (d1, d2, c1, c2) else {
+            return Err("stage 1 trains matching: the network needs descriptors".into());
+        };
+        let matches: Vec<Matches> = t.iter().map(|s| s.matches.clone()).collect();
+        if let Some(m) = matching_loss([d1, d2], [c1, c2], &matches, cfg.match_temperature, cfg.match_alpha, 8192) {
+            terms.matching = Some(value(&m));
+            total = total + m.mul_scalar(w_match);
+        }
+    }
+    if w_normal > 0.0 {
+        let (Some(n1), Some(n2)) = (p1.normal.clone(), p2.normal.clone()) else {
+            return Err("stage 2 trains the normal head: the network needs one".into());
+        };
+        let own = |k: usize| {
+            let n: Vec<&[Vec3]> = t.iter().map(|s| s.normals[k].as_slice()).collect();
+            vec3_tensor(&n, size, &device)
+        };
+        let n = normal_l1(n1, own(0), m1) + normal_l1(n2, own(1), m2);
+        terms.n = Some(value(&n));
+        total = total + n.mul_scalar(w_normal);
+    }
+    terms.loss = value(&total);
+    Ok((total, terms))
+}
+
+/// Training pairs: frames of each scene at network size, and the ordered pairs whose
+/// co-visibility falls in the configured range.
+pub struct Dataset {
+    /// Frames per scene.
+    pub scenes: Vec<Vec<View>>,
+    /// `(scene, frame 1, frame 2)`.
+    pub pairs: Vec<(usize, usize, usize)>,
+}
+
+impl Dataset {
+    /// Reads scene folders (each with depth and poses) at `size` and lists their pairs.
+    pub fn load(dirs: &[PathBuf], size: (usize, usize), covis: (f64, f64)) -> Result<Self, String> {
+        let mut scenes = Vec::new();
+        let mut pairs = Vec::new();
+        for (s, d) in dirs.iter().enumerate() {
+            let views = crate::pair::load_views(d, size)?;
+            for i in 0..views.len() {
+                for j in 0..views.len() {
+                    if i != j {
+                        let c = crate::pair::covisibility(&views[i], &views[j]);
+                        if c >= covis.0 && c <= covis.1 {
+                            pairs.push((s, i, j));
+                        }
+                    }
+                }
+            }
+            scenes.push(views);
+        }
+        if pairs.is_empty() {
+            return Err(format!(
+                "no training pair: no two frames of {} see each other with co-visibility in [{}, {}]",
+                dirs.iter().map(|d| d.display().to_string()).collect::<Vec<_>>().join(", "),
+                covis.0,
+                covis.1
+            ));
+        }
+        Ok(Self { scenes, pairs })
+    }
+
+    /// The batch of step `step`: pairs drawn and images jittered by `(seed, step)`,
+    /// `n_corres` correspondences sampled per pair.
+    pub fn batch(&self, cfg: &TrainConfig, step: usize, device: &Device) -> Batch {
+        let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ (step as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        let (w, h) = cfg.size;
+        let mut imgs = [Vec::new(), Vec::new()];
+        let mut targets = Vec::with_capacity(cfg.batch);
+        for _ in 0..cfg.batch {
+            let (s, i, j) = self.pairs[rng.gen_range(0..self.pairs.len())];
+            let (v1, v2) = (&self.scenes[s][i], &self.scenes[s][j]);
+            let mut t = pair_target(v1, v2);
+            t.matches = sample_matches(&t.matches, cfg.n_corres, &mut rng);
+            for (k, v) in [v1, v2].into_iter().enumerate() {
+                imgs[k].extend(jitter(normalise(&v.image), cfg.jitter, &mut rng));
+            }
+            targets.push(t);
+        }
+        let b = cfg.batch;
+        let images = imgs.map(|v| Tensor::<4>::from_data(TensorData::new(v, [b, 3, h, w]), device));
+        Batch { images, targets }
+    }
+}
+
+/// Up to `n` correspondences drawn without replacement.
+fn sample_matches(m: &Matches, n: usize, rng: &mut ChaCha8Rng) -> Matches {
+    let picked = rand::seq::index::sample(rng, m.idx1.len(), n.min(m.idx1.len()));
+    Matches { idx1: picked.iter().map(|i| m.idx1[i]).collect(), idx2: picked.iter().map(|i| m.idx2[i]).collect() }
+}
+
+/// Colour jitter of a normalised `(3, H, W)` image: brightness, contrast and saturation
+/// factors in `1 ± amp`, clamped to `[-1, 1]`.
+fn jitter(mut img: Vec<f32>, amp: f32, rng: &mut ChaCha8Rng) -> Vec<f32> {
+    if amp <= 0.0 {
+        return img;
+    }
+    let mut f = || 1.0 + rng.gen_range(-amp..=amp);
+    let (bright, contrast, sat) = (f(), f(), f());
+    let n = img.len() / 3;
+    let mean = img.iter().sum::<f32>() / img.len() as f32;
+    for i in 0..n {
+        let grey = (img[i] + img[n + i] + img[2 * n + i]) / 3.0;
+        for c in 0..3 {
+            let v = &mut img[c * n + i];
+            let s = grey + (*v - grey) * sat;
+            let s = mean + (s - mean) * contrast;
+            *v = ((s + 1.0) * bright - 1.0).clamp(-1.0, 1.0);
+        }
+    }
+    img
+}
+
+/// A network being trained, with AdamW moments.
+pub struct Trainer {
+    /// The parameters.
+    pub params: Params,
+    /// Settings.
+    pub config: TrainConfig,
+    /// Steps done.
+    pub step: usize,
+    m: Vec<Vec<f32>>,
+    v: Vec<Vec<f32>>,
+    trains: Vec<bool>,
+    device: Device,
+}
+
+#[derive(Serialize, Deserialize)]
+struct State {
+    format: String,
+    config: TrainConfig,
+    step: usize,
+}
+
+const STATE_FORMAT: &str = "dens3r-train/1";
+
+/// One line of the JSONL log.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct LogLine {
+    /// Step index (0-based).
+    pub step: usize,
+    /// Learning rate used.
+    pub lr: f32,
+    /// Loss terms.
+    #[serde(flatten)]
+    pub terms: LossTerms,
+    /// Gradient norm before clipping.
+    pub grad_norm: f32,
+}
+
+impl Trainer {
+    /// A fresh trainer on `device` (an autodiff device, e.g. `Device::autodiff(Device::flex())`).
+    pub fn new(params: Params, config: TrainConfig, device: Device) -> Result<Self, String> {
+        config.check(params.config.patch)?;
+        let zeros: Vec<Vec<f32>> = params.values.iter().map(|v| vec![0.0; v.len()]).collect();
+        let trains = params.names.iter().map(|n| config.freeze.trains(n, params.config.enc_depth)).collect();
+        Ok(Self { params, config, step: 0, m: zeros.clone(), v: zeros, trains, device })
+    }
+
+    /// Learning rate at `step`: linear warm-up, then cosine decay to zero.
+    pub fn lr_at(&self, step: usize) -> f32 {
+        let total = self.config.steps;
+        let warm = ((self.config.warmup * total as f32) as usize).max(1);
+        let lr = self.config.lr;
+        if step < warm {
+            return lr * (step + 1) as f32 / warm as f32;
+        }
+        let t = (step - warm) as f32 / (total - warm).max(1) as f32;
+        lr * 0.5 * (1.0 + (std::f32::consts::PI * t.min(1.0)).cos())
+    }
+
+    /// One optimiser step on `batch`.
+    pub fn train_step(&mut self, batch: &Batch) -> Result<LogLine, String> {
+        let tensors = self.params.tensors(&self.device, &self.trains);
+        let model = self.params.model(&tensors, &self.device);
+        let (loss, terms) = batch_loss(&model, batch, &self.config)?;
+        if !terms.loss.is_finite() {
+            return Err(format!("step {}: the loss is not finite ({:?}); lower --lr", self.step, terms));
+        }
+        let grads = loss.backward();
+        let mut g: Vec<Option<Vec<f32>>> = tensors
+            .iter()
+            .zip(&self.trains)
+            .map(|(t, &tr)| if tr { t.grad(&grads).and_then(|g| g.into_data().try_to_vec::<f32>().ok()) } else { None })
+            .collect();
+        let norm = g.iter().flatten().flat_map(|v| v.iter()).map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt() as f32;
+        if self.config.clip > 0.0 && norm > self.config.clip {
+            let s = self.config.clip / norm;
+            g.iter_mut().flatten().for_each(|v| v.iter_mut().for_each(|x| *x *= s));
+        }
+        let lr = self.lr_at(self.step);
+        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
+        let t = (self.step + 1) as i32;
+        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+        let wd = self.config.weight_decay;
+        for (i, gi) in g.iter().enumerate() {
+            let Some(gi) = gi else { continue };
+            let decay = self.params.shapes[i].len() >= 2;
+            let (vals, m, v) = (&mut self.params.values[i], &mut self.m[i], &mut self.v[i]);
+            for j in 0..vals.len() {
+                m[j] = b1 * m[j] + (1.0 - b1) * gi[j];
+                v[j] = b2 * v[j] + (1.0 - b2) * gi[j] * gi[j];
+                if decay {
+                    vals[j] -= lr * wd * vals[j];
+                }
+                vals[j] -= lr * (m[j] / c1) / ((v[j] / c2).sqrt() + eps);
+            }
+        }
+        let line = LogLine { step: self.step, lr, terms, grad_norm: norm };
+        self.step += 1;
+        Ok(line)
+    }
+
+    /// Writes the checkpoint into `dir` (parameters with official names, moments, then the
+    /// state last; each file atomic).
+    pub fn save(&self, dir: &Path) -> Result<(), String> {
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: cannot create ({e})", dir.display()))?;
+        self.params.save(&dir.join("params.safetensors")).map_err(|e| e.to_string())?;
+        let mut moments = self.params.clone();
+        moments.names =
+            ["m", "v"].iter().flat_map(|k| self.params.names.iter().map(move |n| format!("{k}.{n}"))).collect();
+        moments.shapes = [&self.params.shapes, &self.params.shapes].into_iter().flatten().cloned().collect();
+        moments.values = self.m.iter().chain(&self.v).cloned().collect();
+        moments.save(&dir.join("adam.safetensors")).map_err(|e| e.to_string())?;
+        let state = State { format: STATE_FORMAT.into(), config: self.config.clone(), step: self.step };
+        let text = serde_json::to_string_pretty(&state).map_err(|e| e.to_string())?;
+        dens3r_mesh::io::write_atomic(&dir.join("state.json"), |w| std::io::Write::write_all(w, text.as_bytes()))
+            .map_err(|e| e.to_string())
+    }
+
+    /// Resumes from a checkpoint folder written by [`Trainer::save`] for the same network and
+    /// settings; `Ok(None)` when the folder holds none.
+    pub fn resume(dir: &Path, fresh: &Params, config: &TrainConfig, device: Device) -> Result<Option<Self>, String> {
+        let sp = dir.join("state.json");
+        if !sp.is_file() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&sp).map_err(|e| format!("{}: {e}", sp.display()))?;
+        let state: State = serde_json::from_str(&text)
+            .map_err(|e| format!("{}: damaged checkpoint ({e}); delete the folder to start over", sp.display()))?;
+        if state.format != STATE_FORMAT || &state.config != config {
+            return Err(format!(
+                "{}: the checkpoint was made with other settings; rerun with the same options, or delete the folder (or use --restart) to start over",
+                sp.display()
+            ));
+        }
+        let w = Weights::from_safetensors(&dir.join("params.safetensors")).map_err(|e| e.to_string())?;
+        let params = Params::from_weights(&w, &fresh.config).map_err(|e| e.to_string())?;
+        let a = Weights::from_safetensors(&dir.join("adam.safetensors")).map_err(|e| e.to_string())?;
+        let mut t = Self::new(params, config.clone(), device)?;
+        for (i, (n, s)) in fresh.names.iter().zip(&fresh.shapes).enumerate() {
+            t.m[i] = a.values(&format!("m.{n}"), s).unwrap_or_default();
+            t.v[i] = a.values(&format!("v.{n}"), s).unwrap_or_default();
+        }
+        a.finish().map_err(|e| e.to_string())?;
+        t.step = state.step;
+        Ok(Some(t))
+    }
+}
