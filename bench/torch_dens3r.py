@@ -47,6 +47,7 @@ class Dens3r:
         self.enc_depth = len({k.split(".")[1] for k in w if k.startswith("enc_blocks.")})
         self.dec_depth = len({k.split(".")[1] for k in w if k.startswith("dec_blocks.")})
         self.shared = not any(k.startswith("dec_blocks2.") for k in w)
+        self.patch = w["patch_embed.proj.weight"].shape[-1]
 
     def lin(self, x, p):
         return F.linear(x, self.w[p + ".weight"], self.w.get(p + ".bias"))
@@ -74,8 +75,8 @@ class Dens3r:
         return self.lin(o.transpose(1, 2).reshape(b, n, d), p + ".proj")
 
     def encode(self, img):
-        h, w = img.shape[2] // 16, img.shape[3] // 16
-        x = F.conv2d(img, self.w["patch_embed.proj.weight"], self.w["patch_embed.proj.bias"], stride=16)
+        h, w = img.shape[2] // self.patch, img.shape[3] // self.patch
+        x = F.conv2d(img, self.w["patch_embed.proj.weight"], self.w["patch_embed.proj.bias"], stride=self.patch)
         x = x.flatten(2).transpose(1, 2)
         tab = rope_tables(h, w, x.shape[-1] // self.eh)
         for i in range(self.enc_depth):
@@ -148,11 +149,13 @@ class Dens3r:
             pts = v / d.clamp(min=1e-8) * torch.expm1(d)
             conf = 1 + raw[..., 3].exp()
             feat = self.mlp(torch.cat([e, outs[-1]], dim=-1), head + ".head_local_features")
-            feat = F.pixel_shuffle(feat.transpose(1, 2).reshape(feat.shape[0], -1, *g), 16).permute(0, 2, 3, 1)
+            feat = F.pixel_shuffle(feat.transpose(1, 2).reshape(feat.shape[0], -1, *g), self.patch).permute(0, 2, 3, 1)
             desc = feat[..., :24] / feat[..., :24].norm(dim=-1, keepdim=True)
+            # desc_conf: exp of the 25th channel (MASt3R), else a copy of conf.
+            desc_conf = feat[..., 24].exp() if feat.shape[-1] > 24 else conf
             nrm = self.dpt([lay[i] for i in hooks], g, "normal_local_head.dpt").permute(0, 2, 3, 1).clamp(-1, 1)
             nrm = nrm / nrm.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-            res.append((pts, conf, desc, nrm))
+            res.append((pts, conf, desc, nrm, desc_conf))
         return res
 
 

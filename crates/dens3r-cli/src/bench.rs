@@ -18,6 +18,11 @@ pub enum BenchCommand {
     Backbone(BackboneArgs),
     /// Rust vs Open3D TSDF fusion on rendered scenes (time, memory, mesh accuracy).
     Fusion(FusionArgs),
+    /// Rust vs PyTorch training steps of a small Dens3R on the same batch (time, memory, losses).
+    Train(crate::bench_train::TrainBenchArgs),
+    /// (internal) time Rust training steps on a batch written by `bench train`.
+    #[command(hide = true)]
+    RunTrain { dir: PathBuf },
     /// Neural SDF vs TSDF fusion on a noisy object orbit, with the no-normals ablation.
     Nsdf(crate::bench_nsdf::NsdfBenchArgs),
     /// (internal) fuse one scene and print timings as JSON.
@@ -88,6 +93,8 @@ pub fn run(c: BenchCommand) -> Result<()> {
         BenchCommand::Backbone(a) => backbone(a),
         BenchCommand::Fusion(a) => crate::bench_fusion::fusion(a),
         BenchCommand::Nsdf(a) => crate::bench_nsdf::run(a),
+        BenchCommand::Train(a) => crate::bench_train::train(a),
+        BenchCommand::RunTrain { dir } => crate::bench_train::run_train(&dir),
         BenchCommand::RunFuse { scene, voxel, out, gpu } => crate::bench_fusion::run_fuse(&scene, voxel, &out, gpu),
         BenchCommand::MakeWeights { out } => {
             let w = Weights::synthetic(7, 0.02);

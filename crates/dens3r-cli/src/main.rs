@@ -4,6 +4,7 @@
 mod bench;
 mod bench_fusion;
 mod bench_nsdf;
+mod bench_train;
 mod eval;
 mod fuse;
 mod info;
@@ -12,6 +13,7 @@ mod nsdf;
 mod predict;
 mod reconstruct;
 mod render;
+mod synth;
 mod train;
 mod train_head;
 mod verify;
@@ -50,6 +52,8 @@ enum Command {
     Fuse(fuse::FuseArgs),
     /// Train a neural SDF (NeuS-style, normal- and depth-supervised) on a scene folder and mesh it.
     Nsdf(nsdf::NsdfArgs),
+    /// Write procedural training scenes (rooms, object orbits) with their pairs' co-visibility.
+    Synth(synth::SynthArgs),
     /// Train the network (stage 1: pointmaps + matching; stage 2: + normal head) on scene folders.
     Train(train::TrainArgs),
     /// Train a segmentation or depth head on frozen backbone features (Dens3R, DINOv2, raw pixels).
@@ -77,6 +81,7 @@ fn main() {
         Command::Fuse(a) => fuse::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),
         Command::Nsdf(a) => nsdf::run(a),
+        Command::Synth(a) => synth::run(a),
         Command::Train(a) => train::run(a),
         Command::TrainHead(a) => train_head::run(a),
         Command::Bench(c) => bench::run(c),

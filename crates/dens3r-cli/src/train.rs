@@ -49,6 +49,24 @@ pub struct TrainArgs {
     /// Colour jitter amplitude.
     #[arg(long, default_value_t = 0.2)]
     jitter: f32,
+    /// Random crops: each view's window is the largest of the step's aspect scaled by a
+    /// factor drawn in [CROP, 1] (1 = centre crops only).
+    #[arg(long, default_value_t = 0.75)]
+    crop: f32,
+    /// Train at the --size aspect only (default: each step draws its aspect, keeping the
+    /// long side, as DUSt3R's multi-aspect training does).
+    #[arg(long)]
+    fixed_aspect: bool,
+    /// Held-out scene folders (or `synth` sets) scored during training, into log.jsonl's
+    /// `val` and loss.png.
+    #[arg(long, num_args = 1..)]
+    val_data: Vec<PathBuf>,
+    /// Steps between validations (and after the last step).
+    #[arg(long, default_value_t = 100)]
+    val_every: usize,
+    /// Fixed held-out batches per validation.
+    #[arg(long, default_value_t = 4)]
+    val_batches: usize,
     /// Steps between checkpoints.
     #[arg(long, default_value_t = 50)]
     checkpoint_every: usize,
@@ -60,7 +78,7 @@ pub struct TrainArgs {
     restart: bool,
 }
 
-fn parse_size(s: &str) -> Result<(usize, usize)> {
+pub fn parse_size(s: &str) -> Result<(usize, usize)> {
     let (w, h) = s.split_once('x').ok_or_else(|| anyhow!("--size {s:?}: expected WxH, e.g. 224x160"))?;
     Ok((
         w.trim().parse().map_err(|_| anyhow!("--size {s:?}: bad width"))?,
@@ -85,6 +103,8 @@ pub fn run(a: TrainArgs) -> Result<()> {
         freeze,
         n_corres: a.n_corres,
         jitter: a.jitter,
+        crop: a.crop,
+        aspects: !a.fixed_aspect,
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
         ..Default::default()
@@ -105,6 +125,19 @@ pub fn run(a: TrainArgs) -> Result<()> {
     };
     config.check(params.config.patch).map_err(|e| anyhow!(e))?;
     let data = Dataset::load(&a.data, config.size, config.covis).map_err(|e| anyhow!(e))?;
+    let val_data = if a.val_data.is_empty() {
+        None
+    } else {
+        Some(Dataset::load(&a.val_data, config.size, config.covis).map_err(|e| anyhow!(e))?)
+    };
+    if stage == Stage::Two {
+        data.require_normals().map_err(|e| anyhow!(e))?;
+    }
+    let val = val_data.as_ref().map(|d| dens3r_train::run::Validation {
+        data: d,
+        every: a.val_every.max(1),
+        batches: a.val_batches.max(1),
+    });
     if a.restart && a.output.join("ckpt").exists() {
         std::fs::remove_dir_all(a.output.join("ckpt"))
             .map_err(|e| anyhow!("{}: cannot remove ({e})", a.output.join("ckpt").display()))?;
@@ -133,14 +166,20 @@ pub fn run(a: TrainArgs) -> Result<()> {
     );
     let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());
     let start = std::time::Instant::now();
-    let t = dens3r_train::run::run(&a.output, params, &data, &config, device, &mut |step, _, line| {
+    let t = dens3r_train::run::run(&a.output, params, &data, &config, device, val.as_ref(), &mut |step, _, line| {
         bar.set_position(step as u64);
         bar.set_message(format!("loss {:.4}", line.terms.loss));
     })
     .map_err(|e| anyhow!(e))?;
     bar.finish_and_clear();
     let last = dens3r_train::run::read_log(&a.output.join("log.jsonl")).map_err(|e| anyhow!(e))?;
-    let last = last.last().map(|l| serde_json::to_string(&l.terms).unwrap_or_default()).unwrap_or_default();
+    let held_out = last
+        .iter()
+        .rev()
+        .find_map(|l| l.val.as_ref())
+        .map(|v| format!("; held out: {}", serde_json::to_string(v).unwrap_or_default()))
+        .unwrap_or_default();
+    let last = last.last().map(|l| serde_json::to_string(&l.terms).unwrap_or_default()).unwrap_or_default() + &held_out;
     println!(
         "{} steps in {:.1} s; last: {last}; weights: {}",
         t.step,

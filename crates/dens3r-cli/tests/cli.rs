@@ -737,3 +737,59 @@ fn train_writes_weights_predict_reads_and_rerun_resumes() {
     assert!(e.contains("depth/0000.npy") && e.contains("needs depth"), "{e}");
     assert!(!dir.path().join("r3").exists(), "a refused run writes nothing");
 }
+
+/// `dens3r synth` writes a set that `dens3r train --data SET` trains on directly (the set's
+/// scene folders and pair tables), a rerun keeps it, and bad options are one line each.
+#[test]
+fn synth_writes_a_set_that_train_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    // A stand-in photograph and a tetrahedron for a scan (the fetched ones are not needed).
+    let tex = dir.path().join("tex");
+    std::fs::create_dir_all(&tex).unwrap();
+    image::RgbImage::from_fn(32, 32, |x, y| image::Rgb([(x * 8) as u8, (y * 8) as u8, ((x ^ y) * 8) as u8]))
+        .save(tex.join("t.png"))
+        .unwrap();
+    let empty = dir.path().join("meshes");
+    std::fs::create_dir_all(&empty).unwrap();
+    std::fs::write(
+        empty.join("tet.off"),
+        "OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n",
+    )
+    .unwrap();
+    let set = dir.path().join("set");
+    let (set_s, tex_s, empty_s) = (s(&set), s(&tex), s(&empty));
+    let args = ["synth", "-o", &set_s, "--scenes", "2", "--size", "48x32", "--views", "3"];
+    let args: Vec<&str> = args.iter().copied().chain(["--textures", &tex_s, "--meshes", &empty_s]).collect();
+    let out = ok(&args);
+    assert!(out.contains("2 rendered") && out.contains("1 photographs and 1 meshes"), "{out}");
+    assert!(set.join("scene_00001/pairs.json").is_file() && set.join("synth.json").is_file());
+    assert!(ok(&args).contains("2 kept"), "a rerun keeps the set");
+    let run = dir.path().join("run");
+    let arch = s(&root.join("configs/tiny.toml"));
+    let out = ok(&[
+        "train",
+        "--arch",
+        &arch,
+        "--data",
+        &s(&set),
+        "-o",
+        &s(&run),
+        "--size",
+        "32x32",
+        "--steps",
+        "1",
+        "--batch",
+        "1",
+    ]);
+    assert!(out.contains("from 2 scenes"), "{out}");
+    assert!(run.join("model.safetensors").is_file());
+    let e = fails(&["synth", "-o", &s(&dir.path().join("x")), "--kind", "caves"]);
+    assert!(e.contains("--kind") && e.contains("rooms, objects or mixed"), "{e}");
+    let other: Vec<&str> = args.iter().map(|a| if *a == "3" { "4" } else { a }).collect();
+    let e = fails(&other);
+    assert!(e.contains("synth.json") && e.contains("other options"), "{e}");
+    let e = fails(&["synth", "-o", &tex_s, "--scenes", "1", "--textures", &tex_s, "--meshes", &empty_s]);
+    assert!(e.contains("not empty"), "{e}");
+}

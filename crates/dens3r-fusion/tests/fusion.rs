@@ -120,7 +120,7 @@ fn memory_grows_with_the_surface_not_the_box() {
         rotation: Quat::IDENTITY,
         translation: Vec3::new(x, 0.0, 0.0),
         class_id: 1,
-        material: mat,
+        material: mat.clone(),
     };
     let world = World::new(vec![obj(-2.0), obj(2.0)]).unwrap();
     let mut params = TsdfParams::new(0.01);

@@ -1,9 +1,13 @@
-//! Materials: a base colour modulated by a procedural 3-D texture evaluated in the object's
-//! own frame (so the pattern sticks to the surface and is view-consistent: something for
-//! feature matching to lock on).
+//! Materials: a base colour modulated by a texture evaluated in the object's own frame (so the
+//! pattern sticks to the surface and is view-consistent: something for feature matching to
+//! lock on): procedural 3-D patterns, or a photograph projected along the dominant axis of
+//! the surface normal (tri-planar mapping).
 
-/// A procedural texture pattern.
-#[derive(Debug, Clone, Copy, PartialEq)]
+use image::RgbImage;
+use std::sync::Arc;
+
+/// A texture pattern.
+#[derive(Debug, Clone, PartialEq)]
 pub enum Texture {
     /// Flat colour.
     Plain,
@@ -17,10 +21,18 @@ pub enum Texture {
         /// Feature size, in object units.
         scale: f32,
     },
+    /// A photograph tiled over the surface (mirrored repeat), projected along the dominant
+    /// axis of the object-space normal; `size` object units per image width.
+    Photo {
+        /// The picture (sRGB).
+        image: Arc<RgbImage>,
+        /// Object units covered by the image's width.
+        size: f32,
+    },
 }
 
 /// Surface appearance.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Material {
     /// Base colour, linear 0..1.
     pub color: [f32; 3],
@@ -31,23 +43,63 @@ pub struct Material {
 }
 
 impl Material {
-    /// Albedo at object-space point `p`.
-    pub fn albedo(&self, p: glam::Vec3) -> [f32; 3] {
-        let m = match self.texture {
+    /// Albedo at object-space point `p` with object-space normal `n`.
+    pub fn albedo(&self, p: glam::Vec3, n: glam::Vec3) -> [f32; 3] {
+        let m = match &self.texture {
             Texture::Plain => 1.0,
             Texture::Checker { size } => {
-                let c = (p / size).floor();
+                let c = (p / *size).floor();
                 let parity = (c.x + c.y + c.z).rem_euclid(2.0);
-                0.55 + 0.35 * parity + 0.1 * fbm(p / size * 3.0, self.seed)
+                0.55 + 0.35 * parity + 0.1 * fbm(p / *size * 3.0, self.seed)
             }
             Texture::Noise { scale } => {
                 // Stretch the noise (it clusters around 0.5) for strong, matchable contrast.
-                let n = ((fbm(p / scale, self.seed) - 0.5) * 2.5 + 0.5).clamp(0.0, 1.0);
+                let n = ((fbm(p / *scale, self.seed) - 0.5) * 2.5 + 0.5).clamp(0.0, 1.0);
                 0.3 + 0.7 * n
+            }
+            Texture::Photo { image, size } => {
+                let rgb = photo_texel(image, p, n, *size, self.seed);
+                return [0, 1, 2].map(|c| (self.color[c] * rgb[c]).clamp(0.0, 1.0));
             }
         };
         self.color.map(|c| (c * m).clamp(0.0, 1.0))
     }
+}
+
+/// Linear colour of `image` at the tri-planar coordinates of `p` (the two axes other than
+/// the normal's dominant one), bilinear with mirrored repeat; `seed` offsets the tiling.
+fn photo_texel(image: &RgbImage, p: glam::Vec3, n: glam::Vec3, size: f32, seed: u32) -> [f32; 3] {
+    let a = n.abs();
+    let (u, v) = if a.x >= a.y && a.x >= a.z {
+        (p.y, p.z)
+    } else if a.y >= a.z {
+        (p.x, p.z)
+    } else {
+        (p.x, p.y)
+    };
+    let (w, h) = (image.width().max(1) as f32, image.height().max(1) as f32);
+    let off = (seed % 1024) as f32 / 1024.0;
+    let x = (u / size.max(1e-6) + off) * w;
+    let y = (-v / size.max(1e-6) + off) * w;
+    let mirror = |t: f32, n: f32| {
+        let period = 2.0 * n;
+        let t = t.rem_euclid(period);
+        if t < n {
+            t
+        } else {
+            period - t - 1e-3
+        }
+    };
+    let (x, y) = (mirror(x - 0.5, w).clamp(0.0, w - 1.0), mirror(y - 0.5, h).clamp(0.0, h - 1.0));
+    let (x0, y0) = (x.floor() as u32, y.floor() as u32);
+    let (x1, y1) = ((x0 + 1).min(image.width() - 1), (y0 + 1).min(image.height() - 1));
+    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+    let px = |x: u32, y: u32, c: usize| (image.get_pixel(x, y)[c] as f32 / 255.0).powf(2.2);
+    [0, 1, 2].map(|c| {
+        let top = px(x0, y0, c) * (1.0 - fx) + px(x1, y0, c) * fx;
+        let bottom = px(x0, y1, c) * (1.0 - fx) + px(x1, y1, c) * fx;
+        top * (1.0 - fy) + bottom * fy
+    })
 }
 
 /// Fractal value noise in 0..1 (4 octaves).

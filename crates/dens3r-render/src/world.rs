@@ -81,6 +81,12 @@ pub struct World {
     pub light: Vec3,
     /// Ambient light fraction, 0..1.
     pub ambient: f32,
+    /// Strength of a Blinn-Phong highlight (0 = matte, the default).
+    pub specular: f32,
+    /// Blinn-Phong exponent of the highlight.
+    pub shininess: f32,
+    /// Colour where no object is hit (its depth is invalid).
+    pub background: [u8; 3],
 }
 
 impl World {
@@ -107,7 +113,15 @@ impl World {
                 Ok(Part { caster, inv_rotation: o.rotation.inverse(), lo, hi })
             })
             .collect::<Result<Vec<_>, String>>()?;
-        Ok(Self { objects, parts, light: Vec3::new(0.4, -0.3, 0.85).normalize(), ambient: 0.3 })
+        Ok(Self {
+            objects,
+            parts,
+            light: Vec3::new(0.4, -0.3, 0.85).normalize(),
+            ambient: 0.3,
+            specular: 0.0,
+            shininess: 32.0,
+            background: BACKGROUND,
+        })
     }
 
     /// The objects.
@@ -193,7 +207,7 @@ impl World {
                         instance: k as u16 + 1,
                         rgb: self.shade(k, origin + dir * t, n_world, dir),
                     },
-                    None => Sample { depth: 0.0, normal: Vec3::ZERO, label: 0, instance: 0, rgb: BACKGROUND },
+                    None => Sample { depth: 0.0, normal: Vec3::ZERO, label: 0, instance: 0, rgb: self.background },
                 }
             })
             .collect();
@@ -212,12 +226,18 @@ impl World {
 
     fn shade(&self, k: usize, p: Vec3, n: Vec3, view: Vec3) -> [u8; 3] {
         let o = &self.objects[k];
-        let albedo = o.material.albedo(self.parts[k].inv_rotation * (p - o.translation));
+        let inv = self.parts[k].inv_rotation;
+        let albedo = o.material.albedo(inv * (p - o.translation), inv * n);
         let diffuse = n.dot(self.light).max(0.0);
         let head = (-n.dot(view)).max(0.0);
         let light = self.ambient + (1.0 - self.ambient) * (0.75 * diffuse + 0.25 * head);
+        let highlight = if self.specular > 0.0 && diffuse > 0.0 {
+            self.specular * n.dot((self.light - view).normalize_or_zero()).max(0.0).powf(self.shininess)
+        } else {
+            0.0
+        };
         // Linear to sRGB-ish display values.
-        albedo.map(|a| ((a * light).clamp(0.0, 1.0).powf(1.0 / 2.2) * 255.0).round() as u8)
+        albedo.map(|a| ((a * light + highlight).clamp(0.0, 1.0).powf(1.0 / 2.2) * 255.0).round() as u8)
     }
 }
 

@@ -163,7 +163,7 @@ fn sphere_before_plane_normals_and_focal() {
             rotation: Quat::IDENTITY,
             translation: center,
             class_id: 5,
-            material: mat,
+            material: mat.clone(),
         },
         Object {
             name: "plane".into(),

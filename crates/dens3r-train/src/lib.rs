@@ -2,13 +2,15 @@
 //! by the official constructor's keywords; [`pair`] turns two scene-folder frames into a
 //! training pair with ground-truth pointmaps, normals and correspondences; [`loss`] holds the
 //! losses; [`train`] the two-stage loop (AdamW, warm-up + cosine, clipping, exact resume);
-//! [`run`] a whole run into a folder (checkpoints, JSONL log, final weights).
+//! [`run`] a whole run into a folder (checkpoints, JSONL log, final weights); [`synth`]
+//! writes procedural training scenes with their pairs' co-visibility (`dens3r synth`).
 
 pub mod arch;
 pub mod loss;
 pub mod pair;
 pub mod run;
+pub mod synth;
 pub mod train;
 
 pub use arch::Arch;
-pub use train::{Dataset, LossTerms, Stage, TrainConfig, Trainer};
+pub use train::{scene_dirs, Dataset, LossTerms, Stage, TrainConfig, Trainer};

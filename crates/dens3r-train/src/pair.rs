@@ -34,23 +34,38 @@ impl View {
     /// (depth and normals by nearest neighbour, so no value is invented at an edge). A frame
     /// without depth is an error naming its file and the fix.
     pub fn load(scene: &Scene, f: &Frame, (w, h): (usize, usize)) -> Result<Self, String> {
+        Self::load_window(scene, f, crop_window((f.width, f.height), (w, h), 1.0, (0.5, 0.5)), (w, h))
+    }
+
+    /// [`View::load`] of the window `(x0, y0, cw, ch)` (source pixels) resized to `(w, h)`.
+    pub fn load_window(
+        scene: &Scene,
+        f: &Frame,
+        (x0, y0, cw, ch): (usize, usize, usize, usize),
+        (w, h): (usize, usize),
+    ) -> Result<Self, String> {
         let image = scene.image(f).map_err(|e| e.to_string())?;
-        let depth = scene.depth(f).map_err(|e| e.to_string())?.ok_or_else(|| {
-            format!(
-                "{}: frame '{}' has no depth/{}.npy; training needs depth and poses (render or synthesise the scene with `dens3r render` / `dens3r synth`)",
-                scene.root().display(),
-                f.name,
-                f.name
-            )
-        })?;
+        let depth = scene.depth(f).map_err(|e| e.to_string())?.ok_or_else(|| missing_depth(scene, f))?;
         let normals = scene.normals(f).map_err(|e| e.to_string())?;
         let k = Intrinsics::from_rows(&f.k).ok_or_else(|| {
             format!("{}: frame '{}' has no valid pinhole K", scene.root().join("cameras.json").display(), f.name)
         })?;
         let (fw, fh) = (f.width, f.height);
-        // Crop to the target aspect, centred, then scale.
-        let (cw, ch) = if fw * h > fh * w { (fh * w / h, fh) } else { (fw, fw * h / w) };
-        let (x0, y0) = ((fw - cw) / 2, (fh - ch) / 2);
+        if image.width() as usize != fw
+            || image.height() as usize != fh
+            || depth.width() != fw
+            || depth.height() != fh
+            || x0 + cw > fw
+            || y0 + ch > fh
+            || cw == 0
+            || ch == 0
+        {
+            return Err(format!(
+                "{}: frame '{}': image or depth is not the {fw}x{fh} that cameras.json gives; re-render or fix the scene",
+                scene.root().display(),
+                f.name
+            ));
+        }
         let (sx, sy) = (w as f64 / cw as f64, h as f64 / ch as f64);
         let crop = image::imageops::crop_imm(&image, x0 as u32, y0 as u32, cw as u32, ch as u32).to_image();
         let image = image::imageops::resize(&crop, w as u32, h as u32, image::imageops::FilterType::Triangle);
@@ -88,6 +103,33 @@ impl View {
         let d = *self.depth.get(x, y);
         depth_valid(d).then(|| self.k.unproject(x as f64, y as f64) * d as f64)
     }
+}
+
+/// The message for a frame without depth.
+pub fn missing_depth(scene: &Scene, f: &Frame) -> String {
+    format!(
+        "{}: frame '{}' has no depth/{}.npy; training needs depth and poses (render or synthesise the scene with `dens3r render` / `dens3r synth`)",
+        scene.root().display(),
+        f.name,
+        f.name
+    )
+}
+
+/// A window of a `(fw, fh)` frame with the aspect of `(w, h)`: the largest such window scaled
+/// by `scale` (0..1], placed at `at` (each 0..1: left / top to right / bottom of the room
+/// left). Returns `(x0, y0, cw, ch)` in source pixels.
+pub fn crop_window(
+    (fw, fh): (usize, usize),
+    (w, h): (usize, usize),
+    scale: f64,
+    at: (f64, f64),
+) -> (usize, usize, usize, usize) {
+    let (cw, ch) = if fw * h > fh * w { (fh * w / h, fh) } else { (fw, fw * h / w) };
+    let s = scale.clamp(0.05, 1.0);
+    let (cw, ch) = (((cw as f64 * s).round() as usize).clamp(1, fw), ((ch as f64 * s).round() as usize).clamp(1, fh));
+    let x0 = ((fw - cw) as f64 * at.0.clamp(0.0, 1.0)).floor() as usize;
+    let y0 = ((fh - ch) as f64 * at.1.clamp(0.0, 1.0)).floor() as usize;
+    (x0.min(fw - cw), y0.min(fh - ch), cw, ch)
 }
 
 /// Dens3R's raw normal convention of an OpenCV normal: `(x, -y, z)`.

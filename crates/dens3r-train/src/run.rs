@@ -37,14 +37,26 @@ impl RunPaths {
     }
 }
 
-/// Runs (or resumes) training of `params` on `data` into `dir`; `progress(step, total, line)`
-/// is called after each step. Returns the trainer at the end.
+/// Held-out scenes scored during a run.
+pub struct Validation<'a> {
+    /// The held-out pairs.
+    pub data: &'a Dataset,
+    /// Steps between validations (and after the last step).
+    pub every: usize,
+    /// Fixed batches per validation.
+    pub batches: usize,
+}
+
+/// Runs (or resumes) training of `params` on `data` into `dir`, scoring `val` (if any) every
+/// `val.every` steps into the log; `progress(step, total, line)` is called after each step.
+/// Returns the trainer at the end.
 pub fn run(
     dir: &Path,
     params: Params,
     data: &Dataset,
     config: &TrainConfig,
     device: Device,
+    val: Option<&Validation>,
     progress: &mut dyn FnMut(usize, usize, &LogLine),
 ) -> Result<Trainer, String> {
     let paths = RunPaths::new(dir);
@@ -62,8 +74,11 @@ pub fn run(
         .open(&paths.log)
         .map_err(|e| format!("{}: cannot append ({e})", paths.log.display()))?;
     while trainer.step < config.steps {
-        let batch = data.batch(config, trainer.step, &device);
-        let line = trainer.train_step(&batch)?;
+        let batch = data.batch(config, trainer.params.config.patch, trainer.step, &device)?;
+        let mut line = trainer.train_step(&batch)?;
+        if let Some(v) = val.filter(|v| trainer.step.is_multiple_of(v.every.max(1)) || trainer.step == config.steps) {
+            line.val = Some(crate::train::validate(&trainer.params, v.data, config, v.batches)?);
+        }
         writeln!(log, "{}", serde_json::to_string(&line).map_err(|e| e.to_string())?)
             .map_err(|e| format!("{}: cannot write ({e})", paths.log.display()))?;
         progress(trainer.step, config.steps, &line);
@@ -100,7 +115,8 @@ fn write_log(path: &Path, lines: &[LogLine]) -> Result<(), String> {
     dens3r_mesh::io::write_atomic(path, |w| w.write_all(text.as_bytes())).map_err(|e| e.to_string())
 }
 
-/// The total loss per step as a PNG line plot (log scale, 640x360).
+/// The total loss per step as a PNG line plot (log scale, 640x360; red), held-out losses as
+/// blue squares.
 pub fn write_curve(path: &Path, lines: &[LogLine]) -> Result<(), String> {
     let (w, h) = (640u32, 360u32);
     let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
@@ -124,6 +140,19 @@ pub fn write_curve(path: &Path, lines: &[LogLine]) -> Result<(), String> {
                 let t = k as f32 / n as f32;
                 let (x, yy) = (x0 + (x1 - x0) * t, y0 + (y1 - y0) * t);
                 img.put_pixel((x as u32).min(w - 1), (yy as u32).min(h - 1), image::Rgb([200, 40, 40]));
+            }
+        }
+        // Held-out losses as blue squares on the same scale.
+        for (i, l) in lines.iter().enumerate() {
+            let Some(v) = l.val.as_ref().map(|v| v.loss).filter(|v| v.is_finite()) else { continue };
+            let yv = ((v - lo).max(0.0) + 1e-3).ln();
+            let x = m + pw * i as f32 / (lines.len() - 1).max(1) as f32;
+            let yy = m + ph * (1.0 - ((yv - ymin) / span).clamp(0.0, 1.0));
+            for dx in -2i32..=2 {
+                for dy in -2i32..=2 {
+                    let (px, py) = ((x as i32 + dx).clamp(0, w as i32 - 1), (yy as i32 + dy).clamp(0, h as i32 - 1));
+                    img.put_pixel(px as u32, py as u32, image::Rgb([40, 80, 220]));
+                }
             }
         }
         for x in 20..w - 20 {

@@ -4,9 +4,10 @@
 //! (each step's draw and augmentation are seeded by its index), and a JSONL log.
 
 use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, Matches, RegrView};
-use crate::pair::{pair_target, PairTarget, View};
+use crate::pair::{covisibility, crop_window, missing_depth, pair_target, PairTarget, View};
 use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::{Dens3r, Freeze, Params, Weights};
+use dens3r_scene::{Layer, Scene};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -64,6 +65,15 @@ pub struct TrainConfig {
     pub covis: (f64, f64),
     /// Colour jitter amplitude (brightness / contrast / saturation, multiplicative).
     pub jitter: f32,
+    /// Random crops: each view's window is the largest of the step's aspect scaled by a
+    /// factor drawn in `[crop, 1]` at a random place (1 = centre crops only).
+    #[serde(default = "one")]
+    pub crop: f32,
+    /// Random aspect ratios: each step's size keeps the long side of `size` and draws the
+    /// short side among multiples of the patch size from half to all of it, transposed
+    /// when the first pair's first frame is portrait (false = always `size`).
+    #[serde(default)]
+    pub aspects: bool,
     /// Frozen parameters.
     pub freeze: Freeze,
     /// Steps between checkpoints.
@@ -89,6 +99,8 @@ impl Default for TrainConfig {
             n_corres: 256,
             covis: (0.1, 0.98),
             jitter: 0.2,
+            crop: 1.0,
+            aspects: false,
             freeze: Freeze::None,
             checkpoint_every: 50,
             seed: 0,
@@ -106,11 +118,18 @@ impl TrainConfig {
         if self.batch == 0 || self.steps == 0 || !(self.lr > 0.0 && self.lr.is_finite()) {
             return Err("steps, batch and lr must be positive".into());
         }
+        if !(self.crop > 0.0 && self.crop <= 1.0) {
+            return Err(format!("--crop {}: expected a fraction in (0, 1]", self.crop));
+        }
         if self.checkpoint_every == 0 {
             return Err("checkpoint interval must be positive".into());
         }
         Ok(())
     }
+}
+
+fn one() -> f32 {
+    1.0
 }
 
 /// The loss terms of one step (unweighted) and their weighted total.
@@ -216,33 +235,88 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
     Ok((total, terms))
 }
 
-/// Training pairs: frames of each scene at network size, and the ordered pairs whose
-/// co-visibility falls in the configured range.
+/// Training pairs: scene folders (frames read from disk when a batch needs them, so a large
+/// dataset is not held in memory) and the ordered frame pairs whose co-visibility falls in the
+/// configured range: read from the scene's `pairs.json` (written by `dens3r synth`) or
+/// measured on the frames at network size.
 pub struct Dataset {
-    /// Frames per scene.
-    pub scenes: Vec<Vec<View>>,
+    /// The scenes.
+    pub scenes: Vec<Scene>,
     /// `(scene, frame 1, frame 2)`.
     pub pairs: Vec<(usize, usize, usize)>,
 }
 
+/// Scene folders under `dirs`: each one that holds `cameras.json`, else its sub-folders that
+/// do (sorted by name; e.g. a `dens3r synth` output).
+pub fn scene_dirs(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, String> {
+    let mut out = Vec::new();
+    for d in dirs {
+        if d.join("cameras.json").is_file() {
+            out.push(d.clone());
+            continue;
+        }
+        if !d.is_dir() {
+            return Err(format!(
+                "{}: no such scene folder; give scene folders or a `dens3r synth` output",
+                d.display()
+            ));
+        }
+        let mut subs: Vec<PathBuf> = std::fs::read_dir(d)
+            .map_err(|e| format!("{}: cannot list ({e})", d.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.join("cameras.json").is_file() && !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.'))
+            })
+            .collect();
+        if subs.is_empty() {
+            return Err(format!(
+                "{}: neither a scene folder (no cameras.json) nor a folder of scene folders",
+                d.display()
+            ));
+        }
+        subs.sort();
+        out.extend(subs);
+    }
+    Ok(out)
+}
+
 impl Dataset {
-    /// Reads scene folders (each with depth and poses) at `size` and lists their pairs.
+    /// Opens scene folders (or folders of them, see [`scene_dirs`]; each frame with depth
+    /// and a pose) and lists their pairs; co-visibility without `pairs.json` is measured at
+    /// `size`.
     pub fn load(dirs: &[PathBuf], size: (usize, usize), covis: (f64, f64)) -> Result<Self, String> {
         let mut scenes = Vec::new();
         let mut pairs = Vec::new();
-        for (s, d) in dirs.iter().enumerate() {
-            let views = crate::pair::load_views(d, size)?;
-            for i in 0..views.len() {
-                for j in 0..views.len() {
-                    if i != j {
-                        let c = crate::pair::covisibility(&views[i], &views[j]);
-                        if c >= covis.0 && c <= covis.1 {
-                            pairs.push((s, i, j));
-                        }
+        for (s, d) in scene_dirs(dirs)?.iter().enumerate() {
+            let scene = Scene::open(d).map_err(|e| e.to_string())?;
+            for f in scene.frames() {
+                if !scene.has(f, Layer::Depth) {
+                    return Err(missing_depth(&scene, f));
+                }
+            }
+            let n = scene.frames().len();
+            let listed = crate::synth::read_pairs(&scene)?;
+            let measured;
+            let table: &[f64] = match &listed {
+                Some(t) => t,
+                None => {
+                    let views =
+                        scene.frames().iter().map(|f| View::load(&scene, f, size)).collect::<Result<Vec<_>, _>>()?;
+                    measured = (0..n * n)
+                        .map(|k| if k / n == k % n { 0.0 } else { covisibility(&views[k / n], &views[k % n]) })
+                        .collect::<Vec<_>>();
+                    &measured
+                }
+            };
+            for i in 0..n {
+                for j in 0..n {
+                    let c = table[i * n + j];
+                    if i != j && c >= covis.0 && c <= covis.1 {
+                        pairs.push((s, i, j));
                     }
                 }
             }
-            scenes.push(views);
+            scenes.push(scene);
         }
         if pairs.is_empty() {
             return Err(format!(
@@ -255,26 +329,72 @@ impl Dataset {
         Ok(Self { scenes, pairs })
     }
 
-    /// The batch of step `step`: pairs drawn and images jittered by `(seed, step)`,
-    /// `n_corres` correspondences sampled per pair.
-    pub fn batch(&self, cfg: &TrainConfig, step: usize, device: &Device) -> Batch {
+    /// Checks that every frame has normals (stage 2 supervises the normal head with them).
+    pub fn require_normals(&self) -> Result<(), String> {
+        for scene in &self.scenes {
+            if let Some(f) = scene.frames().iter().find(|f| !scene.has(f, Layer::Normals)) {
+                return Err(format!(
+                    "{}: frame '{}' has no normals/{}.npy; stage 2 supervises the normal head (render or synthesise the scene, or train stage 1)",
+                    scene.root().display(),
+                    f.name,
+                    f.name
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The network size of step `step` (see [`TrainConfig::aspects`]) for a first frame of
+    /// `(fw, fh)` pixels.
+    pub fn step_size(
+        cfg: &TrainConfig,
+        patch: usize,
+        (fw, fh): (usize, usize),
+        rng: &mut ChaCha8Rng,
+    ) -> (usize, usize) {
+        if !cfg.aspects {
+            return cfg.size;
+        }
+        let long = cfg.size.0.max(cfg.size.1);
+        let lo = (long / 2).div_ceil(patch).max(1);
+        let short = rng.gen_range(lo..=long / patch) * patch;
+        if fh > fw {
+            (short, long)
+        } else {
+            (long, short)
+        }
+    }
+
+    /// The batch of step `step`: pairs drawn, windows cropped and images jittered by
+    /// `(seed, step)`, `n_corres` correspondences sampled per pair; `patch` is the network's
+    /// patch size.
+    pub fn batch(&self, cfg: &TrainConfig, patch: usize, step: usize, device: &Device) -> Result<Batch, String> {
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ (step as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
-        let (w, h) = cfg.size;
+        let picks: Vec<(usize, usize, usize)> =
+            (0..cfg.batch).map(|_| self.pairs[rng.gen_range(0..self.pairs.len())]).collect();
+        let first = &self.scenes[picks[0].0].frames()[picks[0].1];
+        let (w, h) = Self::step_size(cfg, patch, (first.width, first.height), &mut rng);
         let mut imgs = [Vec::new(), Vec::new()];
         let mut targets = Vec::with_capacity(cfg.batch);
-        for _ in 0..cfg.batch {
-            let (s, i, j) = self.pairs[rng.gen_range(0..self.pairs.len())];
-            let (v1, v2) = (&self.scenes[s][i], &self.scenes[s][j]);
-            let mut t = pair_target(v1, v2);
+        for (s, i, j) in picks {
+            let scene = &self.scenes[s];
+            let mut load = |k: usize| {
+                let f = &scene.frames()[k];
+                let scale = if cfg.crop < 1.0 { rng.gen_range(cfg.crop as f64..=1.0) } else { 1.0 };
+                let at = if cfg.crop < 1.0 { (rng.gen_range(0.0..=1.0), rng.gen_range(0.0..=1.0)) } else { (0.5, 0.5) };
+                View::load_window(scene, f, crop_window((f.width, f.height), (w, h), scale, at), (w, h))
+            };
+            let (v1, v2) = (load(i)?, load(j)?);
+            let mut t = pair_target(&v1, &v2);
             t.matches = sample_matches(&t.matches, cfg.n_corres, &mut rng);
-            for (k, v) in [v1, v2].into_iter().enumerate() {
+            for (k, v) in [&v1, &v2].into_iter().enumerate() {
                 imgs[k].extend(jitter(normalise(&v.image), cfg.jitter, &mut rng));
             }
             targets.push(t);
         }
         let b = cfg.batch;
         let images = imgs.map(|v| Tensor::<4>::from_data(TensorData::new(v, [b, 3, h, w]), device));
-        Batch { images, targets }
+        Ok(Batch { images, targets })
     }
 }
 
@@ -341,6 +461,42 @@ pub struct LogLine {
     pub terms: LossTerms,
     /// Gradient norm before clipping.
     pub grad_norm: f32,
+    /// Mean loss terms on the held-out scenes after this step (when validated).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub val: Option<LossTerms>,
+}
+
+/// The mean loss terms of `params` on `batches` fixed batches of held-out `data` (no
+/// gradients, the inference device; centre crops at `cfg.size`, no jitter, draws seeded
+/// apart from training's so every validation sees the same pairs).
+pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usize) -> Result<LossTerms, String> {
+    let device = Device::flex();
+    let vcfg = TrainConfig { crop: 1.0, aspects: false, jitter: 0.0, seed: 0x5eed_0a11_d00d, ..cfg.clone() };
+    let tensors = params.tensors(&device, &vec![false; params.values.len()]);
+    let model = params.model(&tensors, &device);
+    let n = batches.max(1);
+    let mut sum = LossTerms::default();
+    let add = |a: Option<f32>, b: Option<f32>| match (a, b) {
+        (None, None) => None,
+        (a, b) => Some(a.unwrap_or(0.0) + b.unwrap_or(0.0)),
+    };
+    for k in 0..n {
+        let b = data.batch(&vcfg, params.config.patch, k, &device)?;
+        let (_, t) = batch_loss(&model, &b, &vcfg)?;
+        sum.loss += t.loss;
+        sum.pts_glb += t.pts_glb;
+        sum.pts_n += t.pts_n;
+        sum.matching = add(sum.matching, t.matching);
+        sum.n = add(sum.n, t.n);
+    }
+    let m = n as f32;
+    Ok(LossTerms {
+        loss: sum.loss / m,
+        pts_glb: sum.pts_glb / m,
+        pts_n: sum.pts_n / m,
+        matching: sum.matching.map(|v| v / m),
+        n: sum.n.map(|v| v / m),
+    })
 }
 
 impl Trainer {
@@ -401,7 +557,7 @@ impl Trainer {
                 vals[j] -= lr * (m[j] / c1) / ((v[j] / c2).sqrt() + eps);
             }
         }
-        let line = LogLine { step: self.step, lr, terms, grad_norm: norm };
+        let line = LogLine { step: self.step, lr, terms, grad_norm: norm, val: None };
         self.step += 1;
         Ok(line)
     }

@@ -1,0 +1,361 @@
+//! Varied procedural scenes for training: rooms of random size furnished with primitives and
+//! scanned meshes, and assemblies of objects seen from orbits, with textures cut from real
+//! photographs (or procedural ones), random materials, lights and shading, random intrinsics
+//! (40-100 degree horizontal field of view, landscape or portrait) and camera paths whose
+//! baselines range from a few centimetres to a large part of the scene. Everything is drawn
+//! from one seed: the same seed and assets give the same scene.
+
+use crate::material::{Material, Texture};
+use crate::procedural::{blob_mesh, CLASS_OBJECT};
+use crate::world::{Object, Shape, World};
+use dens3r_geom::camera::look_at;
+use dens3r_geom::{Intrinsics, PinholeCamera};
+use dens3r_mesh::primitives::{quad, torus};
+use dens3r_mesh::TriMesh;
+use glam::{DMat4, DVec3, Quat, Vec3};
+use image::RgbImage;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::path::Path;
+use std::sync::Arc;
+
+/// Which scenes to draw.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SynthKind {
+    /// Furnished rooms, cameras walking inside.
+    Rooms,
+    /// Object assemblies on a ground plane, cameras orbiting.
+    Objects,
+    /// Each scene a room or an object set, by a coin flip of its seed.
+    Mixed,
+}
+
+impl SynthKind {
+    /// `rooms`, `objects` or `mixed`.
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "rooms" => Some(Self::Rooms),
+            "objects" => Some(Self::Objects),
+            "mixed" => Some(Self::Mixed),
+            _ => None,
+        }
+    }
+}
+
+/// Real material the scenes are built from (all optional: without it, textures are
+/// procedural and objects primitives or blobs).
+#[derive(Debug, Clone, Default)]
+pub struct Assets {
+    /// Photographs used as textures.
+    pub photos: Vec<Arc<RgbImage>>,
+    /// Scanned meshes, each centred with its largest extent 1.
+    pub meshes: Vec<Arc<TriMesh>>,
+    /// File names of the photographs and meshes, in order (for the dataset manifest).
+    pub names: Vec<String>,
+}
+
+impl Assets {
+    /// Reads every `.png` / `.jpg` of `photos` and `.off` / `.ply` / `.obj` of `meshes`
+    /// (folders that do not exist are skipped), in file-name order.
+    pub fn load(photos: Option<&Path>, meshes: Option<&Path>) -> Result<Self, String> {
+        let list = |dir: Option<&Path>, exts: &[&str]| -> Result<Vec<std::path::PathBuf>, String> {
+            let Some(dir) = dir.filter(|d| d.is_dir()) else { return Ok(Vec::new()) };
+            let mut v: Vec<_> = std::fs::read_dir(dir)
+                .map_err(|e| format!("{}: cannot list ({e})", dir.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| {
+                    p.extension()
+                        .and_then(|e| e.to_str())
+                        .is_some_and(|e| exts.contains(&e.to_ascii_lowercase().as_str()))
+                })
+                .collect();
+            v.sort();
+            Ok(v)
+        };
+        let mut out = Self::default();
+        for p in list(photos, &["png", "jpg", "jpeg"])? {
+            let img = image::open(&p).map_err(|e| format!("{}: cannot read the photograph ({e})", p.display()))?;
+            out.photos.push(Arc::new(img.to_rgb8()));
+            out.names.push(file_name(&p));
+        }
+        for p in list(meshes, &["off", "ply", "obj"])? {
+            let mut m = dens3r_mesh::io::read_mesh(&p).map_err(|e| format!("{}: {e}", p.display()))?;
+            let (lo, hi) = m.bounds().ok_or_else(|| format!("{}: the mesh is empty", p.display()))?;
+            let s = 1.0 / (hi - lo).max_element().max(1e-9);
+            let c = (lo + hi) * 0.5;
+            m.transform(&(glam::Mat4::from_scale(Vec3::splat(s)) * glam::Mat4::from_translation(-c)));
+            m.normals = None;
+            m.compute_vertex_normals();
+            out.meshes.push(Arc::new(m));
+            out.names.push(file_name(&p));
+        }
+        Ok(out)
+    }
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
+}
+
+/// A drawn scene: the world and its cameras.
+pub struct SynthScene {
+    /// Objects, light and shading.
+    pub world: World,
+    /// One camera per view (OpenCV, camera-to-world).
+    pub cameras: Vec<PinholeCamera>,
+    /// `room` or `objects`.
+    pub kind: &'static str,
+}
+
+/// The seed of scene `index` of a dataset seeded with `seed` (SplitMix64).
+pub fn scene_seed(seed: u64, index: usize) -> u64 {
+    let mut z = seed ^ (index as u64).wrapping_add(1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// Draws one scene of `kind` from `seed` with `views` cameras of `size` (W, H; swapped for
+/// portrait scenes).
+pub fn synth_scene(
+    kind: SynthKind,
+    seed: u64,
+    size: (usize, usize),
+    views: usize,
+    assets: &Assets,
+) -> Result<SynthScene, String> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let room = match kind {
+        SynthKind::Rooms => true,
+        SynthKind::Objects => false,
+        SynthKind::Mixed => rng.gen_bool(0.5),
+    };
+    let (objects, poses) =
+        if room { room_scene(&mut rng, views, assets) } else { object_scene(&mut rng, views, assets) };
+    let mut world = World::new(objects)?;
+    // Light from above at a random azimuth, random ambient and gloss.
+    let (az, el) = (rng.gen_range(0.0..std::f32::consts::TAU), rng.gen_range(0.3..1.4f32));
+    world.light = Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()).normalize();
+    world.ambient = rng.gen_range(0.15..0.5);
+    world.specular = if rng.gen_bool(0.5) { rng.gen_range(0.0..0.35) } else { 0.0 };
+    world.shininess = rng.gen_range(8.0..64.0);
+    world.background = [rng.gen(), rng.gen(), rng.gen()];
+    // Intrinsics: one field of view per scene, a little zoom per view; portrait sometimes.
+    let (w, h) = if rng.gen_bool(0.3) { (size.1, size.0) } else { size };
+    let hfov = rng.gen_range(40.0..100.0f64);
+    let cameras = poses
+        .into_iter()
+        .map(|pose| {
+            let f = Intrinsics::from_hfov(w, h, hfov).fx * rng.gen_range(0.92..1.08);
+            let intrinsics = Intrinsics { fx: f, fy: f, cx: w as f64 / 2.0, cy: h as f64 / 2.0 };
+            PinholeCamera { intrinsics, width: w, height: h, cam_to_world: pose }
+        })
+        .collect();
+    Ok(SynthScene { world, cameras, kind: if room { "room" } else { "objects" } })
+}
+
+fn material(rng: &mut ChaCha8Rng, assets: &Assets, scale: f32) -> Material {
+    let tint: f32 = rng.gen_range(0.6..1.0);
+    let mut color = [0.0; 3].map(|_| rng.gen_range(0.3..1.0f32));
+    let texture = match rng.gen_range(0..10) {
+        0..=4 if !assets.photos.is_empty() => {
+            color = [0.0; 3].map(|_| (tint * rng.gen_range(0.85..1.15f32)).min(1.0));
+            let image = assets.photos[rng.gen_range(0..assets.photos.len())].clone();
+            Texture::Photo { image, size: scale * rng.gen_range(0.5..3.0) }
+        }
+        0..=5 => Texture::Checker { size: scale * rng.gen_range(0.08..0.5) },
+        6..=8 => Texture::Noise { scale: scale * rng.gen_range(0.03..0.4) },
+        _ => Texture::Plain,
+    };
+    Material { color, texture, seed: rng.gen() }
+}
+
+fn spin(rng: &mut ChaCha8Rng) -> Quat {
+    Quat::from_rotation_z(rng.gen_range(0.0..std::f32::consts::TAU))
+}
+
+/// One random object of largest extent about `s`, standing on `z = base` at `(x, y)`:
+/// `(name, shape, rotation, translation, class)`.
+fn random_object(rng: &mut ChaCha8Rng, assets: &Assets, s: f32, at: Vec3) -> (String, Shape, Quat, Vec3, u16) {
+    let pick = rng.gen_range(0..if assets.meshes.is_empty() { 4 } else { 6 });
+    match pick {
+        0 => {
+            let half = Vec3::new(rng.gen_range(0.2..0.5), rng.gen_range(0.2..0.5), rng.gen_range(0.15..0.6)) * s;
+            ("box".into(), Shape::Cuboid { half }, spin(rng), at + Vec3::Z * half.z, 4)
+        }
+        1 => {
+            let r = rng.gen_range(0.2..0.5) * s;
+            let lift = if rng.gen_bool(0.3) { rng.gen_range(0.0..1.0) * s } else { 0.0 };
+            ("sphere".into(), Shape::Sphere { radius: r }, Quat::IDENTITY, at + Vec3::Z * (r + lift), 5)
+        }
+        2 => {
+            let (major, minor) = (rng.gen_range(0.25..0.4) * s, rng.gen_range(0.05..0.15) * s);
+            let upright = rng.gen_bool(0.5);
+            let tilt = if upright { spin(rng) * Quat::from_rotation_x(std::f32::consts::FRAC_PI_2) } else { spin(rng) };
+            let lift = if upright { major + minor } else { minor };
+            ("torus".into(), Shape::Mesh(Arc::new(torus(major, minor, 64, 32))), tilt, at + Vec3::Z * lift, 6)
+        }
+        3 => {
+            let m = blob_mesh(rng.gen(), 4);
+            let r = rng.gen_range(0.2..0.45) * s;
+            let mut m = m;
+            m.transform(&glam::Mat4::from_scale(Vec3::splat(r)));
+            m.compute_vertex_normals();
+            let lo = m.bounds().map_or(-r, |(lo, _)| lo.z);
+            ("blob".into(), Shape::Mesh(Arc::new(m)), spin(rng), at - Vec3::Z * lo, CLASS_OBJECT)
+        }
+        _ => {
+            let k = rng.gen_range(0..assets.meshes.len());
+            let scale = rng.gen_range(0.5..1.0) * s;
+            // Stand the (z-up or y-up) scan on a random face.
+            let up = match rng.gen_range(0..3) {
+                0 => Quat::IDENTITY,
+                1 => Quat::from_rotation_x(std::f32::consts::FRAC_PI_2),
+                _ => Quat::from_rotation_y(std::f32::consts::FRAC_PI_2),
+            };
+            let mut m = (*assets.meshes[k]).clone();
+            m.transform(&glam::Mat4::from_scale_rotation_translation(Vec3::splat(scale), up, Vec3::ZERO));
+            m.compute_vertex_normals();
+            let lo = m.bounds().map_or(0.0, |(lo, _)| lo.z);
+            (format!("scan_{k}"), Shape::Mesh(Arc::new(m)), spin(rng), at - Vec3::Z * lo, CLASS_OBJECT)
+        }
+    }
+}
+
+fn room_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object>, Vec<DMat4>) {
+    let size = Vec3::new(rng.gen_range(3.0..8.0), rng.gen_range(3.0..8.0), rng.gen_range(2.4..3.5));
+    let (lo, hi) = (Vec3::new(-size.x / 2.0, -size.y / 2.0, 0.0), Vec3::new(size.x / 2.0, size.y / 2.0, size.z));
+    let mut objs = Vec::new();
+    let add = |objs: &mut Vec<Object>,
+               name: String,
+               shape: Shape,
+               rotation: Quat,
+               translation: Vec3,
+               class_id: u16,
+               material: Material| {
+        objs.push(Object { name, shape, rotation, translation, class_id, material });
+    };
+    let surf = |m: TriMesh| Shape::Mesh(Arc::new(m));
+    let floor_mat = material(rng, assets, 1.0);
+    add(
+        &mut objs,
+        "floor".into(),
+        surf(quad(lo, Vec3::Y * size.y, Vec3::X * size.x)),
+        Quat::IDENTITY,
+        Vec3::ZERO,
+        1,
+        floor_mat,
+    );
+    let ceil = quad(Vec3::new(lo.x, lo.y, hi.z), Vec3::X * size.x, Vec3::Y * size.y);
+    let ceil_mat = material(rng, assets, 1.0);
+    add(&mut objs, "ceiling".into(), surf(ceil), Quat::IDENTITY, Vec3::ZERO, 3, ceil_mat);
+    let walls = [
+        quad(lo, Vec3::X * size.x, Vec3::Z * size.z),
+        quad(Vec3::new(hi.x, hi.y, lo.z), Vec3::NEG_X * size.x, Vec3::Z * size.z),
+        quad(Vec3::new(lo.x, hi.y, lo.z), Vec3::NEG_Y * size.y, Vec3::Z * size.z),
+        quad(Vec3::new(hi.x, lo.y, lo.z), Vec3::Y * size.y, Vec3::Z * size.z),
+    ];
+    let shared_walls = rng.gen_bool(0.5).then(|| material(rng, assets, 1.0));
+    for (i, m) in walls.into_iter().enumerate() {
+        let mat = shared_walls.clone().unwrap_or_else(|| material(rng, assets, 1.0));
+        add(&mut objs, format!("wall_{i}"), surf(m), Quat::IDENTITY, Vec3::ZERO, 2, mat);
+    }
+    // Furniture in the outer band of the room; the cameras stay in the inner ellipse.
+    let half = Vec3::new(size.x / 2.0, size.y / 2.0, 0.0);
+    let n = rng.gen_range(6..=16);
+    let mut spots = Vec::with_capacity(n);
+    for i in 0..n {
+        let a = rng.gen_range(0.0..std::f32::consts::TAU);
+        let r = rng.gen_range(0.55..0.88);
+        let at = Vec3::new(half.x * r * a.cos(), half.y * r * a.sin(), 0.0);
+        spots.push(at);
+        let s = rng.gen_range(0.7..2.0);
+        let (name, shape, rot, t, class) = random_object(rng, assets, s, at);
+        let mat = material(rng, assets, s);
+        add(&mut objs, format!("{name}_{i}"), shape, rot, t, class, mat);
+    }
+    // A walk in the inner ellipse: steps of a per-scene baseline, each view looking at a
+    // point across the room that drifts from view to view.
+    let step = rng.gen_range(0.05..0.6f64);
+    let inner = |p: DVec3| {
+        let (ex, ey) = (p.x / (0.4 * half.x as f64), p.y / (0.4 * half.y as f64));
+        let k = (ex * ex + ey * ey).sqrt();
+        if k > 1.0 {
+            DVec3::new(p.x / k, p.y / k, p.z)
+        } else {
+            p
+        }
+    };
+    let mut eye = inner(DVec3::new(
+        rng.gen_range(-0.4..0.4) * half.x as f64,
+        rng.gen_range(-0.4..0.4) * half.y as f64,
+        rng.gen_range(0.8..2.0f64).min(size.z as f64 - 0.4),
+    ));
+    // Start looking at a piece of furniture.
+    let look = spots[rng.gen_range(0..spots.len())].as_dvec3() - eye;
+    let mut heading = look.y.atan2(look.x) + rng.gen_range(-0.3..0.3);
+    let pitch0 = rng.gen_range(-0.5..0.2f64);
+    let mut poses = Vec::with_capacity(views);
+    for _ in 0..views {
+        let dir = DVec3::new(heading.cos(), heading.sin(), pitch0 + rng.gen_range(-0.15..0.15));
+        poses.push(camera(rng, eye, eye + dir));
+        heading += rng.gen_range(-0.5..0.5) * step.sqrt();
+        let walk = DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(-0.2..0.2));
+        eye = inner(eye + walk.normalize_or_zero() * step);
+        eye.z = eye.z.clamp(0.5, size.z as f64 - 0.3);
+    }
+    (objs, poses)
+}
+
+fn object_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object>, Vec<DMat4>) {
+    let mut objs = Vec::new();
+    if rng.gen_bool(0.8) {
+        let g = rng.gen_range(4.0..12.0);
+        let ground = quad(Vec3::new(-g, -g, 0.0), Vec3::Y * 2.0 * g, Vec3::X * 2.0 * g);
+        let material = material(rng, assets, 1.0);
+        objs.push(Object {
+            name: "ground".into(),
+            shape: Shape::Mesh(Arc::new(ground)),
+            rotation: Quat::IDENTITY,
+            translation: Vec3::ZERO,
+            class_id: 1,
+            material,
+        });
+    }
+    let n = rng.gen_range(1..=5);
+    let spread = if n == 1 { 0.0 } else { rng.gen_range(0.4..1.0f32) };
+    for i in 0..n {
+        let a = rng.gen_range(0.0..std::f32::consts::TAU);
+        let at = Vec3::new(a.cos(), a.sin(), 0.0) * spread * rng.gen_range(0.3..1.0);
+        let s = rng.gen_range(0.5..1.2);
+        let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
+        let material = material(rng, assets, s);
+        objs.push(Object { name: format!("{name}_{i}"), shape, rotation, translation, class_id, material });
+    }
+    let center = DVec3::new(0.0, 0.0, rng.gen_range(0.2..0.6));
+    let radius = rng.gen_range(1.6..4.5f64);
+    let el0 = rng.gen_range(10.0..60.0f64);
+    let span = rng.gen_range(30.0..200.0f64).to_radians();
+    let a0 = rng.gen_range(0.0..std::f64::consts::TAU);
+    let poses = (0..views)
+        .map(|k| {
+            let t = if views > 1 { k as f64 / (views - 1) as f64 } else { 0.0 };
+            let a = a0 + span * t + rng.gen_range(-0.05..0.05);
+            let el = (el0 + rng.gen_range(-8.0..8.0)).clamp(5.0, 80.0).to_radians();
+            let r = radius * rng.gen_range(0.85..1.15);
+            let eye = center + DVec3::new(el.cos() * a.cos(), el.cos() * a.sin(), el.sin()) * r;
+            let target =
+                center + DVec3::new(rng.gen_range(-0.2..0.2), rng.gen_range(-0.2..0.2), rng.gen_range(-0.1..0.1));
+            camera(rng, eye, target)
+        })
+        .collect();
+    (objs, poses)
+}
+
+/// A camera at `eye` looking at `target` (world up +z), rolled by a few degrees sometimes.
+fn camera(rng: &mut ChaCha8Rng, eye: DVec3, target: DVec3) -> DMat4 {
+    let pose = look_at(eye, target, DVec3::Z)
+        .unwrap_or_else(|| look_at(eye, target + DVec3::X * 1e-3, DVec3::Z).unwrap_or(DMat4::from_translation(eye)));
+    let roll = if rng.gen_bool(0.3) { rng.gen_range(-0.15..0.15f64) } else { 0.0 };
+    pose * DMat4::from_rotation_z(roll)
+}

@@ -1,0 +1,201 @@
+//! `dens3r synth`: a training set of procedural scenes (dens3r-render's [`synth_scene`]) written
+//! as scene folders, each with `pairs.json`, the measured co-visibility of every ordered frame
+//! pair (the fraction of one view's pixels that reproject, unoccluded, into the other), from
+//! which training draws its pairs as DUSt3R's are drawn. The same options and assets give the
+//! same bytes; a rerun after an interruption keeps the finished scenes.
+
+use crate::pair::{covisibility, View};
+use dens3r_render::procedural::classes;
+use dens3r_render::render_cameras_to_scene;
+use dens3r_render::synth::{scene_seed, synth_scene, Assets, SynthKind};
+use dens3r_scene::Scene;
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// The file of a scene folder that lists its pairs' co-visibility.
+pub const PAIRS_FILE: &str = "pairs.json";
+/// The dataset manifest at the top of a `synth` output.
+pub const MANIFEST_FILE: &str = "synth.json";
+
+/// What to synthesise.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SynthOptions {
+    /// Number of scenes.
+    pub scenes: usize,
+    /// Seed of the whole set (scene `k` is drawn from `scene_seed(seed, k)`).
+    pub seed: u64,
+    /// `rooms`, `objects` or `mixed`.
+    pub kind: String,
+    /// Landscape image size `(W, H)` (portrait scenes swap it).
+    pub size: (usize, usize),
+    /// Views per scene.
+    pub views: usize,
+    /// Write each scene's `gt_mesh.ply`.
+    pub gt_mesh: bool,
+}
+
+impl SynthOptions {
+    /// Checks the options; returns the kind.
+    pub fn check(&self) -> Result<SynthKind, String> {
+        let kind = SynthKind::parse(&self.kind)
+            .ok_or_else(|| format!("--kind {:?}: expected rooms, objects or mixed", self.kind))?;
+        let (w, h) = self.size;
+        if !(16..=4096).contains(&w) || !(16..=4096).contains(&h) {
+            return Err(format!("--size {w}x{h}: each side must be 16..4096 pixels"));
+        }
+        if !(2..=1000).contains(&self.views) || !(1..=1_000_000).contains(&self.scenes) {
+            return Err("--views must be 2..1000 and --scenes 1..1000000".into());
+        }
+        Ok(kind)
+    }
+}
+
+#[derive(Serialize, Deserialize)]
+struct Manifest {
+    format: String,
+    options: SynthOptions,
+    assets: Vec<String>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct PairsFile {
+    format: String,
+    frames: Vec<String>,
+    /// Row-major `n x n`: entry `i * n + j` is the co-visibility of frame `i` in frame `j`.
+    covisibility: Vec<f64>,
+}
+
+const PAIRS_FORMAT: &str = "dens3r-pairs/1";
+const MANIFEST_FORMAT: &str = "dens3r-synth/1";
+
+/// What [`synthesise`] did.
+#[derive(Debug, Clone, Default)]
+pub struct SynthSummary {
+    /// Scenes rendered by this call.
+    pub rendered: usize,
+    /// Scenes already complete (kept).
+    pub kept: usize,
+    /// Ordered pairs with co-visibility in `[0.1, 0.98]`, over all scenes.
+    pub pairs: usize,
+    /// Rooms and object scenes rendered by this call.
+    pub rooms: usize,
+    /// See `rooms`.
+    pub objects: usize,
+}
+
+/// The folder of scene `k` under `out`.
+pub fn scene_dir(out: &Path, k: usize) -> PathBuf {
+    out.join(format!("scene_{k:05}"))
+}
+
+/// Writes (or completes) the set into `out`; `progress(done, total)` after each scene.
+pub fn synthesise(
+    out: &Path,
+    opts: &SynthOptions,
+    assets: &Assets,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<SynthSummary, String> {
+    let kind = opts.check()?;
+    std::fs::create_dir_all(out).map_err(|e| format!("{}: cannot create ({e})", out.display()))?;
+    let manifest = Manifest { format: MANIFEST_FORMAT.into(), options: opts.clone(), assets: assets.names.clone() };
+    let mpath = out.join(MANIFEST_FILE);
+    if mpath.is_file() {
+        let text = std::fs::read_to_string(&mpath).map_err(|e| format!("{}: {e}", mpath.display()))?;
+        let old: Manifest = serde_json::from_str(&text)
+            .map_err(|e| format!("{}: damaged manifest ({e}); delete the folder to start over", mpath.display()))?;
+        // A rerun with more scenes extends the set; anything else must match.
+        let same = old.format == manifest.format
+            && old.assets == manifest.assets
+            && SynthOptions { scenes: opts.scenes, ..old.options.clone() } == *opts;
+        if !same {
+            return Err(format!(
+                "{}: this folder holds a set made with other options or assets; use another -o or delete it",
+                mpath.display()
+            ));
+        }
+    } else if std::fs::read_dir(out).map_err(|e| e.to_string())?.next().is_some() {
+        return Err(format!(
+            "{}: the folder is not empty and holds no {MANIFEST_FILE}; give a new folder",
+            out.display()
+        ));
+    }
+    let text = serde_json::to_string_pretty(&manifest).map_err(|e| e.to_string())?;
+    dens3r_mesh::io::write_atomic(&mpath, |f| f.write_all(text.as_bytes()))
+        .map_err(|e| format!("{}: {e}", mpath.display()))?;
+    let mut summary = SynthSummary::default();
+    for k in 0..opts.scenes {
+        let dir = scene_dir(out, k);
+        if dir.join(PAIRS_FILE).is_file() {
+            summary.kept += 1;
+        } else {
+            // Render beside the final folder, then rename: a killed run leaves no half scene.
+            let tmp = out.join(format!(".scene_{k:05}.tmp"));
+            for d in [&tmp, &dir] {
+                if d.exists() {
+                    std::fs::remove_dir_all(d).map_err(|e| format!("{}: cannot remove ({e})", d.display()))?;
+                }
+            }
+            let scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;
+            render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})
+                .map_err(|e| e.to_string())?;
+            write_pairs(&tmp)?;
+            std::fs::rename(&tmp, &dir).map_err(|e| format!("{}: cannot rename ({e})", dir.display()))?;
+            summary.rendered += 1;
+            if scene.kind == "room" {
+                summary.rooms += 1;
+            } else {
+                summary.objects += 1;
+            }
+        }
+        let s = Scene::open(&dir).map_err(|e| e.to_string())?;
+        let n = s.frames().len();
+        let table = read_pairs(&s)?.unwrap_or_default();
+        summary.pairs += (0..n * n).filter(|&i| i / n != i % n && (0.1..=0.98).contains(&table[i])).count();
+        progress(k + 1, opts.scenes);
+    }
+    Ok(summary)
+}
+
+/// Measures the co-visibility of every ordered frame pair of the scene in `dir` (at full
+/// resolution) and writes its `pairs.json`.
+pub fn write_pairs(dir: &Path) -> Result<(), String> {
+    let scene = Scene::open(dir).map_err(|e| e.to_string())?;
+    let views =
+        scene.frames().iter().map(|f| View::load(&scene, f, (f.width, f.height))).collect::<Result<Vec<_>, _>>()?;
+    let n = views.len();
+    let covisibility = (0..n * n)
+        .map(|k| if k / n == k % n { 1.0 } else { (covisibility(&views[k / n], &views[k % n]) * 1e4).round() / 1e4 })
+        .collect();
+    let file =
+        PairsFile { format: PAIRS_FORMAT.into(), frames: views.iter().map(|v| v.name.clone()).collect(), covisibility };
+    let text = serde_json::to_string(&file).map_err(|e| e.to_string())?;
+    let path = dir.join(PAIRS_FILE);
+    dens3r_mesh::io::write_atomic(&path, |f| f.write_all(text.as_bytes()))
+        .map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// The co-visibility table (`n x n`, row-major) of a scene's `pairs.json`, if it has one that
+/// lists exactly its frames.
+pub fn read_pairs(scene: &Scene) -> Result<Option<Vec<f64>>, String> {
+    let path = scene.root().join(PAIRS_FILE);
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let file: PairsFile = serde_json::from_str(&text)
+        .map_err(|e| format!("{}: damaged ({e}); delete it to have co-visibility measured again", path.display()))?;
+    let names: Vec<&str> = scene.frames().iter().map(|f| f.name.as_str()).collect();
+    let n = names.len();
+    if file.format != PAIRS_FORMAT
+        || file.frames.iter().map(|s| s.as_str()).collect::<Vec<_>>() != names
+        || file.covisibility.len() != n * n
+        || file.covisibility.iter().any(|c| !c.is_finite())
+    {
+        return Err(format!(
+            "{}: does not list this scene's frames; delete it to have co-visibility measured again",
+            path.display()
+        ));
+    }
+    Ok(Some(file.covisibility))
+}

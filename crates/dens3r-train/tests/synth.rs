@@ -1,0 +1,250 @@
+//! `dens3r synth` and the data side of training: reproducible bytes, resumable writing,
+//! co-visibility tables read back by the dataset, ground-truth correspondences on a rendered
+//! box against ray-box geometry computed here, and random crops / aspects that keep the
+//! camera model exact.
+
+use dens3r_geom::camera::{rigid_inverse, Intrinsics};
+use dens3r_geom::{look_at, PinholeCamera};
+use dens3r_render::synth::Assets;
+use dens3r_render::{render_cameras_to_scene, Material, Object, Shape, Texture, World};
+use dens3r_scene::Scene;
+use dens3r_train::pair::{correspondences, crop_window, View};
+use dens3r_train::synth::{read_pairs, scene_dir, synthesise, SynthOptions, PAIRS_FILE};
+use dens3r_train::{Dataset, TrainConfig};
+use glam::{DMat4, DVec3, Quat};
+use rand::SeedableRng;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+fn samples() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples")
+}
+
+/// A small stand-in "photograph" (a colour gradient with a grid), so the photo-texture path
+/// runs without the fetched scikit-image pictures.
+fn assets() -> Assets {
+    let img = image::RgbImage::from_fn(64, 48, |x, y| {
+        let g = if x % 16 < 2 || y % 16 < 2 { 40 } else { 220 };
+        image::Rgb([(x * 4) as u8, (y * 5) as u8, g])
+    });
+    Assets { photos: vec![Arc::new(img)], meshes: Vec::new(), names: vec!["grid.png".into()] }
+}
+
+fn opts(scenes: usize, seed: u64) -> SynthOptions {
+    SynthOptions { scenes, seed, kind: "mixed".into(), size: (64, 48), views: 3, gt_mesh: false }
+}
+
+fn files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push((p.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The same seed writes the same bytes; another seed other scenes; a rerun keeps finished
+/// scenes and extends the set; other options are refused by naming the manifest.
+#[test]
+fn synth_is_reproducible_and_resumes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (a, b, c) = (tmp.path().join("a"), tmp.path().join("b"), tmp.path().join("c"));
+    let s = synthesise(&a, &opts(3, 7), &assets(), &mut |_, _| {}).unwrap();
+    assert_eq!((s.rendered, s.kept), (3, 0));
+    synthesise(&b, &opts(3, 7), &assets(), &mut |_, _| {}).unwrap();
+    let (fa, fb) = (files(&a), files(&b));
+    assert!(fa.len() > 3 * 3 * 5, "{} files", fa.len());
+    assert_eq!(fa, fb, "same seed, same bytes");
+    synthesise(&c, &opts(3, 8), &assets(), &mut |_, _| {}).unwrap();
+    let img = |d: &Path| std::fs::read(scene_dir(d, 0).join("images/0000.png")).unwrap();
+    assert_ne!(img(&a), img(&c), "another seed, another scene");
+    // Every scene folder is complete and carries labels, normals and its pair table.
+    for k in 0..3 {
+        let d = scene_dir(&a, k);
+        let scene = Scene::open(&d).unwrap();
+        assert_eq!(scene.frames().len(), 3);
+        for f in scene.frames() {
+            for layer in ["depth", "normals", "labels", "instances", "masks"] {
+                assert!(std::fs::read_dir(d.join(layer)).unwrap().any(|e| e
+                    .unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .starts_with(&f.name)));
+            }
+            // Landscape or portrait, a horizontal field of view in 40..100 degrees (+-8% zoom).
+            assert!((f.width, f.height) == (64, 48) || (f.width, f.height) == (48, 64));
+            let hfov = 2.0 * (f.width as f64 / 2.0 / f.k[0][0]).atan().to_degrees();
+            assert!((36.0..=106.0).contains(&hfov), "hfov {hfov}");
+        }
+        let table = read_pairs(&scene).unwrap().unwrap();
+        assert_eq!(table.len(), 9);
+        assert!(table.iter().all(|c| (0.0..=1.0).contains(c)));
+    }
+    // Interrupted: scene 1 lost its pair table and a temp folder lingers; a rerun with more
+    // scenes redoes scene 1, keeps 0 and 2, adds 3, and scene 1 comes back byte-identical.
+    let before = files(&scene_dir(&a, 1));
+    std::fs::remove_file(scene_dir(&a, 1).join(PAIRS_FILE)).unwrap();
+    std::fs::create_dir_all(a.join(".scene_00001.tmp/junk")).unwrap();
+    let s = synthesise(&a, &opts(4, 7), &assets(), &mut |_, _| {}).unwrap();
+    assert_eq!((s.rendered, s.kept), (2, 2));
+    assert_eq!(files(&scene_dir(&a, 1)), before);
+    assert!(!a.join(".scene_00001.tmp").exists());
+    let e = synthesise(&a, &SynthOptions { size: (80, 60), ..opts(4, 7) }, &assets(), &mut |_, _| {}).err().unwrap();
+    assert!(e.contains("synth.json") && e.contains("other options"), "{e}");
+    // Training reads the set's folder directly, with the pairs the tables list.
+    let data = Dataset::load(std::slice::from_ref(&a), (32, 32), (0.1, 0.98)).unwrap();
+    assert_eq!(data.scenes.len(), 4);
+    let mut want = 0;
+    for k in 0..4 {
+        let t = read_pairs(&Scene::open(&scene_dir(&a, k)).unwrap()).unwrap().unwrap();
+        want += (0..9).filter(|&i| i / 3 != i % 3 && (0.1..=0.98).contains(&t[i])).count();
+    }
+    assert_eq!(data.pairs.len(), want);
+    // A damaged table is named.
+    std::fs::write(scene_dir(&a, 2).join(PAIRS_FILE), "{").unwrap();
+    let e = Dataset::load(std::slice::from_ref(&a), (32, 32), (0.1, 0.98)).err().unwrap();
+    assert!(e.contains("scene_00002") && e.contains(PAIRS_FILE), "{e}");
+}
+
+/// First hit of the ray `o + t d` with the box of half extents `half`, rotation `r` and centre
+/// `c` (slab test in the box frame).
+fn ray_box(o: DVec3, d: DVec3, half: DVec3, r: Quat, c: DVec3) -> Option<f64> {
+    let inv = r.inverse().as_dquat();
+    let (o, d) = (inv * (o - c), inv * d);
+    let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
+    for a in 0..3 {
+        let (lo, hi) = ((-half[a] - o[a]) / d[a], (half[a] - o[a]) / d[a]);
+        t0 = t0.max(lo.min(hi));
+        t1 = t1.min(lo.max(hi));
+    }
+    (t0 <= t1 && t0 > 0.0).then_some(t0)
+}
+
+/// Correspondences of two rendered views of a box: every match is where the view-1 pixel's
+/// analytic ray-box point projects in view 2 (to rounding), and nearly every pixel whose
+/// point view 2 sees, away from the box's silhouette edges, is matched.
+#[test]
+fn synth_correspondences_on_a_box_match_analytic_geometry() {
+    let half = DVec3::new(0.5, 0.35, 0.3);
+    let rot = Quat::from_rotation_z(0.4) * Quat::from_rotation_x(0.2);
+    let centre = DVec3::new(0.0, 0.0, 0.3);
+    let world = World::new(vec![Object {
+        name: "box".into(),
+        shape: Shape::Cuboid { half: half.as_vec3() },
+        rotation: rot,
+        translation: centre.as_vec3(),
+        class_id: 4,
+        material: Material { color: [0.7; 3], texture: Texture::Checker { size: 0.1 }, seed: 1 },
+    }])
+    .unwrap();
+    let (w, h) = (80usize, 60usize);
+    let cam = |eye: DVec3| PinholeCamera {
+        intrinsics: Intrinsics::from_hfov(w, h, 55.0),
+        width: w,
+        height: h,
+        cam_to_world: look_at(eye, centre, DVec3::Z).unwrap(),
+    };
+    let cams = [cam(DVec3::new(0.3, -2.2, 1.4)), cam(DVec3::new(1.5, -1.7, 1.1))];
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("box");
+    render_cameras_to_scene(&world, &cams, &dens3r_render::procedural::classes(), false, &dir, |_| {}).unwrap();
+    let scene = Scene::open(&dir).unwrap();
+    let v: Vec<View> = scene.frames().iter().map(|f| View::load(&scene, f, (w, h)).unwrap()).collect();
+    let m = correspondences(&v[0], &v[1]);
+    let w2c2: DMat4 = rigid_inverse(&cams[1].cam_to_world);
+    let eye1 = cams[0].cam_to_world.w_axis.truncate();
+    let eye2 = cams[1].cam_to_world.w_axis.truncate();
+    let analytic = |x: usize, y: usize| {
+        let d = cams[0].cam_to_world.transform_vector3(cams[0].intrinsics.unproject(x as f64, y as f64));
+        ray_box(eye1, d, half, rot, centre).map(|t| eye1 + d * t)
+    };
+    for (&a, &b) in m.idx1.iter().zip(&m.idx2) {
+        let (x, y) = (a as usize % w, a as usize / w);
+        let p = analytic(x, y).expect("a matched pixel sees the box");
+        let (u, vv) = cams[1].intrinsics.project(w2c2.transform_point3(p));
+        let (x2, y2) = ((b as usize % w) as f64, (b as usize / w) as f64);
+        assert!(
+            (u - x2).abs() <= 0.5 + 1e-3 && (vv - y2).abs() <= 0.5 + 1e-3,
+            "({x},{y}) -> ({u},{vv}) vs ({x2},{y2})"
+        );
+    }
+    // Recall over view-2 pixels (matches are one to one, so where several view-1 pixels land
+    // on one view-2 pixel at most one is kept): the pixels that points of view 1 land on,
+    // seen unoccluded from view 2, 2 px inside it, from view-1 pixels whose 4-neighbours also
+    // hit the box (no silhouette edge).
+    let matched: std::collections::HashSet<u32> = m.idx2.iter().copied().collect();
+    let mut seen = std::collections::HashSet::new();
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            let Some(p) = analytic(x, y) else { continue };
+            if [(x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)].iter().any(|&(a, b)| analytic(a, b).is_none()) {
+                continue;
+            }
+            let q = w2c2.transform_point3(p);
+            let (u, vv) = cams[1].intrinsics.project(q);
+            if u < 2.0 || vv < 2.0 || u > w as f64 - 3.0 || vv > h as f64 - 3.0 {
+                continue;
+            }
+            let d = p - eye2;
+            let t = ray_box(eye2, d, half, rot, centre).unwrap_or(0.0);
+            if (t - 1.0).abs() > 1e-6 {
+                continue; // another face of the box is in front
+            }
+            seen.insert((vv.round() as usize * w + u.round() as usize) as u32);
+        }
+    }
+    let hit = seen.iter().filter(|b| matched.contains(b)).count();
+    assert!(seen.len() > 500, "{} co-visible pixels", seen.len());
+    assert!(hit as f64 > 0.9 * seen.len() as f64, "recall {hit}/{}", seen.len());
+}
+
+/// A random crop keeps the camera model: a cropped pixel's point, projected with the full
+/// frame's intrinsics, lands on the source pixel it was sampled from, with the same depth.
+/// Each step's random size keeps the long side, is a multiple of the patch and follows the
+/// first frame's orientation.
+#[test]
+fn crops_and_aspects_keep_the_camera_model() {
+    let scene = Scene::open(&samples().join("orbit")).unwrap();
+    let f = &scene.frames()[0];
+    let full = View::load(&scene, f, (f.width, f.height)).unwrap();
+    for (scale, at) in [(1.0, (0.5, 0.5)), (0.6, (0.0, 1.0)), (0.75, (0.8, 0.3))] {
+        let win = crop_window((f.width, f.height), (64, 48), scale, at);
+        let v = View::load_window(&scene, f, win, (64, 48)).unwrap();
+        let (mut n, mut close) = (0, 0);
+        for y in 0..48 {
+            for x in 0..64 {
+                let Some(p) = v.point(x, y) else { continue };
+                let (u, vv) = full.k.project(p);
+                let (ui, vi) = (u.round() as usize, vv.round() as usize);
+                assert!(
+                    (win.0..win.0 + win.2).contains(&ui) && (win.1..win.1 + win.3).contains(&vi),
+                    "inside the window"
+                );
+                n += 1;
+                let d = *full.depth.get(ui, vi) as f64;
+                close += ((d - p.z).abs() < 1e-6 * d.max(1.0)) as usize;
+            }
+        }
+        assert!(n > 500 && close as f64 > 0.97 * n as f64, "scale {scale}: {close}/{n}");
+    }
+    let cfg = TrainConfig { size: (224, 160), aspects: true, ..Default::default() };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let mut shorts = std::collections::BTreeSet::new();
+    for _ in 0..200 {
+        let (w, h) = Dataset::step_size(&cfg, 16, (640, 480), &mut rng);
+        assert_eq!(w, 224);
+        assert!(h % 16 == 0 && (112..=224).contains(&h), "{h}");
+        shorts.insert(h);
+        let (w, h) = Dataset::step_size(&cfg, 16, (480, 640), &mut rng);
+        assert!(h == 224 && w % 16 == 0, "portrait {w}x{h}");
+    }
+    assert_eq!(shorts.len(), 8, "every short side 112..224 drawn: {shorts:?}");
+}
