@@ -39,6 +39,23 @@ pub struct SynthArgs {
     no_gt_mesh: bool,
 }
 
+/// Where scripts/fetch-data.sh caches real material: `$DENS3R_DATA`, else `.cache/data` here,
+/// else beside the checkout the binary was built in (`target/<profile>/dens3r`).
+fn default_data_dir() -> PathBuf {
+    if let Some(d) = std::env::var_os("DENS3R_DATA") {
+        return PathBuf::from(d);
+    }
+    let here = PathBuf::from(".cache/data");
+    if here.is_dir() {
+        return here;
+    }
+    std::env::current_exe()
+        .ok()
+        .and_then(|e| e.parent()?.parent()?.parent().map(|root| root.join(".cache/data")))
+        .filter(|d| d.is_dir())
+        .unwrap_or(here)
+}
+
 pub fn run(a: SynthArgs) -> Result<()> {
     let size = crate::train::parse_size(&a.size)?;
     let opts = SynthOptions {
@@ -50,7 +67,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
         gt_mesh: !a.no_gt_mesh,
     };
     opts.check().map_err(|e| anyhow!(e))?;
-    let data = std::env::var_os("DENS3R_DATA").map(PathBuf::from).unwrap_or_else(|| PathBuf::from(".cache/data"));
+    let data = default_data_dir();
     let explicit = |p: &Option<PathBuf>, what: &str| -> Result<()> {
         match p {
             Some(p) if !p.is_dir() => Err(anyhow!("--{what} {}: no such folder", p.display())),

@@ -717,11 +717,12 @@ fn train_writes_weights_predict_reads_and_rerun_resumes() {
     let pred = s(&dir.path().join("pred"));
     ok(&["predict", "--weights", &w, "--config", &c, "--size", "32", &img, "-o", &pred]);
     assert_eq!(dens3r_scene::Scene::open(Path::new(&pred)).unwrap().frames().len(), 1);
-    // Stage 2 from the stage-1 weights (--init with its config).
+    // Stage 2 from the stage-1 weights (--init with its config), coarse to fine: at a larger
+    // size than stage 1's.
     let run2 = s(&dir.path().join("run2"));
     let args2 = ["train", "--stage", "2", "--init", &w, "--config", &c, "--data", &orbit_s, "-o", &run2];
-    let out = ok(&[&args2[..], &["--size", "32x32", "--steps", "2", "--batch", "1"]].concat());
-    assert!(out.contains("2 steps in"), "{out}");
+    let out = ok(&[&args2[..], &["--size", "64x48", "--steps", "2", "--batch", "1"]].concat());
+    assert!(out.contains("2 steps in") && out.contains("64x48"), "{out}");
     // Bad input: other options on the same folder, a config whose head counts do not fit, a
     // scene without depth.
     let e = fails(&[&args[..], &["--lr", "0.01"]].concat());
