@@ -47,19 +47,33 @@ pub struct BackboneArgs {
     /// Input sizes, WIDTHxHEIGHT (comma separated).
     #[arg(long, default_value = "512x384,1024x768")]
     sizes: String,
-    /// Threads for both sides (default: all cores).
-    #[arg(long)]
-    threads: Option<usize>,
-    /// Python with torch, safetensors and numpy (default: .cache/bench-venv/bin/python3 made by
-    /// scripts/bench-setup.sh, else python3).
-    #[arg(long)]
-    python: Option<PathBuf>,
-    /// Working folder for the 2.4 GB weights (default: a temporary folder).
-    #[arg(long)]
-    workdir: Option<PathBuf>,
+    #[command(flatten)]
+    peer: PeerArgs,
     /// Forward passes per side; the fastest is reported.
     #[arg(long, default_value_t = 2)]
     repeat: usize,
+}
+
+/// What a benchmark against a PyTorch peer needs: threads, the Python, a working folder.
+#[derive(Args)]
+pub struct PeerArgs {
+    /// Threads for both sides (default: all cores).
+    #[arg(long)]
+    pub(crate) threads: Option<usize>,
+    /// Python with torch, safetensors and numpy (default: .cache/bench-venv/bin/python3 made by
+    /// scripts/bench-setup.sh, else python3).
+    #[arg(long)]
+    pub(crate) python: Option<PathBuf>,
+    /// Working folder for weights and inputs (default: a temporary folder).
+    #[arg(long)]
+    pub(crate) workdir: Option<PathBuf>,
+}
+
+impl PeerArgs {
+    /// `--threads`, else every core.
+    pub(crate) fn threads(&self) -> usize {
+        self.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+    }
 }
 
 #[derive(Args)]
@@ -204,7 +218,7 @@ pub(crate) fn child_json(cmd: &mut Command, what: &str) -> Result<Value> {
 }
 
 fn backbone(a: BackboneArgs) -> Result<()> {
-    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let threads = a.peer.threads();
     let sizes: Vec<(usize, usize)> = a
         .sizes
         .split(',')
@@ -218,7 +232,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         })
         .collect::<Result<_>>()?;
     let tmp = tempfile::tempdir()?;
-    let dir = a.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
+    let dir = a.peer.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
     std::fs::create_dir_all(&dir)?;
     let exe = std::env::current_exe()?;
     let weights = dir.join("dens3r_full_random.safetensors");
@@ -227,7 +241,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
     if !st.success() {
         bail!("could not make the benchmark weights");
     }
-    let python = bench_python(a.python.clone());
+    let python = bench_python(a.peer.python.clone());
     let torch_ok = Command::new(&python)
         .args(["-c", "import torch, safetensors, numpy"])
         .output()

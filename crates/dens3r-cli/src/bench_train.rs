@@ -5,7 +5,7 @@
 //! so peak memory is its own. Prints seconds per step, the ratio, peak RSS, and both sides'
 //! losses (step 0 compares the losses; later steps the optimiser).
 
-use crate::bench::{bench_python, child_json, peak_rss_mb};
+use crate::bench::{bench_python, child_json, peak_rss_mb, PeerArgs};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use dens3r_backbone::{verify::heads_from_config, ModelConfig, Params, Weights};
@@ -40,16 +40,8 @@ pub struct TrainBenchArgs {
     /// 1 (pointmaps + matching) or 2 (+ normal head).
     #[arg(long, default_value_t = 1)]
     stage: u8,
-    /// Threads for both sides (default: all cores).
-    #[arg(long)]
-    threads: Option<usize>,
-    /// Python with torch, safetensors and numpy (default: .cache/bench-venv/bin/python3 made by
-    /// scripts/bench-setup.sh, else python3).
-    #[arg(long)]
-    python: Option<PathBuf>,
-    /// Working folder (default: a temporary folder).
-    #[arg(long)]
-    workdir: Option<PathBuf>,
+    #[command(flatten)]
+    peer: PeerArgs,
 }
 
 fn vec3s(v: &[Vec<Vec3>]) -> Vec<f32> {
@@ -199,9 +191,9 @@ fn losses(v: &Value) -> Vec<f64> {
 
 /// `dens3r bench train`.
 pub fn train(a: TrainBenchArgs) -> Result<()> {
-    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let threads = a.peer.threads();
     let tmp = tempfile::tempdir()?;
-    let dir = a.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
+    let dir = a.peer.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
     std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     prepare(&a, &dir)?;
     let exe = std::env::current_exe()?;
@@ -209,7 +201,7 @@ pub fn train(a: TrainBenchArgs) -> Result<()> {
         Command::new(&exe).args(["bench", "run-train"]).arg(&dir).env("RAYON_NUM_THREADS", threads.to_string()),
         "Rust",
     )?;
-    let python = bench_python(a.python.clone());
+    let python = bench_python(a.peer.python.clone());
     let torch_ok = Command::new(&python)
         .args(["-c", "import torch, safetensors, numpy"])
         .output()
