@@ -115,6 +115,7 @@ fn read(dir: &Path, name: &str) -> Result<(Vec<usize>, Vec<f32>)> {
 
 /// (internal) the Rust side: reads what [`prepare`] wrote and times the steps.
 pub fn run_train(dir: &Path) -> Result<()> {
+    crate::keep_freed_memory();
     let settings: Value = serde_json::from_str(&std::fs::read_to_string(dir.join("bench.json"))?)?;
     let cfg: TrainConfig = serde_json::from_value(settings["train"].clone())?;
     let w = Weights::from_safetensors(&dir.join("init.safetensors"))?;

@@ -87,6 +87,7 @@ pub fn parse_size(s: &str) -> Result<(usize, usize)> {
 }
 
 pub fn run(a: TrainArgs) -> Result<()> {
+    crate::keep_freed_memory();
     let stage = match a.stage {
         1 => Stage::One,
         2 => Stage::Two,

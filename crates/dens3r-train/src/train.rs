@@ -11,6 +11,7 @@ use dens3r_scene::{Layer, Scene};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -529,34 +530,37 @@ impl Trainer {
             return Err(format!("step {}: the loss is not finite ({:?}); lower --lr", self.step, terms));
         }
         let grads = loss.backward();
-        let mut g: Vec<Option<Vec<f32>>> = tensors
+        let g: Vec<Option<Vec<f32>>> = tensors
             .iter()
             .zip(&self.trains)
             .map(|(t, &tr)| if tr { t.grad(&grads).and_then(|g| g.into_data().try_to_vec::<f32>().ok()) } else { None })
             .collect();
-        let norm = g.iter().flatten().flat_map(|v| v.iter()).map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt() as f32;
-        if self.config.clip > 0.0 && norm > self.config.clip {
-            let s = self.config.clip / norm;
-            g.iter_mut().flatten().for_each(|v| v.iter_mut().for_each(|x| *x *= s));
-        }
+        // Per-tensor sums in parallel, added in tensor order: the same bits on every run.
+        let sums: Vec<f64> =
+            g.par_iter().map(|v| v.as_ref().map_or(0.0, |v| v.iter().map(|x| (*x as f64).powi(2)).sum())).collect();
+        let norm = sums.iter().sum::<f64>().sqrt() as f32;
+        let scale = if self.config.clip > 0.0 && norm > self.config.clip { self.config.clip / norm } else { 1.0 };
         let lr = self.lr_at(self.step);
         let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
         let t = (self.step + 1) as i32;
         let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
         let wd = self.config.weight_decay;
-        for (i, gi) in g.iter().enumerate() {
-            let Some(gi) = gi else { continue };
-            let decay = self.params.shapes[i].len() >= 2;
-            let (vals, m, v) = (&mut self.params.values[i], &mut self.m[i], &mut self.v[i]);
-            for j in 0..vals.len() {
-                m[j] = b1 * m[j] + (1.0 - b1) * gi[j];
-                v[j] = b2 * v[j] + (1.0 - b2) * gi[j] * gi[j];
-                if decay {
-                    vals[j] -= lr * wd * vals[j];
+        let shapes = &self.params.shapes;
+        (&mut self.params.values, &mut self.m, &mut self.v, &g, shapes).into_par_iter().for_each(
+            |(vals, m, v, gi, shape)| {
+                let Some(gi) = gi else { return };
+                let decay = shape.len() >= 2;
+                for j in 0..vals.len() {
+                    let gj = gi[j] * scale;
+                    m[j] = b1 * m[j] + (1.0 - b1) * gj;
+                    v[j] = b2 * v[j] + (1.0 - b2) * gj * gj;
+                    if decay {
+                        vals[j] -= lr * wd * vals[j];
+                    }
+                    vals[j] -= lr * (m[j] / c1) / ((v[j] / c2).sqrt() + eps);
                 }
-                vals[j] -= lr * (m[j] / c1) / ((v[j] / c2).sqrt() + eps);
-            }
-        }
+            },
+        );
         let line = LogLine { step: self.step, lr, terms, grad_norm: norm, val: None };
         self.step += 1;
         Ok(line)
