@@ -21,7 +21,7 @@ pub mod weights;
 
 pub use config::ModelConfig;
 pub use model::{Dens3r, Features, Predictions, ViewFeatures, ViewPrediction};
-pub use params::{Freeze, Params};
+pub use params::{Freeze, Params, Precision};
 pub use weights::{Weights, WeightsError};
 
 /// The tensor types of the seam (burn, device-dispatched).

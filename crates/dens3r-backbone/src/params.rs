@@ -4,7 +4,7 @@
 
 use crate::config::ModelConfig;
 use crate::model::Dens3r;
-use crate::weights::{f32_safetensors, is_layer_norm, Weights, WeightsError};
+use crate::weights::{is_layer_norm, Weights, WeightsError};
 use burn::tensor::{Device, Tensor, TensorData};
 use std::collections::HashMap;
 use std::path::Path;
@@ -165,6 +165,17 @@ impl Params {
     /// (atomically), readable by `Weights::from_safetensors` and every command taking
     /// `--weights`.
     pub fn save(&self, path: &Path) -> Result<(), WeightsError> {
+        self.save_as(path, Precision::F32)
+    }
+
+    /// [`Params::save`] at `precision`: half precision halves the file for shipping weights
+    /// (training checkpoints stay f32 so a resumed run is exact).
+    pub fn save_as(&self, path: &Path, precision: Precision) -> Result<(), WeightsError> {
+        let dtype = match precision {
+            Precision::F32 => safetensors::Dtype::F32,
+            Precision::F16 => safetensors::Dtype::F16,
+            Precision::BF16 => safetensors::Dtype::BF16,
+        };
         let err = |m: String| WeightsError { path: path.to_path_buf(), message: m };
         let named: Vec<(String, Vec<usize>, &[f32])> = self
             .names
@@ -173,8 +184,31 @@ impl Params {
             .zip(&self.values)
             .map(|((n, s), v)| (n.clone(), s.clone(), v.as_slice()))
             .collect();
-        let data = f32_safetensors(&named).map_err(|e| err(e.to_string()))?;
+        let data = crate::weights::safetensors_as(&named, dtype).map_err(|e| err(e.to_string()))?;
         dens3r_mesh::io::write_atomic(path, |w| std::io::Write::write_all(w, &data)).map_err(|e| err(e.to_string()))
+    }
+}
+
+/// How parameters are stored in a written checkpoint.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Precision {
+    /// 32-bit float (exact).
+    F32,
+    /// IEEE half (10-bit mantissa, range +-65504).
+    F16,
+    /// bfloat16 (8-bit mantissa, f32's range).
+    BF16,
+}
+
+impl Precision {
+    /// `f32`, `f16` or `bf16`.
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "f32" => Some(Self::F32),
+            "f16" => Some(Self::F16),
+            "bf16" => Some(Self::BF16),
+            _ => None,
+        }
     }
 }
 

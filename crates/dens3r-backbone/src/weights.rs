@@ -334,12 +334,24 @@ fn preview(v: &[String]) -> String {
 
 /// Serialises named f32 tensors `(name, shape, values)` as safetensors bytes.
 pub fn f32_safetensors(tensors: &[(String, Vec<usize>, &[f32])]) -> Result<Vec<u8>, SafeTensorError> {
-    let bytes: Vec<Vec<u8>> =
-        tensors.iter().map(|(_, _, v)| v.iter().flat_map(|x| x.to_le_bytes()).collect()).collect();
+    safetensors_as(tensors, Dtype::F32)
+}
+
+/// [`f32_safetensors`] stored as `dtype` (F32, F16 or BF16; values rounded to nearest).
+pub fn safetensors_as(tensors: &[(String, Vec<usize>, &[f32])], dtype: Dtype) -> Result<Vec<u8>, SafeTensorError> {
+    let bytes: Vec<Vec<u8>> = tensors
+        .iter()
+        .map(|(_, _, v)| match dtype {
+            Dtype::F16 => v.iter().flat_map(|x| half::f16::from_f32(*x).to_le_bytes()).collect(),
+            Dtype::BF16 => v.iter().flat_map(|x| half::bf16::from_f32(*x).to_le_bytes()).collect(),
+            _ => v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+        })
+        .collect();
+    let dtype = if matches!(dtype, Dtype::F16 | Dtype::BF16) { dtype } else { Dtype::F32 };
     let views = tensors
         .iter()
         .zip(&bytes)
-        .map(|((n, s, _), b)| Ok((n.clone(), TensorView::new(Dtype::F32, s.clone(), b)?)))
+        .map(|((n, s, _), b)| Ok((n.clone(), TensorView::new(dtype, s.clone(), b)?)))
         .collect::<Result<Vec<_>, SafeTensorError>>()?;
     safetensors::serialize(views, None)
 }

@@ -2,7 +2,7 @@
 
 use anyhow::{anyhow, bail, Result};
 use clap::Args;
-use dens3r_backbone::{Freeze, ModelConfig, Params, Weights};
+use dens3r_backbone::{Freeze, ModelConfig, Params, Precision, Weights};
 use dens3r_train::{Arch, Dataset, Stage, TrainConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -73,6 +73,9 @@ pub struct TrainArgs {
     /// Seed of pair draws, correspondences and augmentation (and of a fresh network).
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Precision of the final model.safetensors: f32, f16 or bf16 (checkpoints stay f32).
+    #[arg(long, default_value = "f32")]
+    precision: String,
     /// Start over, discarding the run folder's checkpoint.
     #[arg(long)]
     restart: bool,
@@ -93,6 +96,8 @@ pub fn run(a: TrainArgs) -> Result<()> {
         2 => Stage::Two,
         s => bail!("--stage {s}: expected 1 or 2"),
     };
+    let precision = Precision::parse(&a.precision)
+        .ok_or_else(|| anyhow!("--precision {:?}: expected f32, f16 or bf16", a.precision))?;
     let freeze = Freeze::parse(&a.freeze)
         .ok_or_else(|| anyhow!("--freeze {:?}: expected none, encoder, encoder-but-N or heads-only", a.freeze))?;
     let config = TrainConfig {
@@ -173,6 +178,9 @@ pub fn run(a: TrainArgs) -> Result<()> {
     })
     .map_err(|e| anyhow!(e))?;
     bar.finish_and_clear();
+    if precision != Precision::F32 {
+        t.params.save_as(&a.output.join("model.safetensors"), precision)?;
+    }
     let last = dens3r_train::run::read_log(&a.output.join("log.jsonl")).map_err(|e| anyhow!(e))?;
     let held_out = last
         .iter()

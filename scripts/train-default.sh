@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# Trains dens3r-s (configs/dens3r-s.toml) from nothing: synthetic training and held-out scenes,
+# stage 1 coarse (224x160) then fine (384x288), stage 2 (normal head), and the held-out scores.
+# Every part resumes: rerun after an interruption and it continues where it stopped (synth
+# keeps finished scenes, each `dens3r train` run folder resumes from its checkpoint).
+# Work goes to $DENS3R_TRAIN_DIR (default .cache/train-default, git-ignored); the final f16
+# weights and their config land in $DENS3R_TRAIN_DIR/dens3r-s.safetensors + dens3r-s.json.
+#
+#   bash scripts/train-default.sh                       # the full schedule (hours on 2 CPU cores)
+#   STEPS1=4 STEPS1F=2 STEPS2=2 SCENES=4 VAL_SCENES=2 bash scripts/train-default.sh   # smoke run
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+start=$(date +%s)
+work="${DENS3R_TRAIN_DIR:-.cache/train-default}"
+scenes="${SCENES:-200}"
+val_scenes="${VAL_SCENES:-16}"
+steps1="${STEPS1:-1200}"
+steps1f="${STEPS1F:-150}"
+steps2="${STEPS2:-400}"
+arch="${ARCH:-configs/dens3r-s.toml}"
+mkdir -p "$work"
+
+cargo build --release --locked -p dens3r-cli
+bash scripts/fetch-data.sh || echo "note: some real material could not be fetched; synth uses procedural textures instead"
+B=target/release/dens3r
+
+# Data: training scenes (seed 1) and held-out scenes (seed 90001: none of them is in training).
+$B synth -o "$work/data" --scenes "$scenes" --seed 1 --size 384x288 --views 8 --no-gt-mesh
+$B synth -o "$work/val" --scenes "$val_scenes" --seed 90001 --size 384x288 --views 8
+
+common=(--data "$work/data" --val-data "$work/val" --val-batches 4 --checkpoint-every 25)
+# Stage 1, coarse: scale-invariant pointmaps + matching from the official initialisation.
+$B train --stage 1 --arch "$arch" "${common[@]}" -o "$work/s1" --size 224x160 \
+  --steps "$steps1" --batch 2 --lr 2e-4 --val-every 100
+# Stage 1, fine: the same network at the larger size (position-interpolated RoPE).
+$B train --stage 1 --init "$work/s1/model.safetensors" --config "$work/s1/model.json" "${common[@]}" \
+  -o "$work/s1f" --size 384x288 --steps "$steps1f" --batch 1 --lr 5e-5 --val-every 50
+# Stage 2: the normal head joins, normal supervision; shipped in f16.
+$B train --stage 2 --init "$work/s1f/model.safetensors" --config "$work/s1f/model.json" "${common[@]}" \
+  -o "$work/s2" --size 224x160 --steps "$steps2" --batch 2 --lr 1e-4 --val-every 100 --precision f16
+
+cp "$work/s2/model.safetensors" "$work/dens3r-s.safetensors.part"
+mv "$work/dens3r-s.safetensors.part" "$work/dens3r-s.safetensors"
+cp "$work/s2/model.json" "$work/dens3r-s.json"
+for s in s1 s1f s2; do
+  echo "$s held out (last): $(grep '"val"' "$work/$s/log.jsonl" | tail -1 | sed 's/.*"val"://; s/}$//')"
+done
+echo "dens3r-s: $work/dens3r-s.safetensors ($(du -h "$work/dens3r-s.safetensors" | cut -f1)); wall time $(( $(date +%s) - start )) s"
