@@ -126,7 +126,8 @@ class Dens3r:
         x = F.interpolate(self.conv(p1, f"{p}.head.0"), scale_factor=2, mode="bilinear", align_corners=True)
         return self.conv(F.relu(self.conv(x, f"{p}.head.2")), f"{p}.head.4")
 
-    def forward(self, img1, img2):
+    def forward(self, img1, img2, normal=True, desc=True):
+        """Both views' (pts, conf, desc, normal, desc_conf); normal / desc False skip those heads (None)."""
         (e1, g1), (e2, g2) = self.encode(img1), self.encode(img2)
         dd = self.w["decoder_embed.weight"].shape[0]
         t1, t2 = rope_tables(*g1, dd // self.dh), rope_tables(*g2, dd // self.dh)
@@ -148,14 +149,17 @@ class Dens3r:
             d = v.norm(dim=-1, keepdim=True)
             pts = v / d.clamp(min=1e-8) * torch.expm1(d)
             conf = 1 + raw[..., 3].exp()
-            feat = self.mlp(torch.cat([e, outs[-1]], dim=-1), head + ".head_local_features")
-            feat = F.pixel_shuffle(feat.transpose(1, 2).reshape(feat.shape[0], -1, *g), self.patch).permute(0, 2, 3, 1)
-            desc = feat[..., :24] / feat[..., :24].norm(dim=-1, keepdim=True)
-            # desc_conf: exp of the 25th channel (MASt3R), else a copy of conf.
-            desc_conf = feat[..., 24].exp() if feat.shape[-1] > 24 else conf
-            nrm = self.dpt([lay[i] for i in hooks], g, "normal_local_head.dpt").permute(0, 2, 3, 1).clamp(-1, 1)
-            nrm = nrm / nrm.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-            res.append((pts, conf, desc, nrm, desc_conf))
+            desc_t = desc_conf = nrm = None
+            if desc:
+                feat = self.mlp(torch.cat([e, outs[-1]], dim=-1), head + ".head_local_features")
+                feat = F.pixel_shuffle(feat.transpose(1, 2).reshape(feat.shape[0], -1, *g), self.patch).permute(0, 2, 3, 1)
+                desc_t = feat[..., :24] / feat[..., :24].norm(dim=-1, keepdim=True)
+                # desc_conf: exp of the 25th channel (MASt3R), else a copy of conf.
+                desc_conf = feat[..., 24].exp() if feat.shape[-1] > 24 else conf
+            if normal:
+                nrm = self.dpt([lay[i] for i in hooks], g, "normal_local_head.dpt").permute(0, 2, 3, 1).clamp(-1, 1)
+                nrm = nrm / nrm.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+            res.append((pts, conf, desc_t, nrm, desc_conf))
         return res
 
 

@@ -104,7 +104,8 @@ def main():
         for g in opt.param_groups:
             g["lr"] = lr
         t0 = time.perf_counter()
-        (p1, c1, d1, nr1, dc1), (p2, c2, d2, nr2, dc2) = model.forward(img1, img2)
+        # Like the Rust side, only the heads the stage's losses read.
+        (p1, c1, d1, nr1, dc1), (p2, c2, d2, nr2, dc2) = model.forward(img1, img2, normal=w_normal > 0, desc=w_match > 0)
         pts_glb = conf_regr3d([p1, p2], [c1, c2], gt, valid, cfg["alpha"])
         pts_n = normal_l1(pcd2normal(p1), n_in1[0], valid[0]) + normal_l1(pcd2normal(p2), n_in1[1], valid[1])
         total = w_glb * pts_glb + w_n * pts_n

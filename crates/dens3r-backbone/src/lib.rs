@@ -20,7 +20,7 @@ pub mod verify;
 pub mod weights;
 
 pub use config::ModelConfig;
-pub use model::{Dens3r, Features, Predictions, ViewFeatures, ViewPrediction};
+pub use model::{Dens3r, Features, HeadOutputs, Predictions, ViewFeatures, ViewPrediction};
 pub use params::{Freeze, Params, Precision};
 pub use weights::{Weights, WeightsError};
 

@@ -382,6 +382,20 @@ pub struct ViewPrediction {
     pub raw_mlp: Option<Tensor<3>>,
 }
 
+/// Which optional outputs [`Dens3r::heads_with`] computes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HeadOutputs {
+    /// The normal head.
+    pub normal: bool,
+    /// Descriptors and their confidence (the local-feature MLP).
+    pub desc: bool,
+}
+
+impl HeadOutputs {
+    /// Every output.
+    pub const ALL: Self = Self { normal: true, desc: true };
+}
+
 /// Predictions of a pair.
 #[derive(Debug, Clone)]
 pub struct Predictions {
@@ -562,13 +576,19 @@ impl Dens3r {
     /// View 1's heads on self-pair features ([`Dens3r::encode_self`]): with the features
     /// kept, other heads can read the same backbone pass.
     pub fn mono_heads(&self, v: &ViewFeatures) -> ViewPrediction {
-        self.view_heads(&self.head1, v)
+        self.view_heads(&self.head1, v, HeadOutputs::ALL)
     }
 
     /// Runs the heads on backbone features.
     pub fn heads(&self, f: &Features) -> Predictions {
+        self.heads_with(f, HeadOutputs::ALL)
+    }
+
+    /// [`Dens3r::heads`] computing only the optional outputs in `want` (the pointmap and
+    /// confidence always): training skips what its stage's losses do not read.
+    pub fn heads_with(&self, f: &Features, want: HeadOutputs) -> Predictions {
         let [v1, v2] = &f.views;
-        Predictions { views: [self.view_heads(&self.head1, v1), self.view_heads(&self.head2, v2)] }
+        Predictions { views: [self.view_heads(&self.head1, v1, want), self.view_heads(&self.head2, v2, want)] }
     }
 
     /// Encoder + decoder + heads on a pair.
@@ -576,13 +596,17 @@ impl Dens3r {
         self.heads(&self.encode(img1, img2))
     }
 
-    fn view_heads(&self, head: &PtsHead, v: &ViewFeatures) -> ViewPrediction {
+    fn view_heads(&self, head: &PtsHead, v: &ViewFeatures, want: HeadOutputs) -> ViewPrediction {
         let c = &self.config;
         let hooks = c.hooks();
         let layers = || hooks.map(|i| v.layer(i));
         let raw_pts = head.dpt.forward(layers(), v.grid);
-        let raw_normal = self.normal_head.as_ref().map(|d| d.forward(layers(), v.grid));
-        let raw_mlp = head.mlp.as_ref().map(|m| m.forward(Tensor::cat(vec![v.layer(0), v.layer(c.dec_depth)], 2)));
+        let raw_normal = self.normal_head.as_ref().filter(|_| want.normal).map(|d| d.forward(layers(), v.grid));
+        let raw_mlp = head
+            .mlp
+            .as_ref()
+            .filter(|_| want.desc)
+            .map(|m| m.forward(Tensor::cat(vec![v.layer(0), v.layer(c.dec_depth)], 2)));
         // (B, C, H, W) -> (B, H, W, C)
         let fmap = raw_pts.clone().permute([0, 2, 3, 1]);
         let [b, h, w, _] = fmap.dims();

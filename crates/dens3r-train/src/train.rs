@@ -6,7 +6,7 @@
 use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, Matches, RegrView};
 use crate::pair::{covisibility, crop_window, missing_depth, pair_target, PairTarget, View};
 use burn::tensor::{Device, Tensor, TensorData};
-use dens3r_backbone::{Dens3r, Freeze, Params, Weights};
+use dens3r_backbone::{Dens3r, Freeze, HeadOutputs, Params, Weights};
 use dens3r_scene::{Layer, Scene};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -183,7 +183,10 @@ pub fn normalise(img: &image::RgbImage) -> Vec<f32> {
 pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(Tensor<1>, LossTerms), String> {
     let device = model.device().clone();
     let [img1, img2] = batch.images.clone();
-    let pred = model.forward(img1, img2);
+    let [_, _, w_match, w_normal] = cfg.stage.weights();
+    // Only the outputs the stage's losses read (stage 1 skips the normal head's DPT).
+    let want = HeadOutputs { normal: w_normal > 0.0, desc: w_match > 0.0 };
+    let pred = model.heads_with(&model.encode(img1, img2), want);
     let [p1, p2] = &pred.views;
     let t = &batch.targets;
     let size = t[0].size;
@@ -204,7 +207,7 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
     };
     let pts_n =
         pointmap_normal_loss([p1.pts3d.clone(), p2.pts3d.clone()], [n_in1(0), n_in1(1)], [m1.clone(), m2.clone()]);
-    let [w_glb, w_n, w_match, w_normal] = cfg.stage.weights();
+    let [w_glb, w_n, ..] = cfg.stage.weights();
     let mut total = pts_glb.clone().mul_scalar(w_glb) + pts_n.clone().mul_scalar(w_n);
     let value = |x: &Tensor<1>| x.clone().into_data().try_to_vec::<f32>().map(|v| v[0]).unwrap_or(f32::NAN);
     let mut terms = LossTerms { pts_glb: value(&pts_glb), pts_n: value(&pts_n), ..Default::default() };
