@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Trains dens3r-s (configs/dens3r-s.toml) from nothing: synthetic training and held-out scenes,
-# stage 1 coarse (224x160) then fine (384x288), stage 2 (normal head), and the held-out scores.
+# stage 1 coarse (224x160) then fine (384x288), stage 2 (normal head), and the held-out scores
+# (synthetic scenes never trained on; real images through `dens3r real-scenes`).
 # Every part resumes: rerun after an interruption and it continues where it stopped (synth
 # keeps finished scenes, each `dens3r train` run folder resumes from its checkpoint).
 # Work goes to $DENS3R_TRAIN_DIR (default .cache/train-default, git-ignored); the final f16
@@ -42,6 +43,15 @@ $B train --stage 2 --init "$work/s1f/model.safetensors" --config "$work/s1f/mode
 cp "$work/s2/model.safetensors" "$work/dens3r-s.safetensors.part"
 mv "$work/dens3r-s.safetensors.part" "$work/dens3r-s.safetensors"
 cp "$work/s2/model.json" "$work/dens3r-s.json"
+# Real held-out images with metric ground truth (depth up to scale: median-aligned).
+$B real-scenes -o "$work/real"
+for sf in motorcycle:left arc2017:rgb; do
+  s="${sf%%:*}"; f="${sf##*:}"
+  rm -rf "$work/pred_$s"
+  $B predict --weights "$work/dens3r-s.safetensors" --config "$work/dens3r-s.json" --size 224 --original-size \
+    "$work/real/$s/images/$f.png" -o "$work/pred_$s" > /dev/null
+  echo "$s depth (AbsRel RMSE d1 d2 d3): $($B eval depth "$work/pred_$s" "$work/real/$s" --align median | tail -1)"
+done
 for s in s1 s1f s2; do
   echo "$s held out (last): $(grep '"val"' "$work/$s/log.jsonl" | tail -1 | sed 's/.*"val"://; s/}$//')"
 done
