@@ -289,13 +289,7 @@ impl Trainer {
 
     /// Learning rate at a step: linear warm-up, then cosine decay to zero.
     pub fn lr_at(&self, step: usize, total: usize) -> f32 {
-        let warm = ((self.options.warmup * total as f32) as usize).max(1);
-        let lr = self.options.lr;
-        if step < warm {
-            return lr * (step + 1) as f32 / warm as f32;
-        }
-        let t = (step - warm) as f32 / (total - warm).max(1) as f32;
-        lr * 0.5 * (1.0 + (std::f32::consts::PI * t.min(1.0)).cos())
+        dens3r_optim::WarmupCosine { lr: self.options.lr, warmup: self.options.warmup, total }.at(step)
     }
 
     /// The loss of one (augmented) example with parameter tensors `params`.
@@ -325,24 +319,14 @@ impl Trainer {
         let loss = Tensor::cat(losses, 0).sum().div_scalar(k);
         let value = to_vec(loss.clone())[0];
         let grads = loss.backward();
-        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
-        let t = (self.step + 1) as i32;
-        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
-        let wd = self.options.weight_decay;
+        let opt = dens3r_optim::AdamW { weight_decay: self.options.weight_decay, ..Default::default() };
         let shapes = self.head.param_shapes();
         for (i, p) in params.iter().enumerate() {
             let Some(g) = p.grad(&grads) else { continue };
             let g = to_vec(g);
             let decay = !shapes[i].0.ends_with(".bias");
             let (vals, m, v) = (&mut self.head.values[i], &mut self.m[i], &mut self.v[i]);
-            for j in 0..vals.len() {
-                m[j] = b1 * m[j] + (1.0 - b1) * g[j];
-                v[j] = b2 * v[j] + (1.0 - b2) * g[j] * g[j];
-                if decay {
-                    vals[j] -= lr * wd * vals[j];
-                }
-                vals[j] -= lr * (m[j] / c1) / ((v[j] / c2).sqrt() + eps);
-            }
+            opt.update(self.step, lr, vals, m, v, &g, 1.0, decay);
         }
         Some(value)
     }

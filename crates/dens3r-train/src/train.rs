@@ -7,6 +7,7 @@ use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, M
 use crate::pair::{covisibility, crop_window, missing_depth, pair_target, PairTarget, View};
 use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::{Dens3r, Freeze, HeadOutputs, Params, Weights};
+use dens3r_optim::{AdamW, WarmupCosine};
 use dens3r_scene::{Layer, Scene};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -514,14 +515,7 @@ impl Trainer {
 
     /// Learning rate at `step`: linear warm-up, then cosine decay to zero.
     pub fn lr_at(&self, step: usize) -> f32 {
-        let total = self.config.steps;
-        let warm = ((self.config.warmup * total as f32) as usize).max(1);
-        let lr = self.config.lr;
-        if step < warm {
-            return lr * (step + 1) as f32 / warm as f32;
-        }
-        let t = (step - warm) as f32 / (total - warm).max(1) as f32;
-        lr * 0.5 * (1.0 + (std::f32::consts::PI * t.min(1.0)).cos())
+        WarmupCosine { lr: self.config.lr, warmup: self.config.warmup, total: self.config.steps }.at(step)
     }
 
     /// One optimiser step on `batch`.
@@ -544,23 +538,13 @@ impl Trainer {
         let norm = sums.iter().sum::<f64>().sqrt() as f32;
         let scale = if self.config.clip > 0.0 && norm > self.config.clip { self.config.clip / norm } else { 1.0 };
         let lr = self.lr_at(self.step);
-        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
-        let t = (self.step + 1) as i32;
-        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
-        let wd = self.config.weight_decay;
-        let shapes = &self.params.shapes;
-        (&mut self.params.values, &mut self.m, &mut self.v, &g, shapes).into_par_iter().for_each(
+        let opt = AdamW { weight_decay: self.config.weight_decay, ..Default::default() };
+        let step = self.step;
+        (&mut self.params.values, &mut self.m, &mut self.v, &g, &self.params.shapes).into_par_iter().for_each(
             |(vals, m, v, gi, shape)| {
-                let Some(gi) = gi else { return };
-                let decay = shape.len() >= 2;
-                for j in 0..vals.len() {
-                    let gj = gi[j] * scale;
-                    m[j] = b1 * m[j] + (1.0 - b1) * gj;
-                    v[j] = b2 * v[j] + (1.0 - b2) * gj * gj;
-                    if decay {
-                        vals[j] -= lr * wd * vals[j];
-                    }
-                    vals[j] -= lr * (m[j] / c1) / ((v[j] / c2).sqrt() + eps);
+                // Weight matrices decay; biases and norms do not.
+                if let Some(gi) = gi {
+                    opt.update(step, lr, vals, m, v, gi, scale, shape.len() >= 2);
                 }
             },
         );
