@@ -16,6 +16,7 @@ pub mod ops;
 pub mod params;
 pub mod predict;
 pub mod preprocess;
+pub mod pth;
 pub mod verify;
 pub mod weights;
 

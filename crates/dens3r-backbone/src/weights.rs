@@ -53,7 +53,7 @@ impl Weights {
         use std::io::Read;
         let err = |m: String| WeightsError { path: path.to_path_buf(), message: m };
         if path.extension().is_some_and(|e| e == "pth" || e == "pt") {
-            return Err(err("PyTorch .pth checkpoints are not read directly: convert once with `python3 scripts/pth_to_safetensors.py MODEL.pth` (see README)".into()));
+            return Self::from_pth(path);
         }
         let corrupt = |m: &str| err(format!("not a valid safetensors file ({m}); re-export the checkpoint"));
         let mut file = std::fs::File::open(path).map_err(|e| err(format!("cannot read the checkpoint: {e}")))?;
@@ -100,6 +100,33 @@ impl Weights {
             path: path.to_path_buf(),
             file: Some(RefCell::new(file)),
             tensors,
+            unreadable: Default::default(),
+            used: Default::default(),
+            missing: Default::default(),
+            misshaped: Default::default(),
+            synthetic: None,
+            generated: Default::default(),
+        })
+    }
+
+    /// Opens a PyTorch `.pth` (zip format) through [`crate::pth`]: the state dict under
+    /// `model` (or `state_dict`, or the top level), its tensors read lazily from their
+    /// storages; nothing in the file is executed.
+    pub fn from_pth(path: &Path) -> Result<Self, WeightsError> {
+        let err = |m: String| WeightsError { path: path.to_path_buf(), message: m };
+        let index = crate::pth::read_index(path).map_err(err)?;
+        let file = std::fs::File::open(path).map_err(|e| err(format!("cannot read the checkpoint: {e}")))?;
+        let tensors = index
+            .tensors
+            .into_iter()
+            .map(|(n, t)| (n, (t.shape, Extent { dtype: t.dtype, start: t.start, end: t.end })))
+            .collect();
+        Ok(Self {
+            path: path.to_path_buf(),
+            file: Some(RefCell::new(file)),
+            tensors,
+            // Integer tensors and views are left out, as integer safetensors entries are: a
+            // model that needs one reports it missing.
             unreadable: Default::default(),
             used: Default::default(),
             missing: Default::default(),

@@ -1,0 +1,444 @@
+//! PyTorch `.pth` checkpoints (the zip format of `torch.save`, torch >= 1.6) read natively
+//! and safely: `data.pkl` is interpreted by a small pickle machine that builds plain data only
+//! (dicts, lists, tuples, strings, numbers and tensor references) and accepts only the globals
+//! a checkpoint legitimately names (tensor and parameter rebuilders, typed storages,
+//! `OrderedDict`, `argparse.Namespace` as a dict, `torch.device`); any other global
+//! (`os.system`, `builtins.eval`, `subprocess.Popen`, ...) is refused by name. Nothing in the
+//! file is executed. Tensor bytes are not read here: each tensor becomes a byte range of its
+//! storage entry (torch stores entries uncompressed), read lazily like safetensors.
+
+use safetensors::Dtype;
+use std::collections::BTreeMap;
+use std::io::Read;
+use std::path::Path;
+
+/// One tensor of a checkpoint: shape, dtype and absolute byte range in the `.pth` file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PthTensor {
+    /// Shape.
+    pub shape: Vec<usize>,
+    /// Stored dtype (F32, F16, BF16; other dtypes are listed in [`PthIndex::skipped`]).
+    pub dtype: Dtype,
+    /// Byte range in the file.
+    pub start: u64,
+    /// See `start`.
+    pub end: u64,
+}
+
+/// What a `.pth` holds: its floating-point tensors by name (from `model`, `state_dict` or the
+/// top level), the names of tensors that cannot be used (integer dtypes, non-contiguous
+/// views), and `args.model` (the official constructor string) when present.
+#[derive(Debug, Clone, Default)]
+pub struct PthIndex {
+    /// Float tensors by state-dict key.
+    pub tensors: BTreeMap<String, PthTensor>,
+    /// Keys not readable as float tensors, with why.
+    pub skipped: Vec<(String, String)>,
+    /// `args.model` of the official training scripts.
+    pub args_model: Option<String>,
+}
+
+/// A pickled value, as plain data (floats and bytes are kept though no checkpoint field read
+/// here needs them).
+#[derive(Debug, Clone)]
+#[allow(dead_code)]
+enum V {
+    None,
+    Bool(bool),
+    Int(i64),
+    Float(f64),
+    Str(String),
+    Bytes(Vec<u8>),
+    Tuple(Vec<V>),
+    List(Vec<V>),
+    Dict(Vec<(V, V)>),
+    /// An allowed global, `module.name`.
+    Global(String),
+    /// A typed storage: dtype name (e.g. `FloatStorage`) and its key under `data/`.
+    Storage(String, String),
+    /// `_rebuild_tensor_v2(storage, offset, size, stride, ...)`.
+    Tensor {
+        storage: (String, String),
+        offset: usize,
+        size: Vec<usize>,
+        stride: Vec<usize>,
+    },
+    /// An object of an allowed class (`argparse.Namespace`): its state dict.
+    Object(String, Box<V>),
+    Mark,
+}
+
+const ALLOWED: &[&str] = &[
+    "collections.OrderedDict",
+    "torch._utils._rebuild_tensor_v2",
+    "torch._utils._rebuild_parameter",
+    "torch._utils._rebuild_parameter_with_state",
+    "torch.FloatStorage",
+    "torch.HalfStorage",
+    "torch.BFloat16Storage",
+    "torch.DoubleStorage",
+    "torch.LongStorage",
+    "torch.IntStorage",
+    "torch.ShortStorage",
+    "torch.CharStorage",
+    "torch.ByteStorage",
+    "torch.BoolStorage",
+    "argparse.Namespace",
+    "torch.device",
+    "builtins.set",
+];
+
+fn int(v: &V) -> Option<i64> {
+    match v {
+        V::Int(i) => Some(*i),
+        V::Bool(b) => Some(*b as i64),
+        _ => None,
+    }
+}
+
+fn usizes(v: &V) -> Option<Vec<usize>> {
+    match v {
+        V::Tuple(t) | V::List(t) => t.iter().map(|x| int(x).and_then(|i| usize::try_from(i).ok())).collect(),
+        _ => None,
+    }
+}
+
+/// Runs the pickle program `data` into plain data.
+fn unpickle(data: &[u8]) -> Result<V, String> {
+    let mut stack: Vec<V> = Vec::new();
+    let mut memo: BTreeMap<u64, V> = BTreeMap::new();
+    let mut pos = 0usize;
+    let take = |pos: &mut usize, n: usize| -> Result<&[u8], String> {
+        let end = pos.checked_add(n).filter(|&e| e <= data.len()).ok_or("the pickle is truncated")?;
+        let s = &data[*pos..end];
+        *pos = end;
+        Ok(s)
+    };
+    let u32le = |b: &[u8]| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize;
+    let pop = |stack: &mut Vec<V>| stack.pop().ok_or_else(|| "the pickle pops an empty stack".to_string());
+    let pop_mark = |stack: &mut Vec<V>| -> Result<Vec<V>, String> {
+        let k = stack.iter().rposition(|v| matches!(v, V::Mark)).ok_or("the pickle has no MARK")?;
+        let items = stack.split_off(k + 1);
+        stack.pop();
+        Ok(items)
+    };
+    let text = |b: &[u8]| String::from_utf8(b.to_vec()).map_err(|_| "the pickle holds invalid UTF-8".to_string());
+    loop {
+        let op = *take(&mut pos, 1)?.first().ok_or("the pickle is truncated")?;
+        match op {
+            0x80 => {
+                take(&mut pos, 1)?;
+            }
+            0x95 => {
+                take(&mut pos, 8)?;
+            }
+            b'.' => return pop(&mut stack),
+            b'}' => stack.push(V::Dict(Vec::new())),
+            b']' => stack.push(V::List(Vec::new())),
+            b')' => stack.push(V::Tuple(Vec::new())),
+            b'(' => stack.push(V::Mark),
+            b'N' => stack.push(V::None),
+            0x88 => stack.push(V::Bool(true)),
+            0x89 => stack.push(V::Bool(false)),
+            b'K' => stack.push(V::Int(take(&mut pos, 1)?[0] as i64)),
+            b'M' => {
+                let b = take(&mut pos, 2)?;
+                stack.push(V::Int(u16::from_le_bytes([b[0], b[1]]) as i64));
+            }
+            b'J' => {
+                let b = take(&mut pos, 4)?;
+                stack.push(V::Int(i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as i64));
+            }
+            0x8a => {
+                let n = take(&mut pos, 1)?[0] as usize;
+                let b = take(&mut pos, n)?;
+                if n > 8 {
+                    return Err("the pickle holds an integer wider than 64 bits".into());
+                }
+                let mut v: i64 = 0;
+                for (i, byte) in b.iter().enumerate() {
+                    v |= (*byte as i64) << (8 * i);
+                }
+                if n > 0 && n < 8 && b[n - 1] & 0x80 != 0 {
+                    v -= 1i64 << (8 * n);
+                }
+                stack.push(V::Int(v));
+            }
+            b'G' => {
+                let b = take(&mut pos, 8)?;
+                stack.push(V::Float(f64::from_be_bytes(b.try_into().map_err(|_| "float")?)));
+            }
+            b'X' => {
+                let n = u32le(take(&mut pos, 4)?);
+                stack.push(V::Str(text(take(&mut pos, n)?)?));
+            }
+            0x8c => {
+                let n = take(&mut pos, 1)?[0] as usize;
+                stack.push(V::Str(text(take(&mut pos, n)?)?));
+            }
+            b'B' => {
+                let n = u32le(take(&mut pos, 4)?);
+                stack.push(V::Bytes(take(&mut pos, n)?.to_vec()));
+            }
+            b'C' => {
+                let n = take(&mut pos, 1)?[0] as usize;
+                stack.push(V::Bytes(take(&mut pos, n)?.to_vec()));
+            }
+            b'q' => {
+                let k = take(&mut pos, 1)?[0] as u64;
+                memo.insert(k, stack.last().cloned().ok_or("BINPUT on an empty stack")?);
+            }
+            b'r' => {
+                let k = u32le(take(&mut pos, 4)?) as u64;
+                memo.insert(k, stack.last().cloned().ok_or("LONG_BINPUT on an empty stack")?);
+            }
+            0x94 => {
+                let k = memo.len() as u64;
+                memo.insert(k, stack.last().cloned().ok_or("MEMOIZE on an empty stack")?);
+            }
+            b'h' => {
+                let k = take(&mut pos, 1)?[0] as u64;
+                stack.push(memo.get(&k).cloned().ok_or("BINGET of an unknown memo entry")?);
+            }
+            b'j' => {
+                let k = u32le(take(&mut pos, 4)?) as u64;
+                stack.push(memo.get(&k).cloned().ok_or("LONG_BINGET of an unknown memo entry")?);
+            }
+            b'c' => {
+                let line = |pos: &mut usize| -> Result<String, String> {
+                    let rest = &data[*pos..];
+                    let n = rest.iter().position(|&c| c == b'\n').ok_or("the pickle is truncated")?;
+                    let s = text(&rest[..n])?;
+                    *pos += n + 1;
+                    Ok(s)
+                };
+                let (module, name) = (line(&mut pos)?, line(&mut pos)?);
+                stack.push(global(&module, &name)?);
+            }
+            0x93 => {
+                let name = pop(&mut stack)?;
+                let module = pop(&mut stack)?;
+                let (V::Str(m), V::Str(n)) = (module, name) else { return Err("STACK_GLOBAL without names".into()) };
+                stack.push(global(&m, &n)?);
+            }
+            b't' => {
+                let items = pop_mark(&mut stack)?;
+                stack.push(V::Tuple(items));
+            }
+            0x85..=0x87 => {
+                let n = (op - 0x84) as usize;
+                if stack.len() < n {
+                    return Err("the pickle pops an empty stack".into());
+                }
+                let items = stack.split_off(stack.len() - n);
+                stack.push(V::Tuple(items));
+            }
+            b'l' => {
+                let items = pop_mark(&mut stack)?;
+                stack.push(V::List(items));
+            }
+            b'd' => {
+                let items = pop_mark(&mut stack)?;
+                stack.push(V::Dict(pairs(items)?));
+            }
+            b'a' => {
+                let x = pop(&mut stack)?;
+                match stack.last_mut() {
+                    Some(V::List(l)) => l.push(x),
+                    _ => return Err("APPEND to a non-list".into()),
+                }
+            }
+            b'e' => {
+                let items = pop_mark(&mut stack)?;
+                match stack.last_mut() {
+                    Some(V::List(l)) => l.extend(items),
+                    _ => return Err("APPENDS to a non-list".into()),
+                }
+            }
+            b's' => {
+                let v = pop(&mut stack)?;
+                let k = pop(&mut stack)?;
+                match stack.last_mut() {
+                    Some(V::Dict(d)) => d.push((k, v)),
+                    _ => return Err("SETITEM on a non-dict".into()),
+                }
+            }
+            b'u' => {
+                let items = pairs(pop_mark(&mut stack)?)?;
+                match stack.last_mut() {
+                    Some(V::Dict(d)) => d.extend(items),
+                    _ => return Err("SETITEMS on a non-dict".into()),
+                }
+            }
+            b'Q' => {
+                let pid = pop(&mut stack)?;
+                stack.push(persistent(pid)?);
+            }
+            b'R' | 0x81 => {
+                let args = pop(&mut stack)?;
+                let f = pop(&mut stack)?;
+                stack.push(call(f, args)?);
+            }
+            b'b' => {
+                let state = pop(&mut stack)?;
+                let obj = pop(&mut stack)?;
+                stack.push(match obj {
+                    V::Object(c, _) => V::Object(c, Box::new(state)),
+                    // Parameters and tensors may carry (empty) state: the data is what counts.
+                    other => other,
+                });
+            }
+            other => return Err(format!("the pickle uses opcode 0x{other:02x}, which checkpoints do not need")),
+        }
+    }
+}
+
+fn pairs(items: Vec<V>) -> Result<Vec<(V, V)>, String> {
+    if !items.len().is_multiple_of(2) {
+        return Err("a dict with an odd number of items".into());
+    }
+    let mut it = items.into_iter();
+    let mut out = Vec::new();
+    while let (Some(k), Some(v)) = (it.next(), it.next()) {
+        out.push((k, v));
+    }
+    Ok(out)
+}
+
+fn global(module: &str, name: &str) -> Result<V, String> {
+    let full = format!("{module}.{name}");
+    if ALLOWED.contains(&full.as_str()) {
+        Ok(V::Global(full))
+    } else {
+        Err(format!(
+            "refuses the global {full}: a checkpoint holds data, and this one asks to run code (nothing was executed)"
+        ))
+    }
+}
+
+fn persistent(pid: V) -> Result<V, String> {
+    let V::Tuple(t) = pid else { return Err("a persistent id that is not a tuple".into()) };
+    match t.as_slice() {
+        [V::Str(kind), V::Global(ty), V::Str(key), ..] if kind == "storage" => {
+            Ok(V::Storage(ty.trim_start_matches("torch.").to_string(), key.clone()))
+        }
+        _ => Err("a persistent id that is not a torch storage".into()),
+    }
+}
+
+fn call(f: V, args: V) -> Result<V, String> {
+    let V::Global(name) = f else { return Err("the pickle calls something that is not an allowed global".into()) };
+    let args = match args {
+        V::Tuple(a) => a,
+        _ => return Err(format!("{name} called without an argument tuple")),
+    };
+    match name.as_str() {
+        "collections.OrderedDict" => Ok(V::Dict(Vec::new())),
+        "argparse.Namespace" => Ok(V::Object(name, Box::new(V::Dict(Vec::new())))),
+        "torch.device" => Ok(args.into_iter().next().unwrap_or(V::None)),
+        "builtins.set" => Ok(V::List(match args.into_iter().next() {
+            Some(V::List(l)) | Some(V::Tuple(l)) => l,
+            _ => Vec::new(),
+        })),
+        "torch._utils._rebuild_tensor_v2" => {
+            let bad = || "a tensor rebuilt from malformed arguments".to_string();
+            let storage = match args.first() {
+                Some(V::Storage(t, k)) => (t.clone(), k.clone()),
+                _ => return Err(bad()),
+            };
+            let offset = args.get(1).and_then(int).and_then(|i| usize::try_from(i).ok()).ok_or_else(bad)?;
+            let size = args.get(2).and_then(usizes).ok_or_else(bad)?;
+            let stride = args.get(3).and_then(usizes).ok_or_else(bad)?;
+            Ok(V::Tensor { storage, offset, size, stride })
+        }
+        "torch._utils._rebuild_parameter" | "torch._utils._rebuild_parameter_with_state" => {
+            args.into_iter().next().ok_or_else(|| "a parameter without data".to_string())
+        }
+        other => Err(format!("{other} cannot be called")),
+    }
+}
+
+fn dtype_of(storage: &str) -> Option<(Dtype, u64)> {
+    match storage {
+        "FloatStorage" => Some((Dtype::F32, 4)),
+        "HalfStorage" => Some((Dtype::F16, 2)),
+        "BFloat16Storage" => Some((Dtype::BF16, 2)),
+        _ => None,
+    }
+}
+
+/// Reads the index of a `.pth` (zip format): its float tensors as byte ranges of the file.
+pub fn read_index(path: &Path) -> Result<PthIndex, String> {
+    let file = std::fs::File::open(path).map_err(|e| format!("cannot read the checkpoint: {e}"))?;
+    let mut magic = [0u8; 2];
+    (&file).read_exact(&mut magic).map_err(|_| "the file is empty".to_string())?;
+    if magic != *b"PK" {
+        return Err("not a zip-format torch checkpoint (torch >= 1.6); the legacy format is not read: re-save it with a current torch (torch.save(torch.load(F), F2))".into());
+    }
+    let mut zip = zip::ZipArchive::new(file).map_err(|e| format!("not a valid torch zip checkpoint ({e})"))?;
+    let pkl = (0..zip.len())
+        .filter_map(|i| zip.by_index(i).ok().map(|f| f.name().to_string()))
+        .find(|n| n.ends_with("/data.pkl") && n.matches('/').count() == 1)
+        .ok_or("no data.pkl in the archive: not a torch checkpoint")?;
+    let prefix = pkl.trim_end_matches("data.pkl").to_string();
+    let mut data = Vec::new();
+    {
+        let mut f = zip.by_name(&pkl).map_err(|e| e.to_string())?;
+        if f.size() > 1 << 30 {
+            return Err("data.pkl is over 1 GB: not a checkpoint".into());
+        }
+        f.read_to_end(&mut data).map_err(|e| format!("cannot read data.pkl ({e})"))?;
+    }
+    let root = unpickle(&data)?;
+    let mut index = PthIndex::default();
+    let entries = match &root {
+        V::Dict(d) => d.clone(),
+        _ => return Err("the checkpoint is not a dict".into()),
+    };
+    let get = |k: &str| entries.iter().find(|(key, _)| matches!(key, V::Str(s) if s == k)).map(|(_, v)| v.clone());
+    if let Some(V::Object(_, state)) = get("args") {
+        if let V::Dict(d) = *state {
+            index.args_model =
+                d.iter().find(|(k, _)| matches!(k, V::Str(s) if s == "model")).and_then(|(_, v)| match v {
+                    V::Str(s) => Some(s.clone()),
+                    _ => None,
+                });
+        }
+    }
+    let state = match (get("model"), get("state_dict")) {
+        (Some(V::Dict(d)), _) | (None, Some(V::Dict(d))) => d,
+        _ => entries,
+    };
+    for (k, v) in state {
+        let V::Str(name) = k else { continue };
+        let V::Tensor { storage: (ty, key), offset, size, stride } = v else { continue };
+        let Some((dtype, elsize)) = dtype_of(&ty) else {
+            index.skipped.push((name, format!("{ty} is not a float storage")));
+            continue;
+        };
+        // Row-major strides of `size` (dims of size 1 may have any stride).
+        let mut want = 1usize;
+        let contiguous = size.iter().zip(&stride).rev().all(|(&n, &s)| {
+            let ok = n == 1 || s == want;
+            want = want.saturating_mul(n);
+            ok
+        });
+        if !contiguous || stride.len() != size.len() {
+            index.skipped.push((name, "a non-contiguous view".into()));
+            continue;
+        }
+        let entry = format!("{prefix}data/{key}");
+        let f = zip.by_name(&entry).map_err(|_| format!("tensor '{name}': its storage {entry} is missing"))?;
+        if f.compression() != zip::CompressionMethod::Stored {
+            return Err(format!("tensor '{name}': storage {entry} is compressed; torch stores them plain"));
+        }
+        let numel = size.iter().try_fold(1u64, |a, &d| a.checked_mul(d as u64)).ok_or("a huge shape")?;
+        let start = f.data_start() + offset as u64 * elsize;
+        let end = start + numel * elsize;
+        if end > f.data_start() + f.size() {
+            return Err(format!("tensor '{name}': {size:?} at offset {offset} overruns its storage {entry}"));
+        }
+        index.tensors.insert(name, PthTensor { shape: size, dtype, start, end });
+    }
+    Ok(index)
+}

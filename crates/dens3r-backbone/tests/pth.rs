@@ -1,0 +1,60 @@
+//! Native `.pth` reading against fixtures written by torch (tests/fixtures/pth/make.py): every
+//! tensor's values equal the closed formulas the script used (f32, f16, bf16, views at a
+//! storage offset sharing one storage, a Parameter, a 0-d tensor), `args.model` is read, the
+//! state dict is found under `model` or at the top level, and a pickle that calls `os.system`
+//! is refused by name without running it.
+
+use dens3r_backbone::pth::read_index;
+use dens3r_backbone::Weights;
+use std::path::PathBuf;
+
+fn fixture(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/pth").join(name)
+}
+
+fn ramp(n: usize, scale: f32) -> Vec<f32> {
+    (0..n).map(|i| i as f32 * scale - 1.0).collect()
+}
+
+fn check(w: &Weights, name: &str, shape: &[usize], want: &[f32], tol: f32) {
+    let got = w.values(name, shape).unwrap_or_else(|| panic!("{name} not read as {shape:?}"));
+    assert_eq!(got.len(), want.len(), "{name}");
+    for (g, x) in got.iter().zip(want) {
+        assert!((g - x).abs() <= tol * x.abs().max(1.0), "{name}: {g} vs {x}");
+    }
+}
+
+#[test]
+fn pth_tensors_equal_what_torch_saved() {
+    for (file, args) in [("small.pth", true), ("toplevel.pth", false)] {
+        let w = Weights::from_safetensors(&fixture(file)).unwrap();
+        check(&w, "enc.weight", &[3, 4], &ramp(12, 0.25), 0.0);
+        let big = ramp(20, 0.5);
+        check(&w, "dec.bias", &[4], &big[5..9], 0.0);
+        check(&w, "dec.shared", &[2, 3], &big[10..16], 0.0);
+        check(&w, "half.weight", &[2, 3], &ramp(6, 0.125), 1e-3);
+        check(&w, "bf.weight", &[4], &ramp(4, 0.5), 1e-2);
+        check(&w, "param", &[3], &ramp(3, 1.0), 0.0);
+        check(&w, "scalar", &[], &[2.5], 0.0);
+        let index = read_index(&fixture(file)).unwrap();
+        assert_eq!(index.tensors.len(), 7, "{file}");
+        let model = index.args_model.unwrap_or_default();
+        assert_eq!(
+            model.contains("enc_embed_dim=1024") && model.starts_with("AsymmetricCroCo3DStereo("),
+            args,
+            "{file}"
+        );
+    }
+}
+
+#[test]
+fn code_in_a_pickle_is_refused_not_run() {
+    let marker = std::path::Path::new("/tmp/dens3r-pwned");
+    let _ = std::fs::remove_file(marker);
+    let e = Weights::from_safetensors(&fixture("evil.pth")).err().unwrap().to_string();
+    assert!(e.contains("evil.pth") && e.contains("posix.system") || e.contains("os.system"), "{e}");
+    assert!(e.contains("nothing was executed") && !e.contains('\n'), "{e}");
+    assert!(!marker.exists(), "the pickle's command ran");
+    let e = Weights::from_safetensors(&fixture("legacy.pth")).err().unwrap().to_string();
+    assert!(e.contains("legacy") && e.contains("legacy.pth"), "{e}");
+}
