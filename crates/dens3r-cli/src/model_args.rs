@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct ModelArgs {
-    /// Checkpoint (.safetensors; convert a .pth with scripts/pth_to_safetensors.py).
+    /// Checkpoint (.safetensors, or a zip-format .pth read natively and safely).
     #[arg(long)]
     pub weights: PathBuf,
     /// JSON with the head counts (enc_num_heads, dec_num_heads, or the converter's "args");
