@@ -59,22 +59,28 @@ pub fn heads_from_config(path: &Path) -> Result<Option<(usize, usize)>, String> 
     if let Some(h) = get("enc_num_heads").zip(get("dec_num_heads")) {
         return Ok(Some(h));
     }
-    let args = v.get("args").and_then(serde_json::Value::as_str).unwrap_or("");
+    Ok(heads_from_args(v.get("args").and_then(serde_json::Value::as_str).unwrap_or("")))
+}
+
+/// Head counts from an official constructor call (`args.model` of a `.pth`, or the
+/// converter's `"args"`): its `enc_num_heads=` and `dec_num_heads=` keywords.
+pub fn heads_from_args(args: &str) -> Option<(usize, usize)> {
     let kw = |k: &str| -> Option<usize> {
         let rest = &args[args.find(&format!("{k}="))? + k.len() + 1..];
         rest.chars().take_while(char::is_ascii_digit).collect::<String>().parse().ok()
     };
-    Ok(kw("enc_num_heads").zip(kw("dec_num_heads")))
+    kw("enc_num_heads").zip(kw("dec_num_heads"))
 }
 
-/// Loads a safetensors checkpoint; head counts come from `config` (see
-/// [`heads_from_config`]) or default to head dim 64. Returns the unexpected keys too.
+/// Loads a safetensors or `.pth` checkpoint; head counts come from `config` (see
+/// [`heads_from_config`]), else from a `.pth`'s `args.model`, else default to head dim 64. Returns the unexpected keys too.
 pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Result<(Dens3r, Vec<String>), String> {
     let w = Weights::from_safetensors(weights).map_err(|e| e.to_string())?;
     let heads = match config {
         Some(c) if !c.is_file() => return Err(format!("{}: config file not found", c.display())),
         Some(c) => heads_from_config(c)?,
-        None => None,
+        // An official .pth names its head counts in args.model.
+        None => w.args_model().and_then(heads_from_args),
     };
     let cfg = ModelConfig::from_weights(&w, heads).map_err(|e| e.to_string())?;
     Dens3r::load(&w, cfg, device).map_err(|e| e.to_string())

@@ -44,6 +44,8 @@ pub struct Weights {
     /// Synthetic mode: `(rng state, std)`; missing keys are generated and recorded.
     synthetic: Option<RefCell<(u64, f32)>>,
     generated: RefCell<Vec<(String, Stored)>>,
+    /// `args.model` of an official `.pth` (the constructor call it was trained with).
+    args_model: Option<String>,
 }
 
 impl Weights {
@@ -106,6 +108,7 @@ impl Weights {
             misshaped: Default::default(),
             synthetic: None,
             generated: Default::default(),
+            args_model: None,
         })
     }
 
@@ -133,7 +136,14 @@ impl Weights {
             misshaped: Default::default(),
             synthetic: None,
             generated: Default::default(),
+            args_model: index.args_model,
         })
+    }
+
+    /// The constructor call an official `.pth` records under `args.model` (e.g.
+    /// `AsymmetricCroCo3DStereo(..., enc_num_heads=16, ...)`), if any.
+    pub fn args_model(&self) -> Option<&str> {
+        self.args_model.as_deref()
     }
 
     /// Reads and converts one stored tensor to f32.
@@ -170,6 +180,7 @@ impl Weights {
             misshaped: Default::default(),
             synthetic: Some(RefCell::new((seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1, std))),
             generated: Default::default(),
+            args_model: None,
         }
     }
 

@@ -122,7 +122,7 @@ pub fn run(a: TrainArgs) -> Result<()> {
             let heads = match &a.config {
                 Some(c) if !c.is_file() => bail!("{}: config file not found", c.display()),
                 Some(c) => dens3r_backbone::verify::heads_from_config(c).map_err(|e| anyhow!(e))?,
-                None => None,
+                None => w.args_model().and_then(dens3r_backbone::verify::heads_from_args),
             };
             let cfg = ModelConfig::from_weights(&w, heads)?;
             Params::from_weights(&w, &cfg)?
