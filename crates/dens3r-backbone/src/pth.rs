@@ -1,11 +1,12 @@
-//! PyTorch `.pth` checkpoints (the zip format of `torch.save`, torch >= 1.6) read natively
-//! and safely: `data.pkl` is interpreted by a small pickle machine that builds plain data only
+//! PyTorch `.pth` checkpoints (both formats of `torch.save`: the zip archive of torch >= 1.6
+//! and the legacy pickle stream) read natively and safely: `data.pkl` is interpreted by a small pickle machine that builds plain data only
 //! (dicts, lists, tuples, strings, numbers and tensor references) and accepts only the globals
 //! a checkpoint legitimately names (tensor and parameter rebuilders, typed storages,
 //! `OrderedDict`, `argparse.Namespace` as a dict, `torch.device`); any other global
 //! (`os.system`, `builtins.eval`, `subprocess.Popen`, ...) is refused by name. Nothing in the
 //! file is executed. Tensor bytes are not read here: each tensor becomes a byte range of its
-//! storage entry (torch stores entries uncompressed), read lazily like safetensors.
+//! storage (zip entries are stored uncompressed; legacy storages follow the pickles), read
+//! lazily like safetensors.
 
 use safetensors::Dtype;
 use std::collections::BTreeMap;
@@ -103,8 +104,9 @@ fn usizes(v: &V) -> Option<Vec<usize>> {
     }
 }
 
-/// Runs the pickle program `data` into plain data.
-fn unpickle(data: &[u8]) -> Result<V, String> {
+/// Runs the pickle program at the start of `data` into plain data; returns it and the bytes
+/// it took.
+fn unpickle(data: &[u8]) -> Result<(V, usize), String> {
     let mut stack: Vec<V> = Vec::new();
     let mut memo: BTreeMap<u64, V> = BTreeMap::new();
     let mut pos = 0usize;
@@ -132,7 +134,7 @@ fn unpickle(data: &[u8]) -> Result<V, String> {
             0x95 => {
                 take(&mut pos, 8)?;
             }
-            b'.' => return pop(&mut stack),
+            b'.' => return Ok((pop(&mut stack)?, pos)),
             b'}' => stack.push(V::Dict(Vec::new())),
             b']' => stack.push(V::List(Vec::new())),
             b')' => stack.push(V::Tuple(Vec::new())),
@@ -153,7 +155,9 @@ fn unpickle(data: &[u8]) -> Result<V, String> {
                 let n = take(&mut pos, 1)?[0] as usize;
                 let b = take(&mut pos, n)?;
                 if n > 8 {
-                    return Err("the pickle holds an integer wider than 64 bits".into());
+                    // Wider than 64 bits (the legacy format's magic number): kept as bytes.
+                    stack.push(V::Bytes(b.to_vec()));
+                    continue;
                 }
                 let mut v: i64 = 0;
                 for (i, byte) in b.iter().enumerate() {
@@ -367,14 +371,91 @@ fn dtype_of(storage: &str) -> Option<(Dtype, u64)> {
     }
 }
 
-/// Reads the index of a `.pth` (zip format): its float tensors as byte ranges of the file.
+/// Where a storage's bytes are: absolute file offset and length.
+type StorageAt = (u64, u64);
+
+/// Reads the index of a `.pth`: its float tensors as byte ranges of the file. Both formats of
+/// `torch.save`: the zip archive (torch >= 1.6) and the legacy stream of pickles followed by
+/// the raw storages.
 pub fn read_index(path: &Path) -> Result<PthIndex, String> {
     let file = std::fs::File::open(path).map_err(|e| format!("cannot read the checkpoint: {e}"))?;
     let mut magic = [0u8; 2];
     (&file).read_exact(&mut magic).map_err(|_| "the file is empty".to_string())?;
-    if magic != *b"PK" {
-        return Err("not a zip-format torch checkpoint (torch >= 1.6); the legacy format is not read: re-save it with a current torch (torch.save(torch.load(F), F2))".into());
+    if magic == *b"PK" {
+        read_zip(file)
+    } else if magic == [0x80, 0x02] {
+        read_legacy(file)
+    } else {
+        Err("neither a zip-format nor a legacy torch checkpoint".into())
     }
+}
+
+fn read_legacy(mut file: std::fs::File) -> Result<PthIndex, String> {
+    use std::io::{Seek, SeekFrom};
+    let len = file.metadata().map_err(|e| e.to_string())?.len();
+    // The pickles come first and are small; read up to 256 MB of them.
+    let head_len = len.min(256 << 20) as usize;
+    let mut head = vec![0u8; head_len];
+    file.seek(SeekFrom::Start(0)).map_err(|e| e.to_string())?;
+    file.read_exact(&mut head).map_err(|e| format!("cannot read ({e})"))?;
+    let mut pos = 0usize;
+    let next = |pos: &mut usize| -> Result<V, String> {
+        let (v, n) = unpickle(&head[*pos..]).map_err(|e| format!("legacy checkpoint: {e}"))?;
+        *pos += n;
+        Ok(v)
+    };
+    let _magic = next(&mut pos)?;
+    let protocol = next(&mut pos)?;
+    if int(&protocol) != Some(1001) {
+        return Err("a legacy torch checkpoint of an unknown protocol (not 1001)".into());
+    }
+    let _sys_info = next(&mut pos)?;
+    let root = next(&mut pos)?;
+    let V::List(keys) = next(&mut pos)? else { return Err("legacy checkpoint: no storage key list".into()) };
+    // Each storage: its element count (little-endian u64), then its bytes; their order is
+    // the key list's. Element sizes come from the tensors' storage types.
+    let mut elsize: BTreeMap<String, u64> = BTreeMap::new();
+    collect_storages(&root, &mut elsize);
+    let mut at: BTreeMap<String, StorageAt> = BTreeMap::new();
+    let mut off = pos as u64;
+    for k in keys {
+        let V::Str(k) = k else { return Err("legacy checkpoint: a storage key is not a string".into()) };
+        let mut n = [0u8; 8];
+        file.seek(SeekFrom::Start(off)).map_err(|e| e.to_string())?;
+        file.read_exact(&mut n).map_err(|_| format!("legacy checkpoint: storage {k} is cut short"))?;
+        let bytes = u64::from_le_bytes(n).checked_mul(*elsize.get(&k).unwrap_or(&1)).ok_or("a huge storage")?;
+        if off + 8 + bytes > len {
+            return Err(format!("legacy checkpoint: storage {k} runs past the end of the file"));
+        }
+        at.insert(k, (off + 8, bytes));
+        off += 8 + bytes;
+    }
+    index_of(root, |key| at.get(key).copied().ok_or_else(|| format!("storage {key} is missing")))
+}
+
+/// Element sizes of every storage the tensors under `v` name.
+fn collect_storages(v: &V, out: &mut BTreeMap<String, u64>) {
+    match v {
+        V::Tensor { storage: (ty, key), .. } => {
+            out.insert(key.clone(), storage_elsize(ty));
+        }
+        V::Dict(d) => d.iter().for_each(|(_, x)| collect_storages(x, out)),
+        V::List(l) | V::Tuple(l) => l.iter().for_each(|x| collect_storages(x, out)),
+        V::Object(_, s) => collect_storages(s, out),
+        _ => {}
+    }
+}
+
+fn storage_elsize(ty: &str) -> u64 {
+    match ty {
+        "DoubleStorage" | "LongStorage" => 8,
+        "FloatStorage" | "IntStorage" => 4,
+        "HalfStorage" | "BFloat16Storage" | "ShortStorage" => 2,
+        _ => 1,
+    }
+}
+
+fn read_zip(file: std::fs::File) -> Result<PthIndex, String> {
     let mut zip = zip::ZipArchive::new(file).map_err(|e| format!("not a valid torch zip checkpoint ({e})"))?;
     let pkl = (0..zip.len())
         .filter_map(|i| zip.by_index(i).ok().map(|f| f.name().to_string()))
@@ -389,7 +470,19 @@ pub fn read_index(path: &Path) -> Result<PthIndex, String> {
         }
         f.read_to_end(&mut data).map_err(|e| format!("cannot read data.pkl ({e})"))?;
     }
-    let root = unpickle(&data)?;
+    let (root, _) = unpickle(&data)?;
+    index_of(root, |key| {
+        let entry = format!("{prefix}data/{key}");
+        let f = zip.by_name(&entry).map_err(|_| format!("its storage {entry} is missing"))?;
+        if f.compression() != zip::CompressionMethod::Stored {
+            return Err(format!("storage {entry} is compressed; torch stores them plain"));
+        }
+        Ok((f.data_start(), f.size()))
+    })
+}
+
+/// The index of an unpickled checkpoint whose storages are located by `storage(key)`.
+fn index_of(root: V, mut storage: impl FnMut(&str) -> Result<StorageAt, String>) -> Result<PthIndex, String> {
     let mut index = PthIndex::default();
     let entries = match &root {
         V::Dict(d) => d.clone(),
@@ -427,16 +520,12 @@ pub fn read_index(path: &Path) -> Result<PthIndex, String> {
             index.skipped.push((name, "a non-contiguous view".into()));
             continue;
         }
-        let entry = format!("{prefix}data/{key}");
-        let f = zip.by_name(&entry).map_err(|_| format!("tensor '{name}': its storage {entry} is missing"))?;
-        if f.compression() != zip::CompressionMethod::Stored {
-            return Err(format!("tensor '{name}': storage {entry} is compressed; torch stores them plain"));
-        }
+        let (data_start, data_len) = storage(&key).map_err(|e| format!("tensor '{name}': {e}"))?;
         let numel = size.iter().try_fold(1u64, |a, &d| a.checked_mul(d as u64)).ok_or("a huge shape")?;
-        let start = f.data_start() + offset as u64 * elsize;
+        let start = data_start + offset as u64 * elsize;
         let end = start + numel * elsize;
-        if end > f.data_start() + f.size() {
-            return Err(format!("tensor '{name}': {size:?} at offset {offset} overruns its storage {entry}"));
+        if end > data_start + data_len {
+            return Err(format!("tensor '{name}': {size:?} at offset {offset} overruns its storage {key}"));
         }
         index.tensors.insert(name, PthTensor { shape: size, dtype, start, end });
     }
