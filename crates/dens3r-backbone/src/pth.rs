@@ -87,6 +87,11 @@ const ALLOWED: &[&str] = &[
     "argparse.Namespace",
     "torch.device",
     "builtins.set",
+    // numpy scalars in training metadata (e.g. a best score): read as opaque data.
+    "numpy.core.multiarray.scalar",
+    "numpy._core.multiarray.scalar",
+    "numpy.dtype",
+    "_codecs.encode",
 ];
 
 fn int(v: &V) -> Option<i64> {
@@ -340,6 +345,13 @@ fn call(f: V, args: V) -> Result<V, String> {
         "collections.OrderedDict" => Ok(V::Dict(Vec::new())),
         "argparse.Namespace" => Ok(V::Object(name, Box::new(V::Dict(Vec::new())))),
         "torch.device" => Ok(args.into_iter().next().unwrap_or(V::None)),
+        // Opaque: the values of numpy scalars are not needed to load weights.
+        "numpy.core.multiarray.scalar" | "numpy._core.multiarray.scalar" => Ok(V::None),
+        "numpy.dtype" => Ok(V::Object(name, Box::new(V::None))),
+        "_codecs.encode" => Ok(V::Bytes(match args.into_iter().next() {
+            Some(V::Str(s)) => s.into_bytes(),
+            _ => Vec::new(),
+        })),
         "builtins.set" => Ok(V::List(match args.into_iter().next() {
             Some(V::List(l)) | Some(V::Tuple(l)) => l,
             _ => Vec::new(),
