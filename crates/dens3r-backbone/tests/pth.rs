@@ -49,7 +49,8 @@ fn pth_tensors_equal_what_torch_saved() {
 
 #[test]
 fn code_in_a_pickle_is_refused_not_run() {
-    let marker = std::path::Path::new("/tmp/dens3r-pwned");
+    // The evil command would write this file into the working folder.
+    let marker = std::path::Path::new("dens3r-pwned-marker");
     let _ = std::fs::remove_file(marker);
     let e = Weights::from_safetensors(&fixture("evil.pth")).err().unwrap().to_string();
     assert!(e.contains("evil.pth") && e.contains("posix.system") || e.contains("os.system"), "{e}");
