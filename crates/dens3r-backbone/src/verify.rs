@@ -73,8 +73,25 @@ pub fn heads_from_args(args: &str) -> Option<(usize, usize)> {
 }
 
 /// Loads a safetensors or `.pth` checkpoint; head counts come from `config` (see
-/// [`heads_from_config`]), else from a `.pth`'s `args.model`, else default to head dim 64. Returns the unexpected keys too.
+/// [`heads_from_config`]), else from a `.pth`'s `args.model`, else default to head dim 64.
+/// Returns the unexpected keys too.
+///
+/// `weights` may also be a Hugging Face model folder (`model.safetensors` + `config.json`, as
+/// the `naver/...` repositories hold): its `config.json` then gives the head counts unless
+/// `config` is set.
 pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Result<(Dens3r, Vec<String>), String> {
+    if weights.is_dir() {
+        let file = weights.join("model.safetensors");
+        if !file.is_file() {
+            return Err(format!(
+                "{}: a folder without model.safetensors; give a checkpoint file or a Hugging Face model folder",
+                weights.display()
+            ));
+        }
+        let hf = weights.join("config.json");
+        let config = config.or_else(|| hf.is_file().then_some(hf.as_path()));
+        return load_model(&file, config, device);
+    }
     let w = Weights::from_safetensors(weights).map_err(|e| e.to_string())?;
     let heads = match config {
         Some(c) if !c.is_file() => return Err(format!("{}: config file not found", c.display())),

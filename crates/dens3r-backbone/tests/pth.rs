@@ -66,3 +66,27 @@ fn code_in_a_pickle_is_refused_not_run() {
         assert!(e.contains(f) && !e.contains('\n'), "{f}: {e}");
     }
 }
+
+/// A Hugging Face model folder (`model.safetensors` + `config.json`) loads as its files do,
+/// the head counts from its config (fixture A's 32-wide network has no head-dim-64 default).
+#[test]
+fn hugging_face_folder_loads_like_its_files() {
+    let a = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/parity/A_shared_dec_48x64");
+    let tmp = tempfile::tempdir().unwrap();
+    let hf = tmp.path().join("naver-model");
+    std::fs::create_dir_all(&hf).unwrap();
+    std::fs::copy(a.join("weights.safetensors"), hf.join("model.safetensors")).unwrap();
+    std::fs::copy(a.join("config.json"), hf.join("config.json")).unwrap();
+    let device = dens3r_backbone::Device::flex();
+    let (m1, _) = dens3r_backbone::verify::load_model(&hf, None, &device).unwrap();
+    let (m2, _) =
+        dens3r_backbone::verify::load_model(&a.join("weights.safetensors"), Some(&a.join("config.json")), &device)
+            .unwrap();
+    assert_eq!(m1.config, m2.config);
+    // Without its config the file alone cannot give fixture A's head counts: the folder's
+    // config.json was read.
+    let e = dens3r_backbone::verify::load_model(&a.join("weights.safetensors"), None, &device).err().unwrap();
+    assert!(e.contains("head counts"), "{e}");
+    let e = dens3r_backbone::verify::load_model(tmp.path(), None, &device).err().unwrap();
+    assert!(e.contains("model.safetensors"), "{e}");
+}

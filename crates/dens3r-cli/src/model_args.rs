@@ -10,11 +10,12 @@ use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct ModelArgs {
-    /// Checkpoint (.safetensors, or a zip-format .pth read natively and safely).
+    /// Checkpoint: .safetensors, a .pth (read natively; nothing in it is executed), or a
+    /// Hugging Face model folder (model.safetensors + config.json).
     #[arg(long)]
     pub weights: PathBuf,
     /// JSON with the head counts (enc_num_heads, dec_num_heads, or the converter's "args");
-    /// default: head dim 64.
+    /// default: a .pth's args.model or a folder's config.json, else head dim 64.
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Long side of the network input (512, or 1024 for more detail).
