@@ -85,7 +85,19 @@ enum Command {
     Verify(verify::VerifyArgs),
 }
 
+/// A closed stdout (`dens3r info SCENE | head -1`) ends the process quietly, as it ends `cat`:
+/// Rust ignores SIGPIPE, so printing would panic with a backtrace instead. Outputs are written
+/// to temporary files and renamed before the results are printed, so nothing is half-written.
+fn quiet_on_closed_stdout() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: restoring the default disposition of one signal before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() {
+    quiet_on_closed_stdout();
     // DENS3R_CACHE_MB: how much freed activation memory to keep for reuse (default 1024;
     // 0 = none, lowest peak memory, ~10% slower forward passes).
     if let Some(mb) = std::env::var("DENS3R_CACHE_MB").ok().and_then(|v| v.trim().parse::<usize>().ok()) {

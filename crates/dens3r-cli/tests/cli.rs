@@ -818,3 +818,24 @@ fn real_scenes_from_the_fetched_material() {
     let text = ok(&["eval", "depth", &m, &m]);
     assert!(text.contains("0.00000"), "{text}");
 }
+
+/// Output cut short by a closed pipe (`dens3r info SCENE | head -c 1`) ends quietly, with no
+/// panic or backtrace (before the fix every one of these runs panicked).
+#[test]
+fn a_closed_stdout_ends_quietly() {
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let dir = tempfile::tempdir().unwrap();
+    let err = dir.path().join("stderr.txt");
+    let cmd = format!(
+        "'{}' info '{}' 2>'{}' | head -c 1 > /dev/null",
+        env!("CARGO_BIN_EXE_dens3r"),
+        root.join("data-samples/room").display(),
+        err.display()
+    );
+    for _ in 0..3 {
+        let st = std::process::Command::new("sh").args(["-c", &cmd]).status().unwrap();
+        assert!(st.success());
+        let text = std::fs::read_to_string(&err).unwrap();
+        assert!(!text.contains("panicked") && !text.contains("Broken pipe"), "{text}");
+    }
+}
