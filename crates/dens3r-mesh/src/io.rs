@@ -104,9 +104,47 @@ fn fan(face: &[u32], out: &mut Vec<[u32; 3]>) {
     }
 }
 
+/// Checks a PLY header's element counts against the file size before the parser allocates
+/// for them: each element takes at least one byte per property in binary files and two
+/// (a digit and a separator) in ASCII ones.
+fn check_ply_counts(path: &Path) -> Result<(), MeshError> {
+    let bad = |m: String| MeshError::new(path, format!("not a valid PLY file: {m}"));
+    let file = File::open(path).map_err(|e| MeshError::new(path, format!("cannot open: {e}")))?;
+    let len = file.metadata().map_err(|e| MeshError::new(path, format!("cannot open: {e}")))?.len();
+    let mut header = Vec::new();
+    std::io::Read::take(file, 1 << 20)
+        .read_to_end(&mut header)
+        .map_err(|e| MeshError::new(path, format!("cannot read: {e}")))?;
+    let text = String::from_utf8_lossy(&header);
+    let Some(end) = text.find("end_header") else { return Ok(()) }; // the parser reports it
+    let ascii = text[..end].contains("format ascii");
+    let (mut need, mut count, mut props) = (0u64, 0u64, 0u64);
+    for line in text[..end].lines() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        match t.as_slice() {
+            ["element", _, n] => {
+                need = need.saturating_add(count.saturating_mul(props.max(1)));
+                count = n.parse().map_err(|_| bad(format!("element count '{n}' is not a number")))?;
+                props = 0;
+            }
+            ["property", ..] => props += 1,
+            _ => {}
+        }
+    }
+    need = need.saturating_add(count.saturating_mul(props.max(1)));
+    let need = if ascii { need.saturating_mul(2) } else { need };
+    if need > len {
+        return Err(bad(format!(
+            "its header declares elements needing at least {need} bytes but the file holds {len} (a damaged or hostile header)"
+        )));
+    }
+    Ok(())
+}
+
 fn read_ply(path: &Path) -> Result<TriMesh, MeshError> {
     use ply_rs_bw::parser::Parser;
     use ply_rs_bw::ply::{DefaultElement, Property};
+    check_ply_counts(path)?;
     let mut f = BufReader::new(File::open(path).map_err(|e| MeshError::new(path, format!("cannot open: {e}")))?);
     let ply = Parser::<DefaultElement>::new()
         .read_ply(&mut f)
@@ -200,7 +238,11 @@ fn read_off(path: &Path) -> Result<TriMesh, MeshError> {
             .ok_or_else(|| bad("counts line must hold vertex and face counts"))
     };
     let (nv, nf) = (count(0)?, count(1)?);
-    let mut positions = Vec::with_capacity(nv);
+    // Every vertex line takes at least 6 bytes ("0 0 0\n"), every face line 8 ("3 0 1 2\n"):
+    // the capacities are bounded by what the file can hold, so a hostile header cannot make
+    // us allocate more than the file's size (its shortfall is then reported line by line).
+    let (cap_v, cap_f) = (nv.min(text.len() / 6), nf.min(text.len() / 8));
+    let mut positions = Vec::with_capacity(cap_v);
     for i in 0..nv {
         let l = lines.next().ok_or_else(|| bad(&format!("file ends at vertex {i} of {nv}")))?;
         let v: Vec<f32> = l
@@ -214,7 +256,7 @@ fn read_off(path: &Path) -> Result<TriMesh, MeshError> {
         }
         positions.push(Vec3::new(v[0], v[1], v[2]));
     }
-    let mut indices = Vec::with_capacity(nf);
+    let mut indices = Vec::with_capacity(cap_f);
     for i in 0..nf {
         let l = lines.next().ok_or_else(|| bad(&format!("file ends at face {i} of {nf}")))?;
         let mut it = l.split_whitespace().map(str::parse::<u32>);

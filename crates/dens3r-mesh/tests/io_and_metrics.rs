@@ -133,3 +133,26 @@ fn concentric_spheres_match_analytic_values() {
     let r = mesh_metrics(&c, &d, &opts).unwrap();
     assert!((r.accuracy - r.completeness).abs() < 5e-3, "{r:?}");
 }
+
+/// Hostile headers: counts a file cannot hold (10^12 vertices in 30 bytes) give one line
+/// naming the file, and nothing is allocated for them (this used to abort allocating 12 TB).
+#[test]
+fn huge_declared_counts_are_refused_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    let off = dir.path().join("big.off");
+    std::fs::write(&off, "OFF\n1000000000000 1000000000000 0\n0 0 0\n").unwrap();
+    let e = dens3r_mesh::io::read_mesh(&off).err().unwrap().to_string();
+    assert!(e.contains("big.off") && e.contains("file ends at vertex 1 of 1000000000000") && !e.contains('\n'), "{e}");
+    for format in ["ascii", "binary_little_endian"] {
+        let ply = dir.path().join(format!("big_{format}.ply"));
+        let header = format!(
+            "ply\nformat {format} 1.0\nelement vertex 1000000000000\nproperty float x\nproperty float y\nproperty float z\nelement face 5\nproperty list uchar int vertex_indices\nend_header\n"
+        );
+        std::fs::write(&ply, header).unwrap();
+        let e = dens3r_mesh::io::read_mesh(&ply).err().unwrap().to_string();
+        assert!(e.contains("big_") && e.contains("declares") && !e.contains('\n'), "{format}: {e}");
+    }
+    // An honest small file still reads.
+    std::fs::write(&off, "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n").unwrap();
+    assert_eq!(dens3r_mesh::io::read_mesh(&off).unwrap().indices.len(), 1);
+}
