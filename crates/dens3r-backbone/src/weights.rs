@@ -98,18 +98,29 @@ impl Weights {
             }
             tensors.insert(name, (shape, Extent { dtype, start, end }));
         }
-        Ok(Self {
-            path: path.to_path_buf(),
-            file: Some(RefCell::new(file)),
+        Ok(Self::with(path.to_path_buf(), Some(file), tensors, None, None))
+    }
+
+    /// A store over `tensors` of `file` (none when synthetic), nothing used yet.
+    fn with(
+        path: PathBuf,
+        file: Option<std::fs::File>,
+        tensors: BTreeMap<String, (Vec<usize>, Extent)>,
+        synthetic: Option<(u64, f32)>,
+        args_model: Option<String>,
+    ) -> Self {
+        Self {
+            path,
+            file: file.map(RefCell::new),
             tensors,
             unreadable: Default::default(),
             used: Default::default(),
             missing: Default::default(),
             misshaped: Default::default(),
-            synthetic: None,
+            synthetic: synthetic.map(RefCell::new),
             generated: Default::default(),
-            args_model: None,
-        })
+            args_model,
+        }
     }
 
     /// Opens a PyTorch `.pth` (zip format) through [`crate::pth`]: the state dict under
@@ -124,20 +135,9 @@ impl Weights {
             .into_iter()
             .map(|(n, t)| (n, (t.shape, Extent { dtype: t.dtype, start: t.start, end: t.end })))
             .collect();
-        Ok(Self {
-            path: path.to_path_buf(),
-            file: Some(RefCell::new(file)),
-            tensors,
-            // Integer tensors and views are left out, as integer safetensors entries are: a
-            // model that needs one reports it missing.
-            unreadable: Default::default(),
-            used: Default::default(),
-            missing: Default::default(),
-            misshaped: Default::default(),
-            synthetic: None,
-            generated: Default::default(),
-            args_model: index.args_model,
-        })
+        // Integer tensors and views are left out, as integer safetensors entries are: a model
+        // that needs one reports it missing.
+        Ok(Self::with(path.to_path_buf(), Some(file), tensors, None, index.args_model))
     }
 
     /// The constructor call an official `.pth` records under `args.model` (e.g.
@@ -170,18 +170,8 @@ impl Weights {
     /// [`Weights::save_safetensors`] exports exactly the model that was built (benchmarks,
     /// tests of other implementations).
     pub fn synthetic(seed: u64, std: f32) -> Self {
-        Self {
-            path: PathBuf::from("<synthetic>"),
-            file: None,
-            tensors: BTreeMap::new(),
-            unreadable: Default::default(),
-            used: Default::default(),
-            missing: Default::default(),
-            misshaped: Default::default(),
-            synthetic: Some(RefCell::new((seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1, std))),
-            generated: Default::default(),
-            args_model: None,
-        }
+        let state = (seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1, std);
+        Self::with(PathBuf::from("<synthetic>"), None, BTreeMap::new(), Some(state), None)
     }
 
     /// Writes every tensor (f32) to a safetensors file, atomically.

