@@ -5,10 +5,13 @@
 # Every part resumes: rerun after an interruption and it continues where it stopped (synth
 # keeps finished scenes, each `dens3r train` run folder resumes from its checkpoint).
 # Work goes to $DENS3R_TRAIN_DIR (default .cache/train-default, git-ignored); the final f16
-# weights and their config land in $DENS3R_TRAIN_DIR/dens3r-s.safetensors + dens3r-s.json.
+# weights and their config are installed as the bundled model, data-samples/models/dens3r-s/
+# (model.safetensors + config.json; $MODEL_DIR to put them elsewhere), and scored by
+# scripts/eval-default.sh (held-out rendered scenes, real images, cameras, baselines).
 #
 #   bash scripts/train-default.sh                       # the full schedule (hours on 2 CPU cores)
-#   STEPS1=4 STEPS1F=2 STEPS2=2 SCENES=4 VAL_SCENES=2 bash scripts/train-default.sh   # smoke run
+#   DENS3R_TRAIN_DIR=.cache/smoke MODEL_DIR=.cache/smoke/model EVAL=0 \
+#     STEPS1=4 STEPS1F=2 STEPS2=2 SCENES=4 VAL_SCENES=2 bash scripts/train-default.sh      # smoke run
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 start=$(date +%s)
@@ -17,7 +20,7 @@ scenes="${SCENES:-200}"
 val_scenes="${VAL_SCENES:-16}"
 steps1="${STEPS1:-1200}"
 steps1f="${STEPS1F:-150}"
-steps2="${STEPS2:-400}"
+steps2="${STEPS2:-300}"
 arch="${ARCH:-configs/dens3r-s.toml}"
 mkdir -p "$work"
 
@@ -35,24 +38,25 @@ $B train --stage 1 --arch "$arch" "${common[@]}" -o "$work/s1" --size 224x160 \
   --steps "$steps1" --batch 2 --lr 2e-4 --val-every 100
 # Stage 1, fine: the same network at the larger size (position-interpolated RoPE).
 $B train --stage 1 --init "$work/s1/model.safetensors" --config "$work/s1/model.json" "${common[@]}" \
-  -o "$work/s1f" --size 384x288 --steps "$steps1f" --batch 1 --lr 5e-5 --val-every 50
-# Stage 2: the normal head joins, normal supervision; shipped in f16.
+  -o "$work/s1f" --size 384x288 --steps "$steps1f" --batch 1 --lr 5e-5 --val-every 50 --self-pairs 0.25
+# Stage 2: the normal head joins, normal supervision; shipped in f16. From the fine stage on, a
+# quarter of the pairs are one view with itself: a single photo runs that way (predict).
 $B train --stage 2 --init "$work/s1f/model.safetensors" --config "$work/s1f/model.json" "${common[@]}" \
-  -o "$work/s2" --size 224x160 --steps "$steps2" --batch 2 --lr 1e-4 --val-every 100 --precision f16
+  -o "$work/s2" --size 224x160 --steps "$steps2" --batch 2 --lr 1e-4 --val-every 100 --precision f16 \
+  --self-pairs 0.25
 
-cp "$work/s2/model.safetensors" "$work/dens3r-s.safetensors.part"
-mv "$work/dens3r-s.safetensors.part" "$work/dens3r-s.safetensors"
-cp "$work/s2/model.json" "$work/dens3r-s.json"
-# Real held-out images with metric ground truth (depth up to scale: median-aligned).
-$B real-scenes -o "$work/real"
-for sf in motorcycle:left arc2017:rgb; do
-  s="${sf%%:*}"; f="${sf##*:}"
-  rm -rf "$work/pred_$s"
-  $B predict --weights "$work/dens3r-s.safetensors" --config "$work/dens3r-s.json" --size 224 --original-size \
-    "$work/real/$s/images/$f.png" -o "$work/pred_$s" > /dev/null
-  echo "$s depth (AbsRel RMSE d1 d2 d3): $($B eval depth "$work/pred_$s" "$work/real/$s" --align median | tail -1)"
-done
+# Install as the bundled model (temporary names, then renamed: never half-written).
+dest="${MODEL_DIR:-data-samples/models/dens3r-s}"
+mkdir -p "$dest"
+cp "$work/s2/model.safetensors" "$dest/.model.safetensors.part"
+cp "$work/s2/model.json" "$dest/.config.json.part"
+mv "$dest/.model.safetensors.part" "$dest/model.safetensors"
+mv "$dest/.config.json.part" "$dest/config.json"
 for s in s1 s1f s2; do
   echo "$s held out (last): $(grep '"val"' "$work/$s/log.jsonl" | tail -1 | sed 's/.*"val"://; s/}$//')"
 done
-echo "dens3r-s: $work/dens3r-s.safetensors ($(du -h "$work/dens3r-s.safetensors" | cut -f1)); wall time $(( $(date +%s) - start )) s"
+echo "dens3r-s: $dest/model.safetensors ($(du -h "$dest/model.safetensors" | cut -f1)); training wall time $(( $(date +%s) - start )) s"
+if [ "${EVAL:-1}" != 0 ]; then
+  MODEL="$dest" TRAIN_DATA="$work/data" bash scripts/eval-default.sh
+fi
+echo "train-default: wall time $(( $(date +%s) - start )) s"

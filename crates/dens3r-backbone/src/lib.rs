@@ -9,6 +9,7 @@
 
 pub mod config;
 pub mod cpu;
+pub mod default_model;
 pub mod dinov2;
 pub mod model;
 pub mod onnx;

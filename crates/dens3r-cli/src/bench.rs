@@ -39,7 +39,15 @@ pub enum BenchCommand {
     MakeWeights { out: PathBuf },
     /// (internal) time one Rust forward.
     #[command(hide = true)]
-    RunRust { weights: PathBuf, width: usize, height: usize, dir: PathBuf, repeat: usize },
+    RunRust {
+        weights: PathBuf,
+        width: usize,
+        height: usize,
+        dir: PathBuf,
+        repeat: usize,
+        #[arg(long)]
+        config: Option<PathBuf>,
+    },
 }
 
 #[derive(Args)]
@@ -52,6 +60,13 @@ pub struct BackboneArgs {
     /// Forward passes per side; the fastest is reported.
     #[arg(long, default_value_t = 2)]
     repeat: usize,
+    /// Time this checkpoint instead of random full-size weights: a file, a Hugging Face
+    /// folder, or `dens3r-s` (the bundled default model); both sides read an f32 copy.
+    #[arg(long)]
+    weights: Option<String>,
+    /// Head counts of --weights (as `predict --config`).
+    #[arg(long)]
+    config: Option<PathBuf>,
 }
 
 /// What a benchmark against a PyTorch peer needs: threads, the Python, a working folder.
@@ -116,8 +131,8 @@ pub fn run(c: BenchCommand) -> Result<()> {
             w.save_safetensors(&out)?;
             Ok(())
         }
-        BenchCommand::RunRust { weights, width, height, dir, repeat } => {
-            run_rust(&weights, width, height, &dir, repeat)
+        BenchCommand::RunRust { weights, width, height, dir, repeat, config } => {
+            run_rust(&weights, config.as_deref(), width, height, &dir, repeat)
         }
     }
 }
@@ -156,10 +171,17 @@ fn seeded_image(width: usize, height: usize, seed: u64) -> Vec<f32> {
         .collect()
 }
 
-fn run_rust(weights: &Path, width: usize, height: usize, dir: &Path, repeat: usize) -> Result<()> {
+fn run_rust(
+    weights: &Path,
+    config: Option<&Path>,
+    width: usize,
+    height: usize,
+    dir: &Path,
+    repeat: usize,
+) -> Result<()> {
     let device = dens3r_backbone::Device::default();
     let t0 = Instant::now();
-    let (model, _) = dens3r_backbone::verify::load_model(weights, None, &device).map_err(anyhow::Error::msg)?;
+    let (model, _) = dens3r_backbone::verify::load_model(weights, config, &device).map_err(anyhow::Error::msg)?;
     let load_s = t0.elapsed().as_secs_f64();
     // Two different images, shared with the PyTorch side through img1.npy / img2.npy.
     let mut inputs = Vec::new();
@@ -225,7 +247,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         .map(|s| {
             let (w, h) = s.trim().split_once('x').with_context(|| format!("size '{s}' is not WIDTHxHEIGHT"))?;
             let (w, h): (usize, usize) = (w.parse()?, h.parse()?);
-            if w % 16 != 0 || h % 16 != 0 || w == 0 || h == 0 {
+            if !w.is_multiple_of(16) || !h.is_multiple_of(16) || w == 0 || h == 0 {
                 bail!("size {w}x{h}: both sides must be positive multiples of 16");
             }
             Ok((w, h))
@@ -235,12 +257,41 @@ fn backbone(a: BackboneArgs) -> Result<()> {
     let dir = a.peer.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
     std::fs::create_dir_all(&dir)?;
     let exe = std::env::current_exe()?;
-    let weights = dir.join("dens3r_full_random.safetensors");
-    eprintln!("writing random full-size Dens3R weights to {} ...", weights.display());
-    let st = Command::new(&exe).args(["bench", "make-weights"]).arg(&weights).status()?;
-    if !st.success() {
-        bail!("could not make the benchmark weights");
-    }
+    // The weights both sides read (f32), their head counts and a description.
+    let (weights, heads, what) = match &a.weights {
+        None => {
+            let weights = dir.join("dens3r_full_random.safetensors");
+            eprintln!("writing random full-size Dens3R weights to {} ...", weights.display());
+            let st = Command::new(&exe).args(["bench", "make-weights"]).arg(&weights).status()?;
+            if !st.success() {
+                bail!("could not make the benchmark weights");
+            }
+            (
+                weights,
+                (16, 12),
+                "full-size Dens3R (ViT-L/16 encoder, 12-block ViT-B decoder, DPT 256), random weights".to_string(),
+            )
+        }
+        Some(w) => {
+            let given = (w != dens3r_backbone::default_model::NAME).then(|| PathBuf::from(w));
+            let (file, config) = crate::model_args::resolve_model(given.as_deref(), a.config.as_deref())?;
+            let model = crate::model_args::load_network(&file, config.as_deref())?;
+            let c = &model.config;
+            let what = format!(
+                "{} ({}x{} encoder, {}x{} decoder), trained weights",
+                file.display(),
+                c.enc_depth,
+                c.enc_dim,
+                c.dec_depth,
+                c.dec_dim
+            );
+            let weights = dir.join("bench_weights_f32.safetensors");
+            Weights::from_safetensors(&file)?.save_safetensors(&weights)?;
+            (weights, (c.enc_heads, c.dec_heads), what)
+        }
+    };
+    let heads_json = dir.join("bench_heads.json");
+    std::fs::write(&heads_json, serde_json::json!({"enc_num_heads": heads.0, "dec_num_heads": heads.1}).to_string())?;
     let python = bench_python(a.peer.python.clone());
     let torch_ok = Command::new(&python)
         .args(["-c", "import torch, safetensors, numpy"])
@@ -252,10 +303,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             python.display()
         );
     }
-    println!(
-        "full-size Dens3R (ViT-L/16 encoder, 12-block ViT-B decoder, DPT 256), random weights, fastest of {}, {threads} threads",
-        a.repeat
-    );
+    println!("{what}, fastest of {}, {threads} threads", a.repeat);
     println!(
         "  rust s / torch s: one pair forward of two images; mono s: Rust single-image prediction (forward_mono),"
     );
@@ -272,6 +320,8 @@ fn backbone(a: BackboneArgs) -> Result<()> {
                 .args([w.to_string(), h.to_string()])
                 .arg(&dir)
                 .arg(a.repeat.to_string())
+                .arg("--config")
+                .arg(&heads_json)
                 .env("RAYON_NUM_THREADS", threads.to_string()),
             "Rust",
         )?;
@@ -283,7 +333,8 @@ fn backbone(a: BackboneArgs) -> Result<()> {
                 Command::new(&python)
                     .arg("bench/torch_dens3r.py")
                     .arg(&weights)
-                    .args(["--size", &format!("{w}x{h}"), "--threads", &threads.to_string(), "--heads", "16,12"])
+                    .args(["--size", &format!("{w}x{h}"), "--threads", &threads.to_string()])
+                    .args(["--heads", &format!("{},{}", heads.0, heads.1)])
                     .args(["--repeat", &a.repeat.to_string()])
                     .arg("--image")
                     .arg(dir.join("img1.npy"))

@@ -2,14 +2,17 @@
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
-use dens3r_geom::metrics::{depth_metrics, normal_metrics, DepthAlign, DepthMetrics, NormalMetrics};
+use dens3r_geom::metrics::{
+    camera_metrics, cameras::median as cam_median, constant_baseline, depth_metrics, normal_metrics, plane_baseline,
+    DepthAlign, DepthMetrics, NormalMetrics,
+};
 use dens3r_geom::normals::normals_from_pointmap_robust;
 use dens3r_geom::pointmap::depth_to_pointmap;
 use dens3r_geom::{NormalConvention, Raster};
 use dens3r_mesh::{mesh_metrics, MeshMetricsOptions};
 use dens3r_scene::{Frame, Scene};
 use serde_json::json;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Subcommand)]
 pub enum EvalCommand {
@@ -19,6 +22,37 @@ pub enum EvalCommand {
     Normals(NormalArgs),
     /// Chamfer-L1, F-score and normal consistency of mesh PRED against mesh GT.
     Mesh(MeshArgs),
+    /// Pose errors of scene PRED's cameras against scene GT's (frames matched by name; image
+    /// sizes may differ): relative rotation and translation direction over every pair of
+    /// views, and focal error relative to the image width.
+    Cameras(CameraArgs),
+    /// Scores of two image-blind baselines fitted to scene GT itself: the median depth with
+    /// camera-facing normals, and the best-fit plane (what a predictor must beat).
+    Baselines(BaselineArgs),
+}
+
+#[derive(Args)]
+pub struct CameraArgs {
+    /// Predicted scene folder (e.g. `reconstruct`'s OUT/scene).
+    pred: PathBuf,
+    /// Ground-truth scene folder.
+    gt: PathBuf,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+pub struct BaselineArgs {
+    /// Ground-truth scene folder (depth; normals scored when present; masks restrict).
+    gt: PathBuf,
+    /// Alignment applied to the plane's depth before scoring (the constant is the median
+    /// already, which every alignment leaves as it is).
+    #[arg(long, value_enum, default_value_t = Align::Median)]
+    align: Align,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -41,7 +75,8 @@ pub enum Convention {
 
 #[derive(Args)]
 pub struct Common {
-    /// Predicted scene folder.
+    /// Predicted scene folder (for depth also a folder of NAME.npy maps, as `predict --head`
+    /// writes with --original-size).
     pred: PathBuf,
     /// Ground-truth scene folder (its masks, if any, restrict the pixels).
     gt: PathBuf,
@@ -99,7 +134,129 @@ pub fn run(c: EvalCommand) -> Result<()> {
         EvalCommand::Depth(a) => depth(a),
         EvalCommand::Normals(a) => normals(a),
         EvalCommand::Mesh(a) => mesh(a),
+        EvalCommand::Cameras(a) => cameras(a),
+        EvalCommand::Baselines(a) => baselines(a),
     }
+}
+
+fn depth_align(a: Align) -> DepthAlign {
+    match a {
+        Align::None => DepthAlign::None,
+        Align::Median => DepthAlign::MedianScale,
+        Align::ScaleShift => DepthAlign::ScaleShift,
+    }
+}
+
+fn cameras(a: CameraArgs) -> Result<()> {
+    let (p, g) = (Scene::open(&a.pred)?, Scene::open(&a.gt)?);
+    let (est, truth): (Vec<_>, Vec<_>) =
+        g.frames().iter().filter_map(|gf| p.frame(&gf.name).map(|pf| (pf.camera(), gf.camera()))).unzip();
+    if truth.len() < 2 {
+        bail!(
+            "{} and {} share {} frame name(s): relative poses need at least 2",
+            a.pred.display(),
+            a.gt.display(),
+            truth.len()
+        );
+    }
+    let m = camera_metrics(&est, &truth);
+    let under = |t: f64| m.rotation_deg.iter().filter(|&&e| e < t).count() as f64 / m.rotation_deg.len() as f64;
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let j = json!({
+        "views": truth.len(), "pairs": m.rotation_deg.len(),
+        "rotation_median_deg": cam_median(&m.rotation_deg), "rotation_mean_deg": mean(&m.rotation_deg),
+        "rotation_under_5": under(5.0), "rotation_under_15": under(15.0),
+        "translation_median_deg": cam_median(&m.translation_deg),
+        "focal_median_rel": cam_median(&m.focal_rel), "focal_max_rel": m.focal_rel.iter().cloned().fold(0.0, f64::max),
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&j)?);
+        return Ok(());
+    }
+    println!(
+        "{} views, {} pairs: relative rotation error median {:.3} deg, mean {:.3} deg, {:.1}% under 5 deg, {:.1}% under 15 deg",
+        truth.len(),
+        m.rotation_deg.len(),
+        cam_median(&m.rotation_deg),
+        mean(&m.rotation_deg),
+        100.0 * under(5.0),
+        100.0 * under(15.0)
+    );
+    println!(
+        "translation direction error median {:.3} deg; focal error median {:.2}%, max {:.2}%",
+        cam_median(&m.translation_deg),
+        100.0 * cam_median(&m.focal_rel),
+        100.0 * j["focal_max_rel"].as_f64().unwrap_or(f64::NAN)
+    );
+    Ok(())
+}
+
+fn baselines(a: BaselineArgs) -> Result<()> {
+    let gs = Scene::open(&a.gt)?;
+    // Per baseline: depth metrics and normal metrics of every frame.
+    let mut rows: [(Vec<DepthMetrics>, Vec<NormalMetrics>); 2] = Default::default();
+    // Frames without depth (e.g. the second view of a stereo pair) are not scored.
+    for gf in gs.frames() {
+        let Some(gd) = gs.depth(gf)? else { continue };
+        let mask = gs.mask(gf)?;
+        let gn = gs.normals(gf)?;
+        let k = gf.camera().intrinsics;
+        let made = [
+            (constant_baseline(&gd, mask.as_ref()), DepthAlign::None),
+            (plane_baseline(&gd, &k, mask.as_ref()), depth_align(a.align)),
+        ];
+        for ((b, align), row) in made.into_iter().zip(rows.iter_mut()) {
+            let b =
+                b.with_context(|| format!("{}: frame '{}': too few valid depth pixels", a.gt.display(), gf.name))?;
+            row.0.push(
+                depth_metrics(&b.depth, &gd, mask.as_ref(), align).with_context(|| format!("frame '{}'", gf.name))?,
+            );
+            if let Some(gn) = &gn {
+                row.1.push(
+                    normal_metrics(&b.normals, gn, mask.as_ref()).with_context(|| format!("frame '{}'", gf.name))?,
+                );
+            }
+        }
+    }
+    if rows[0].0.is_empty() {
+        bail!("{}: no frame has depth (depth/NAME.npy): nothing to fit a baseline to", a.gt.display());
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let names = ["constant", "plane"];
+    let table: Vec<_> = rows
+        .iter()
+        .zip(names)
+        .map(|((d, n), name)| {
+            let dm = |f: fn(&DepthMetrics) -> f64| mean(&d.iter().map(f).collect::<Vec<_>>());
+            let nm = |f: fn(&NormalMetrics) -> f64| (!n.is_empty()).then(|| mean(&n.iter().map(f).collect::<Vec<_>>()));
+            json!({"baseline": name, "frames": d.len(), "abs_rel": dm(|m| m.abs_rel), "rmse": dm(|m| m.rmse),
+                "delta1": dm(|m| m.delta[0]), "normal_mean": nm(|m| m.mean), "normal_median": nm(|m| m.median),
+                "within_11_25": nm(|m| m.within[0])})
+        })
+        .collect();
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&table)?);
+        return Ok(());
+    }
+    println!(
+        "{:<10} {:>9} {:>9} {:>8} {:>12} {:>12} {:>8}",
+        "baseline", "AbsRel", "RMSE", "d<1.25", "normal mean", "median", "<11.25"
+    );
+    for r in &table {
+        let f = |k: &str| r[k].as_f64().map_or("-".to_string(), |v| format!("{v:.4}"));
+        println!(
+            "{:<10} {:>9} {:>9} {:>8} {:>12} {:>12} {:>8}",
+            r["baseline"].as_str().unwrap_or(""),
+            f("abs_rel"),
+            f("rmse"),
+            f("delta1"),
+            f("normal_mean"),
+            f("normal_median"),
+            f("within_11_25")
+        );
+    }
+    println!("(mean over {} frames; normal angles in degrees)", rows[0].0.len());
+    Ok(())
 }
 
 /// A predicted and a ground-truth scene with their frames matched by name.
@@ -142,19 +299,47 @@ fn need<T>(v: Option<T>, scene: &Scene, f: &Frame, what: &str) -> Result<T> {
     })
 }
 
+/// Depth maps of a folder of `NAME.npy` files (`predict --head` output) for GT's frames.
+fn npy_depths(dir: &Path, gs: &Scene) -> Result<Vec<(Raster<f32>, Frame)>> {
+    let mut out = Vec::new();
+    for gf in gs.frames() {
+        let path = dir.join(format!("{}.npy", gf.name));
+        if !path.is_file() {
+            continue;
+        }
+        let (shape, data) = dens3r_scene::npy::read_f32(&path)?;
+        if shape != [gf.height, gf.width] {
+            bail!(
+                "{}: {:?} does not fit frame '{}' ({}x{}); predict with --original-size",
+                path.display(),
+                shape,
+                gf.name,
+                gf.width,
+                gf.height
+            );
+        }
+        out.push((Raster::from_vec(gf.width, gf.height, data)?, gf.clone()));
+    }
+    if out.is_empty() {
+        bail!("{}: no NAME.npy depth map for any frame of {}", dir.display(), gs.root().display());
+    }
+    Ok(out)
+}
+
 fn depth(a: DepthArgs) -> Result<()> {
-    let Paired { pred: ps, gt: gs, frames: pairs } = paired(&a.common)?;
-    let align = match a.align {
-        Align::None => DepthAlign::None,
-        Align::Median => DepthAlign::MedianScale,
-        Align::ScaleShift => DepthAlign::ScaleShift,
+    let align = depth_align(a.align);
+    // A scene folder, or a folder of depth .npy files named by frame.
+    let pairs: Vec<(Raster<f32>, Frame)> = if a.common.pred.join("cameras.json").is_file() {
+        let Paired { pred: ps, frames, .. } = paired(&a.common)?;
+        frames.into_iter().map(|(pf, gf)| Ok((need(ps.depth(&pf)?, &ps, &pf, "depth")?, gf))).collect::<Result<_>>()?
+    } else {
+        npy_depths(&a.common.pred, &Scene::open(&a.common.gt)?)?
     };
+    let gs = Scene::open(&a.common.gt)?;
     let mut rows = Vec::new();
-    for (pf, gf) in &pairs {
-        let pd = need(ps.depth(pf)?, &ps, pf, "depth")?;
+    for (pd, gf) in &pairs {
         let gd = need(gs.depth(gf)?, &gs, gf, "depth")?;
-        let m =
-            depth_metrics(&pd, &gd, gs.mask(gf)?.as_ref(), align).with_context(|| format!("frame '{}'", gf.name))?;
+        let m = depth_metrics(pd, &gd, gs.mask(gf)?.as_ref(), align).with_context(|| format!("frame '{}'", gf.name))?;
         rows.push((gf.name.clone(), m));
     }
     let mean = |f: &dyn Fn(&DepthMetrics) -> f64| rows.iter().map(|r| f(&r.1)).sum::<f64>() / rows.len() as f64;
@@ -233,9 +418,16 @@ fn normals(a: NormalArgs) -> Result<()> {
     Ok(())
 }
 
+/// Most points sampled per mesh by `eval mesh`.
+const MAX_MESH_SAMPLES: usize = 20_000_000;
+
 fn mesh(a: MeshArgs) -> Result<()> {
     if a.thresholds.iter().any(|t| t.is_nan() || *t <= 0.0) {
         bail!("--threshold values must be positive");
+    }
+    // Each sample keeps a point, a normal and a distance per mesh (about 60 bytes).
+    if !(1..=MAX_MESH_SAMPLES).contains(&a.samples) {
+        bail!("--samples {}: expected 1..={MAX_MESH_SAMPLES} (1e5 is the usual; 1e7 needs about 1.2 GB)", a.samples);
     }
     let pred = dens3r_mesh::read_mesh(&a.pred)?;
     let gt = dens3r_mesh::read_mesh(&a.gt)?;

@@ -3,6 +3,7 @@
 
 use anyhow::{anyhow, bail, Result};
 use clap::Args;
+use dens3r_backbone::default_model;
 use dens3r_backbone::verify::load_model;
 use dens3r_backbone::Dens3r;
 use dens3r_heads::Backbone;
@@ -11,9 +12,10 @@ use std::path::{Path, PathBuf};
 #[derive(Args)]
 pub struct ModelArgs {
     /// Checkpoint: .safetensors, a .pth (read natively; nothing in it is executed), or a
-    /// Hugging Face model folder (model.safetensors + config.json).
+    /// Hugging Face model folder (model.safetensors + config.json); default: the bundled
+    /// dens3r-s (data-samples/models/dens3r-s).
     #[arg(long)]
-    pub weights: PathBuf,
+    pub weights: Option<PathBuf>,
     /// JSON with the head counts (enc_num_heads, dec_num_heads, or the converter's "args");
     /// default: a .pth's args.model or a folder's config.json, else head dim 64.
     #[arg(long)]
@@ -26,21 +28,44 @@ pub struct ModelArgs {
     pub keep_portrait: bool,
 }
 
-impl ModelArgs {
-    /// Loads the model on the default device, warning about unused checkpoint keys.
-    pub fn load(&self) -> Result<Dens3r> {
-        let device = dens3r_backbone::Device::default();
-        let (model, unexpected) =
-            load_model(&self.weights, self.config.as_deref(), &device).map_err(anyhow::Error::msg)?;
-        if !unexpected.is_empty() {
-            eprintln!(
-                "warning: {} checkpoint keys are not used by the model (first: {})",
-                unexpected.len(),
-                unexpected[0]
-            );
+/// The checkpoint and its config: `weights` / `config` as given, or the bundled default model
+/// (dens3r-s), saying so in one line on stderr.
+pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(PathBuf, Option<PathBuf>)> {
+    match weights {
+        Some(w) if !w.exists() => bail!(
+            "{}: weights not found (a .safetensors / .pth checkpoint or a Hugging Face folder; leave --weights out for the bundled {})",
+            w.display(),
+            default_model::NAME
+        ),
+        Some(w) => Ok((w.to_path_buf(), config.map(Path::to_path_buf))),
+        None => {
+            let dir = default_model::locate().map_err(anyhow::Error::msg)?;
+            eprintln!("{}", default_model::notice(&dir));
+            if dir.is_file() {
+                return Ok((dir, config.map(Path::to_path_buf)));
+            }
+            let cfg = config.map(Path::to_path_buf).or_else(|| Some(dir.join("config.json")).filter(|c| c.is_file()));
+            Ok((dir.join("model.safetensors"), cfg))
         }
-        Ok(model)
     }
+}
+
+impl ModelArgs {
+    /// The checkpoint file and config this resolves to (see [`resolve_model`]).
+    pub fn resolve(&self) -> Result<(PathBuf, Option<PathBuf>)> {
+        resolve_model(self.weights.as_deref(), self.config.as_deref())
+    }
+}
+
+/// Loads the network of [`resolve_model`]'s files on the default device, warning about unused
+/// checkpoint keys.
+pub fn load_network(weights: &Path, config: Option<&Path>) -> Result<Dens3r> {
+    let device = dens3r_backbone::Device::default();
+    let (model, unexpected) = load_model(weights, config, &device).map_err(anyhow::Error::msg)?;
+    if !unexpected.is_empty() {
+        eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);
+    }
+    Ok(model)
 }
 
 /// Opens the backbone named by a `--backbone` value (`config`: head counts of a Dens3R one).
@@ -50,8 +75,12 @@ pub fn open_backbone(spec: &str, config: Option<&Path>) -> Result<Box<dyn Backbo
         "pixels" => Box::new(dens3r_heads::PixelBackbone { patch: 14 }),
         "dinov2" => Box::new(dens3r_heads::Dinov2Backbone::load(Path::new(path), None).map_err(|e| anyhow!(e))?),
         "dens3r" => {
-            Box::new(dens3r_heads::Dens3rBackbone::load(Path::new(path), config, None).map_err(|e| anyhow!(e))?)
+            let (weights, config) = resolve_model((!path.is_empty()).then_some(Path::new(path)), config)?;
+            Box::new(dens3r_heads::Dens3rBackbone::load(&weights, config.as_deref(), None).map_err(|e| anyhow!(e))?)
         }
-        _ => bail!("--backbone {spec:?}: expected dinov2:MODEL.onnx, dens3r:WEIGHTS.safetensors or pixels"),
+        _ => bail!(
+            "--backbone {spec:?}: expected dinov2:MODEL.onnx, dens3r:WEIGHTS.safetensors, dens3r (the bundled {}) or pixels",
+            default_model::NAME
+        ),
     })
 }

@@ -1,7 +1,7 @@
 //! `dens3r predict`: images -> scene folder (depth, normals, confidence, intrinsics, pointmaps,
 //! visualisations), and trained heads (`--head`) on the same backbone pass.
 
-use crate::model_args::{open_backbone, ModelArgs};
+use crate::model_args::{load_network, open_backbone, resolve_model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use dens3r_backbone::predict::{predict_mono, predict_mono_features, to_image_grid, MonoPrediction, Resolution};
@@ -18,8 +18,9 @@ use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct PredictArgs {
-    /// Dens3R checkpoint (.safetensors) for depth, normals, confidence, intrinsics and
-    /// pointmaps; may be left out when only --head outputs are wanted.
+    /// Dens3R checkpoint (.safetensors, .pth or a Hugging Face folder) for depth, normals,
+    /// confidence, intrinsics and pointmaps; default: the bundled dens3r-s (not run when only
+    /// --head outputs on another --backbone are asked for).
     #[arg(long)]
     weights: Option<PathBuf>,
     /// JSON with the head counts (enc_num_heads, dec_num_heads, or the converter's "args");
@@ -67,16 +68,20 @@ pub fn run(a: PredictArgs) -> Result<()> {
             bail!("{}: image not found", p.display());
         }
     }
-    let model = a.weights.clone().map(|weights| ModelArgs {
-        weights,
-        config: a.config.clone(),
-        size: a.size,
-        keep_portrait: a.keep_portrait,
-    });
-    if model.is_none() && a.heads.is_empty() {
-        bail!("nothing to predict: give --weights (the Dens3R network) and/or --head HEAD.json");
-    }
     let heads = load_heads(&a.heads)?;
+    // The network runs unless only heads on another backbone are asked for; without
+    // --weights it is the bundled default model.
+    let run_net = a.weights.is_some() || a.heads.is_empty() || a.backbone.is_none();
+    // A head trained on another backbone needs that backbone named, not the default network.
+    if let Some((h, path)) = heads.iter().zip(&a.heads).find(|(h, _)| !h.head.config.backbone.starts_with("dens3r")) {
+        if a.weights.is_none() && a.backbone.is_none() {
+            bail!(
+                "{}: the head needs its backbone ({}): give --backbone (dinov2:MODEL.onnx, pixels)",
+                path.display(),
+                h.head.config.backbone
+            );
+        }
+    }
     // Heads on another backbone: it runs on each image resized to the heads' training size.
     let other = match a.backbone.as_deref() {
         Some(spec) => {
@@ -85,26 +90,19 @@ pub fn run(a: PredictArgs) -> Result<()> {
         }
         None => None,
     };
-    if !heads.is_empty() && model.is_none() && other.is_none() {
-        bail!(
-            "{}: the head needs its backbone ({}): give --backbone (dinov2:MODEL.onnx, pixels) or --weights",
-            a.heads[0].display(),
-            heads[0].head.config.backbone
-        );
-    }
     // Heads on the network's own pass: it is wrapped as a feature backbone.
     let heads_on_net = !heads.is_empty() && other.is_none();
-    let net = match &model {
-        Some(m) => {
-            let model = m.load()?;
-            let hash = if heads_on_net {
-                file_hash(&m.weights).with_context(|| format!("{}: cannot read", m.weights.display()))?
-            } else {
-                0
-            };
-            Some(Dens3rBackbone::new(model, None, hash).map_err(anyhow::Error::msg)?)
-        }
-        None => None,
+    let net = if run_net {
+        let (weights, config) = resolve_model(a.weights.as_deref(), a.config.as_deref())?;
+        let model = load_network(&weights, config.as_deref())?;
+        let hash = if heads_on_net {
+            file_hash(&weights).with_context(|| format!("{}: cannot read", weights.display()))?
+        } else {
+            0
+        };
+        Some(Dens3rBackbone::new(model, None, hash).map_err(anyhow::Error::msg)?)
+    } else {
+        None
     };
     let head_backbone: Option<&dyn Backbone> = match (&other, &net) {
         (Some((b, _)), _) => Some(b.as_ref()),

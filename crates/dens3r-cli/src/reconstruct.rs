@@ -92,12 +92,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         Graph::Logwin => PairGraph::LogWindow { k: a.window.max(1), cyclic: a.cyclic },
         Graph::Oneref => PairGraph::OneReference { reference: 0 },
     };
-    if !a.model.weights.is_file() {
-        bail!(
-            "{}: weights not found (a .safetensors checkpoint; see `dens3r predict --help`)",
-            a.model.weights.display()
-        );
-    }
+    let (weights, config) = a.model.resolve()?;
     if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         bail!("--voxel must be positive");
     }
@@ -111,8 +106,8 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     if images.len() < 2 {
         bail!("reconstruction needs at least 2 photos, got {}", images.len());
     }
-    let model = a.model.load()?;
-    let predictor = NetworkPredictor::new(&model, format!("{} size {}", weights_id(&a.model.weights), a.model.size));
+    let model = crate::model_args::load_network(&weights, config.as_deref())?;
+    let predictor = NetworkPredictor::new(&model, format!("{} size {}", weights_id(&weights), a.model.size));
     let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
     let opts = ReconOptions {
         graph,

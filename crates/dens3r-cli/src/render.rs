@@ -65,6 +65,9 @@ pub struct RenderArgs {
     output: PathBuf,
 }
 
+/// Most pixels per rendered view (8192 x 8192).
+const MAX_RENDER_PIXELS: usize = 8192 * 8192;
+
 pub fn run(a: RenderArgs) -> Result<()> {
     if a.views == 0 || a.views > 10_000 {
         bail!("--views must be in 1..=10000, got {}", a.views);
@@ -72,6 +75,17 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let max = dens3r_scene::MAX_IMAGE_SIDE;
     if !(1..=max).contains(&a.width) || !(1..=max).contains(&a.height) {
         bail!("--width and --height must be in 1..={max}, got {}x{}", a.width, a.height);
+    }
+    // Each pixel keeps about 28 bytes of layers (colour, depth, normals, ids) while it renders.
+    if a.width * a.height > MAX_RENDER_PIXELS {
+        bail!(
+            "--width {} --height {}: {} Mpixels per view (about {:.1} GB of layers); at most {} Mpixels, e.g. 8192x8192",
+            a.width,
+            a.height,
+            a.width * a.height / 1_000_000,
+            (a.width * a.height * 28) as f64 / 1e9,
+            MAX_RENDER_PIXELS / 1_000_000
+        );
     }
     if !(a.hfov > 1.0 && a.hfov < 179.0) {
         bail!("--hfov must be between 1 and 179 degrees, got {}", a.hfov);

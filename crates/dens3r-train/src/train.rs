@@ -76,6 +76,10 @@ pub struct TrainConfig {
     /// when the first pair's first frame is portrait (false = always `size`).
     #[serde(default)]
     pub aspects: bool,
+    /// Fraction of pairs that are one view paired with itself (the same window), as a single
+    /// image runs at inference (`predict`); 0 = distinct views only.
+    #[serde(default)]
+    pub self_pairs: f32,
     /// Frozen parameters.
     pub freeze: Freeze,
     /// Steps between checkpoints.
@@ -103,6 +107,7 @@ impl Default for TrainConfig {
             jitter: 0.2,
             crop: 1.0,
             aspects: false,
+            self_pairs: 0.0,
             freeze: Freeze::None,
             checkpoint_every: 50,
             seed: 0,
@@ -122,6 +127,9 @@ impl TrainConfig {
         }
         if !(self.crop > 0.0 && self.crop <= 1.0) {
             return Err(format!("--crop {}: expected a fraction in (0, 1]", self.crop));
+        }
+        if !(0.0..=1.0).contains(&self.self_pairs) {
+            return Err(format!("--self-pairs {}: expected a fraction in [0, 1]", self.self_pairs));
         }
         if self.checkpoint_every == 0 {
             return Err("checkpoint interval must be positive".into());
@@ -383,13 +391,16 @@ impl Dataset {
         let mut targets = Vec::with_capacity(cfg.batch);
         for (s, i, j) in picks {
             let scene = &self.scenes[s];
+            // A self pair reuses view 1 (the draw is skipped at 0: older runs resume exactly).
+            let own = cfg.self_pairs > 0.0 && rng.gen_range(0.0f32..1.0) < cfg.self_pairs;
             let mut load = |k: usize| {
                 let f = &scene.frames()[k];
                 let scale = if cfg.crop < 1.0 { rng.gen_range(cfg.crop as f64..=1.0) } else { 1.0 };
                 let at = if cfg.crop < 1.0 { (rng.gen_range(0.0..=1.0), rng.gen_range(0.0..=1.0)) } else { (0.5, 0.5) };
                 View::load_window(scene, f, crop_window((f.width, f.height), (w, h), scale, at), (w, h))
             };
-            let (v1, v2) = (load(i)?, load(j)?);
+            let v1 = load(i)?;
+            let v2 = if own { v1.clone() } else { load(j)? };
             let mut t = pair_target(&v1, &v2);
             t.matches = sample_matches(&t.matches, cfg.n_corres, &mut rng);
             for (k, v) in [&v1, &v2].into_iter().enumerate() {
@@ -476,7 +487,9 @@ pub struct LogLine {
 /// apart from training's so every validation sees the same pairs).
 pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usize) -> Result<LossTerms, String> {
     let device = Device::flex();
-    let vcfg = TrainConfig { crop: 1.0, aspects: false, jitter: 0.0, seed: 0x5eed_0a11_d00d, ..cfg.clone() };
+    // Distinct views only, so scores stay comparable between runs with and without self pairs.
+    let vcfg =
+        TrainConfig { crop: 1.0, aspects: false, jitter: 0.0, self_pairs: 0.0, seed: 0x5eed_0a11_d00d, ..cfg.clone() };
     let tensors = params.tensors(&device, &vec![false; params.values.len()]);
     let model = params.model(&tensors, &device);
     let n = batches.max(1);

@@ -653,3 +653,22 @@ fn a_scene_without_depth_is_refused() {
     assert!(e.contains("depth/0000.npy") && e.contains("needs depth"), "{e}");
     assert!(!e.contains('\n'));
 }
+
+/// `self_pairs = 1` pairs every view with itself, as `predict` runs a single image: equal
+/// images, view 2's ground truth in view 1's frame equal to view 1's, every correspondence
+/// the same pixel; `self_pairs = 0` draws distinct views.
+#[test]
+fn self_pairs_are_one_view_twice() {
+    let data = Dataset::load(&[samples().join("orbit")], (32, 32), (0.1, 0.98)).unwrap();
+    let base = TrainConfig { size: (32, 32), batch: 2, jitter: 0.0, crop: 0.8, n_corres: 64, ..Default::default() };
+    let own = TrainConfig { self_pairs: 1.0, ..base.clone() };
+    let b = data.batch(&own, 16, 3, &ad()).unwrap();
+    assert_eq!(vals(b.images[0].clone()), vals(b.images[1].clone()));
+    for t in &b.targets {
+        assert_eq!(t.pts[0], t.pts[1]);
+        assert!(!t.matches.idx1.is_empty() && t.matches.idx1 == t.matches.idx2);
+    }
+    let b = data.batch(&base, 16, 3, &ad()).unwrap();
+    assert_ne!(vals(b.images[0].clone()), vals(b.images[1].clone()));
+    assert!(TrainConfig { self_pairs: 1.5, ..base }.check(16).is_err());
+}

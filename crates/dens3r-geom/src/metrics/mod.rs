@@ -1,8 +1,12 @@
-//! Evaluation metrics for depth and normal maps (mesh metrics live in `dens3r-mesh`).
+//! Evaluation metrics for depth and normal maps and cameras (mesh metrics live in `dens3r-mesh`).
 
+pub mod baselines;
+pub mod cameras;
 pub mod depth;
 pub mod normals;
 
+pub use baselines::{constant_baseline, plane_baseline, Baseline};
+pub use cameras::{camera_metrics, CameraMetrics};
 pub use depth::{depth_metrics, DepthAlign, DepthMetrics};
 pub use normals::{normal_metrics, NormalMetrics};
 
