@@ -329,13 +329,14 @@ fn npy_depths(dir: &Path, gs: &Scene) -> Result<Vec<(Raster<f32>, Frame)>> {
 fn depth(a: DepthArgs) -> Result<()> {
     let align = depth_align(a.align);
     // A scene folder, or a folder of depth .npy files named by frame.
-    let pairs: Vec<(Raster<f32>, Frame)> = if a.common.pred.join("cameras.json").is_file() {
-        let Paired { pred: ps, frames, .. } = paired(&a.common)?;
-        frames.into_iter().map(|(pf, gf)| Ok((need(ps.depth(&pf)?, &ps, &pf, "depth")?, gf))).collect::<Result<_>>()?
+    let (pairs, gs): (Vec<(Raster<f32>, Frame)>, Scene) = if a.common.pred.join("cameras.json").is_file() {
+        let Paired { pred: ps, gt, frames } = paired(&a.common)?;
+        let d = frames.into_iter().map(|(pf, gf)| Ok((need(ps.depth(&pf)?, &ps, &pf, "depth")?, gf)));
+        (d.collect::<Result<_>>()?, gt)
     } else {
-        npy_depths(&a.common.pred, &Scene::open(&a.common.gt)?)?
+        let gt = Scene::open(&a.common.gt)?;
+        (npy_depths(&a.common.pred, &gt)?, gt)
     };
-    let gs = Scene::open(&a.common.gt)?;
     let mut rows = Vec::new();
     for (pd, gf) in &pairs {
         let gd = need(gs.depth(gf)?, &gs, gf, "depth")?;

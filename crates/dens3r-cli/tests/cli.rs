@@ -935,3 +935,28 @@ fn unbounded_options_are_refused_up_front() {
     let line = failing_pixel_head(&samples.join("room"), "100000", &head);
     assert!(line.contains("--size 100000"), "{line}");
 }
+
+/// `eval depth` takes a folder of `NAME.npy` maps (as `predict --head` writes) for the frames it
+/// names: the scene's own depth scores 0 against it, a halved copy scores 0.5 unaligned and 0
+/// median-aligned, and a map of the wrong size is refused naming the file.
+#[test]
+fn eval_depth_reads_a_folder_of_npy_maps() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("s");
+    let maps = dir.path().join("maps");
+    std::fs::create_dir_all(&maps).unwrap();
+    #[rustfmt::skip]
+    ok(&["render", "--procedural", "room", "--views", "2", "--width", "48", "--height", "32", "-o", scene.to_str().unwrap()]);
+    let (shape, d) = dens3r_scene::npy::read_f32(&scene.join("depth/0001.npy")).unwrap();
+    let half: Vec<f32> = d.iter().map(|v| v * 0.5).collect();
+    dens3r_scene::npy::write_f32(&maps.join("0001.npy"), &shape, &half).unwrap();
+    let (m, s) = (maps.to_str().unwrap(), scene.to_str().unwrap());
+    let j = json(&["eval", "depth", m, s, "--json"]);
+    assert_eq!(j["frames"], 1, "{j}");
+    assert!((j["abs_rel"].as_f64().unwrap() - 0.5).abs() < 1e-6, "{j}");
+    let j = json(&["eval", "depth", m, s, "--align", "median", "--json"]);
+    assert!(j["abs_rel"].as_f64().unwrap() < 1e-6, "{j}");
+    dens3r_scene::npy::write_f32(&maps.join("0001.npy"), &[4, 4], &[1.0; 16]).unwrap();
+    let e = fails(&["eval", "depth", m, s]);
+    assert!(e.contains("0001.npy") && e.contains("--original-size"), "{e}");
+}
