@@ -349,9 +349,7 @@ pub fn global_align(
         // The pair frame itself (what Dens3R outputs) is the first candidate; a resected camera
         // replaces it only when it explains clearly more of the points: on imperfect
         // predictions RANSAC otherwise finds degenerate cameras (focal near 0).
-        let inlier_weight = |r: &resection::Resection| -> f64 {
-            samples.iter().filter(|s| resection::reprojection_error(r, s.0, s.1) < ransac.threshold).map(|s| s.2).sum()
-        };
+        let inlier_weight = |r: &resection::Resection| resection::inliers(&samples, r, ransac.threshold).0;
         let own = focal_from_pointmap(pts, (cx, cy), FocalMode::Weiszfeld)
             .filter(|f| f.is_finite() && *f > 0.0)
             .map(|focal| resection::Resection { rotation: DMat3::IDENTITY, translation: DVec3::ZERO, focal });

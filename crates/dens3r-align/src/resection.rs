@@ -189,6 +189,12 @@ pub fn pointmap_samples(
     out
 }
 
+/// The samples `r` reprojects within `threshold` pixels: their total weight and the mask.
+pub fn inliers(samples: &[((f64, f64), DVec3, f64)], r: &Resection, threshold: f64) -> (f64, Vec<bool>) {
+    let mask: Vec<bool> = samples.iter().map(|s| reprojection_error(r, s.0, s.1) < threshold).collect();
+    (samples.iter().zip(&mask).filter(|(_, &m)| m).map(|(s, _)| s.2).sum(), mask)
+}
+
 /// SplitMix64: a small reproducible generator for sampling.
 struct SplitMix(u64);
 
@@ -213,10 +219,7 @@ pub fn resect_ransac(samples: &[((f64, f64), DVec3, f64)], opts: &RansacOptions)
         return None;
     }
     let mut rng = SplitMix(opts.seed);
-    let score_at = |r: &Resection, thr: f64| -> (f64, Vec<bool>) {
-        let mask: Vec<bool> = samples.iter().map(|s| reprojection_error(r, s.0, s.1) < thr).collect();
-        (samples.iter().zip(&mask).filter(|(_, &m)| m).map(|(s, _)| s.2).sum(), mask)
-    };
+    let score_at = |r: &Resection, thr: f64| -> (f64, Vec<bool>) { inliers(samples, r, thr) };
     let score = |r: &Resection| score_at(r, opts.threshold);
     let fit = |mask: &[bool]| {
         let inliers: Vec<_> = samples.iter().zip(mask).filter(|(_, &m)| m).map(|(s, _)| *s).collect();

@@ -94,42 +94,54 @@ impl Volume {
     }
 }
 
+/// Why [`fuse_scene`] failed: the volume's own error (budget, GPU, bad frame), or the scene's.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneFusionError {
+    /// Raised by the volume while integrating or reading back.
+    #[error(transparent)]
+    Fusion(#[from] FusionError),
+    /// A scene without frames, depth or valid depth, or a layer that cannot be read.
+    #[error("{0}")]
+    Scene(String),
+}
+
 /// Integrates every frame of `scene`; `progress(done, total)` is called after each.
 pub fn fuse_scene(
     scene: &Scene,
     opts: &SceneFusion,
     mut progress: impl FnMut(usize, usize),
-) -> Result<(SparseTsdf, FusionSummary), String> {
+) -> Result<(SparseTsdf, FusionSummary), SceneFusionError> {
+    let err = |e: dens3r_scene::SceneError| SceneFusionError::Scene(e.to_string());
     let frames = scene.frames();
     if frames.is_empty() {
-        return Err(format!("{}: the scene has no frames", scene.root().display()));
+        return Err(SceneFusionError::Scene(format!("{}: the scene has no frames", scene.root().display())));
     }
-    let mut volume = Volume::new(opts).map_err(|e| e.to_string())?;
+    let mut volume = Volume::new(opts)?;
     let mut summary = FusionSummary { gpu_adapter: volume.adapter(), ..Default::default() };
     let mut any_depth = false;
     for (i, f) in frames.iter().enumerate() {
         let t = Instant::now();
-        let Some(mut depth) = scene.depth(f).map_err(|e| e.to_string())? else {
-            return Err(format!(
+        let Some(mut depth) = scene.depth(f).map_err(err)? else {
+            return Err(SceneFusionError::Scene(format!(
                 "{}: frame '{}' has no depth/{}.npy: fusion needs depth for every frame (run dens3r predict or render)",
                 scene.root().display(),
                 f.name,
                 f.name
-            ));
+            )));
         };
-        if let Some(mask) = scene.mask(f).map_err(|e| e.to_string())? {
+        if let Some(mask) = scene.mask(f).map_err(err)? {
             depth.data_mut().iter_mut().zip(mask.data()).filter(|(_, &m)| !m).for_each(|(d, _)| *d = 0.0);
         }
-        let color = if opts.params.color { Some(scene.image(f).map_err(|e| e.to_string())?) } else { None };
+        let color = if opts.params.color { Some(scene.image(f).map_err(err)?) } else { None };
         let camera = f.camera();
         let mut weight: Option<Raster<f32>> = None;
         if opts.use_conf {
-            if let Some(conf) = scene.conf(f).map_err(|e| e.to_string())? {
+            if let Some(conf) = scene.conf(f).map_err(err)? {
                 weight = Some(conf.map(|&c| if c.is_finite() && c >= opts.min_conf { c } else { 0.0 }));
             }
         }
         if opts.use_normals {
-            if let Some(n) = scene.normals(f).map_err(|e| e.to_string())? {
+            if let Some(n) = scene.normals(f).map_err(err)? {
                 let a = angle_weights(&n, &camera);
                 weight = Some(match weight {
                     Some(w) => Raster::from_fn(w.width(), w.height(), |x, y| w.get(x, y) * a.get(x, y)),
@@ -152,21 +164,21 @@ pub fn fuse_scene(
             color: color.as_ref(),
             weight: weight.as_ref(),
         };
-        volume.integrate(&input).map_err(|e| e.to_string())?;
+        volume.integrate(&input)?;
         summary.integrate_seconds += t.elapsed().as_secs_f64();
         progress(i + 1, frames.len());
     }
     if !any_depth {
-        return Err(format!(
+        return Err(SceneFusionError::Scene(format!(
             "{}: no frame has valid depth in [{}, {}] (all zero, NaN or out of range)",
             scene.root().display(),
             opts.params.depth_range.0,
             opts.params.depth_range.1
-        ));
+        )));
     }
     // The GPU runs asynchronously: its time ends when the voxels are back.
     let t = Instant::now();
-    let tsdf = volume.finish().map_err(|e| e.to_string())?;
+    let tsdf = volume.finish()?;
     summary.integrate_seconds += t.elapsed().as_secs_f64();
     summary.frames = tsdf.frame_count();
     summary.blocks = tsdf.block_count();

@@ -12,8 +12,8 @@
 use crate::pipeline::Reconstruction;
 use crate::viz::match_picture;
 use crate::ReconError;
-use dens3r_fusion::scene::{fuse_scene, SceneFusion};
-use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
+use dens3r_fusion::scene::{fuse_scene, SceneFusion, SceneFusionError};
+use dens3r_fusion::{extract_mesh, ExtractOptions, FusionError, TsdfParams};
 use dens3r_scene::export::{write_colmap_text, write_transforms_json};
 use dens3r_scene::{Frame, Layer, Scene, SceneWriter};
 use std::path::{Path, PathBuf};
@@ -170,15 +170,14 @@ fn fuse(
         params.budget_bytes = Some(opts.budget_bytes);
         let fusion = SceneFusion { params, use_conf: true, min_conf: opts.min_conf, use_normals: false, gpu: opts.gpu };
         match fuse_scene(scene, &fusion, &mut *progress) {
-            // `fuse_scene` reports dens3r-fusion's budget error by its message.
-            Err(e) if tries > 0 && e.contains("MB budget") => {
+            Err(e @ SceneFusionError::Fusion(FusionError::Budget { .. })) if tries > 0 => {
                 summary
                     .warnings
                     .push(format!("the automatic voxel {voxel} needs too much memory ({e}); trying {}", 2.0 * voxel));
                 voxel *= 2.0;
                 tries -= 1;
             }
-            r => break r.map_err(ReconError::Other)?,
+            r => break r.map_err(|e| ReconError::Other(e.to_string()))?,
         }
     };
     let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: opts.min_component, crop: None });
