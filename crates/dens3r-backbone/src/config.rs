@@ -11,6 +11,19 @@ pub enum RopeScaling {
     Plain,
 }
 
+/// Which encoder turns images into tokens.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum EncoderKind {
+    /// The CroCo ViT of the official checkpoints (`patch_embed`, `enc_blocks`, `enc_norm`),
+    /// RoPE-2D, stored in the checkpoint.
+    #[default]
+    Vit,
+    /// A frozen DINOv2 ViT read from its own ONNX file ([`crate::dinov2`]), not stored in the
+    /// checkpoint: it sees the image resized by 14 / `patch`, so that each of its tokens
+    /// covers `patch` x `patch` input pixels as a ViT token does.
+    Dinov2,
+}
+
 /// Widths of a DPT head.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DptConfig {
@@ -44,7 +57,9 @@ pub struct PtsHeadConfig {
 /// Everything needed to build the network.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModelConfig {
-    /// Patch size (16).
+    /// The encoder.
+    pub encoder: EncoderKind,
+    /// Patch size (16): input pixels per token side.
     pub patch: usize,
     /// Encoder width.
     pub enc_dim: usize,
@@ -90,25 +105,44 @@ impl ModelConfig {
                 .map(<[usize]>::to_vec)
                 .ok_or_else(|| err(format!("missing key '{k}': not a Dens3R / DUSt3R / MASt3R checkpoint")))
         };
-        let pe = shape("patch_embed.proj.weight")?;
+        let count = |prefix: &str| (0..).take_while(|i| w.contains(&format!("{prefix}.{i}.norm1.weight"))).count();
+        let dec_depth = count("dec_blocks");
+        let de = shape("decoder_embed.weight")?;
+        // No encoder in the file but a decoder: the encoder is a frozen DINOv2 kept apart.
+        let encoder = if w.contains("patch_embed.proj.weight") || w.contains("enc_blocks.0.norm1.weight") {
+            EncoderKind::Vit
+        } else {
+            EncoderKind::Dinov2
+        };
+        let (pe, enc_depth) = match encoder {
+            EncoderKind::Vit => (shape("patch_embed.proj.weight")?, count("enc_blocks")),
+            // DINOv2-S/B/L: 64-wide heads, 12 / 12 / 24 blocks (informational: the ONNX file
+            // holds the encoder).
+            EncoderKind::Dinov2 => (vec![de[1], 3, 16, 16], if de[1] >= 1024 { 24 } else { 12 }),
+        };
         if pe.len() != 4 || pe[1] != 3 || pe[2] != pe[3] {
             return Err(err(format!("patch_embed.proj.weight has shape {pe:?}, expected (D, 3, P, P)")));
         }
-        let count = |prefix: &str| (0..).take_while(|i| w.contains(&format!("{prefix}.{i}.norm1.weight"))).count();
-        let enc_depth = count("enc_blocks");
-        let dec_depth = count("dec_blocks");
         if enc_depth == 0 || dec_depth == 0 {
             return Err(err("no enc_blocks.* or dec_blocks.* keys: not a Dens3R / DUSt3R / MASt3R checkpoint".into()));
         }
         let enc_dim = pe[0];
-        let dec_dim = shape("decoder_embed.weight")?[0];
-        let (enc_heads, dec_heads) = heads.unwrap_or((enc_dim / 64, dec_dim / 64));
+        let dec_dim = de[0];
+        let (enc_heads, dec_heads) = match (heads, encoder) {
+            (Some((_, d)), EncoderKind::Dinov2) => (enc_dim / 64, d),
+            (Some(h), _) => h,
+            (None, _) => (enc_dim / 64, dec_dim / 64),
+        };
         if enc_heads == 0 || enc_dim % enc_heads != 0 || dec_heads == 0 || dec_dim % dec_heads != 0 {
             return Err(err(format!(
                 "head counts ({enc_heads}, {dec_heads}) do not divide the widths ({enc_dim}, {dec_dim})"
             )));
         }
-        let mlp_hidden = (shape("enc_blocks.0.mlp.fc1.weight")?[0], shape("dec_blocks.0.mlp.fc1.weight")?[0]);
+        let enc_hidden = match encoder {
+            EncoderKind::Vit => shape("enc_blocks.0.mlp.fc1.weight")?[0],
+            EncoderKind::Dinov2 => 4 * enc_dim,
+        };
+        let mlp_hidden = (enc_hidden, shape("dec_blocks.0.mlp.fc1.weight")?[0]);
         let dens3r = w.contains("ptsmatch_local_head.dpt.head.4.weight");
         let (p1, p2) = if dens3r {
             ("ptsmatch_local_head", "ptsmatch_global_head")
@@ -155,6 +189,7 @@ impl ModelConfig {
         let normal_head =
             if w.contains("normal_local_head.dpt.head.4.weight") { Some(dpt("normal_local_head")?) } else { None };
         Ok(Self {
+            encoder,
             patch: pe[2],
             enc_dim,
             enc_depth,
@@ -202,6 +237,7 @@ impl ModelConfig {
             mlp_hidden: Some(4 * (1024 + 768)),
         };
         Self {
+            encoder: EncoderKind::Vit,
             patch: 16,
             enc_dim: 1024,
             enc_depth: 24,

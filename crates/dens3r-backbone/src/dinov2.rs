@@ -51,6 +51,8 @@ struct Block {
 
 /// A loaded DINOv2 encoder.
 pub struct Dinov2 {
+    /// The file it was read from.
+    pub path: std::path::PathBuf,
     /// Architecture.
     pub config: Dinov2Config,
     device: Device,
@@ -99,6 +101,12 @@ impl Loader<'_> {
     }
 }
 
+impl std::fmt::Debug for Dinov2 {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Dinov2").field("path", &self.path).field("config", &self.config).finish_non_exhaustive()
+    }
+}
+
 impl Dinov2 {
     /// Loads an ONNX export of a Hugging Face DINOv2 model onto `device`.
     pub fn load(path: &Path, device: &Device) -> Result<Self, OnnxError> {
@@ -143,12 +151,52 @@ impl Dinov2 {
         }
         let norm = l.norm(&format!("{pre}layernorm"), dim)?;
         let pos_cls = Tensor::from_data(TensorData::new(pos_cls, [dim]), device);
-        Ok(Self { config, device: device.clone(), patch: patch_conv, cls, pos_cls, pos_patch, blocks, norm })
+        Ok(Self {
+            path: path.to_path_buf(),
+            config,
+            device: device.clone(),
+            patch: patch_conv,
+            cls,
+            pos_cls,
+            pos_patch,
+            blocks,
+            norm,
+        })
     }
 
     /// The device the weights live on.
     pub fn device(&self) -> &Device {
         &self.device
+    }
+
+    /// The encoder of a Dens3R whose encoder is this DINOv2 ([`crate::config::EncoderKind::Dinov2`]):
+    /// images `(B, 3, H, W)` normalised as Dens3R's (`x / 127.5 - 1`, H and W multiples of
+    /// `patch`) on any device are resized bilinearly to `(H / patch * 14, W / patch * 14)`
+    /// (half-pixel centres, PyTorch's `align_corners=False`), normalised with ImageNet's
+    /// statistics, and run through every block; the output tokens (after the final LayerNorm)
+    /// come back on the images' device with the grid `(H / patch, W / patch)`. Nothing here
+    /// is tracked by autodiff: the encoder is frozen.
+    pub fn encode_dens3r(&self, img: Tensor<4>, patch: usize) -> (Tensor<3>, (usize, usize)) {
+        let device = img.device();
+        let [b, c, h, w] = img.dims();
+        let (gh, gw) = (h / patch, w / patch);
+        let p = self.config.patch;
+        let (oh, ow) = (gh * p, gw * p);
+        let host = img.into_data().try_to_vec::<f32>().expect("f32 image tensor");
+        let mut out = Vec::with_capacity(b * c * oh * ow);
+        for plane in 0..b * c {
+            let ch = plane % c;
+            let src = &host[plane * h * w..(plane + 1) * h * w];
+            let resized = resize_bilinear(src, h, w, oh, ow);
+            let (m, s) = (IMAGENET_MEAN[ch % 3], IMAGENET_STD[ch % 3]);
+            out.extend(resized.into_iter().map(|x| ((x + 1.0) * 0.5 - m) / s));
+        }
+        let x = Tensor::<4>::from_data(TensorData::new(out, [b, c, oh, ow]), &self.device);
+        let (mut tokens, grid) = self.forward(x, &[self.config.depth]);
+        let t = tokens.pop().expect("the last block is hooked");
+        let n = grid.0 * grid.1;
+        let data = t.into_data().try_to_vec::<f32>().expect("f32 tokens");
+        (Tensor::from_data(TensorData::new(data, [b, n, self.config.dim]), &device), grid)
     }
 
     /// Position embeddings for a `(gh, gw)` token grid, `(gh * gw, dim)`.
@@ -229,6 +277,33 @@ fn position_tables(w: &mut OnnxWeights, pre: &str, dim: usize) -> Result<(Vec<f3
         (Some(c), Some(g)) => Ok((c, g)),
         _ => Err("no position embeddings found: not a DINOv2 export with Hugging Face names".into()),
     }
+}
+
+/// Bilinear resize of one `(h, w)` plane to `(oh, ow)`: PyTorch's `align_corners=False`
+/// (half-pixel centres, reads clamped to the edge, no antialiasing).
+pub fn resize_bilinear(src: &[f32], h: usize, w: usize, oh: usize, ow: usize) -> Vec<f32> {
+    let taps = |n_in: usize, n_out: usize| -> Vec<(usize, usize, f32)> {
+        let scale = n_in as f64 / n_out as f64;
+        (0..n_out)
+            .map(|o| {
+                let x = ((o as f64 + 0.5) * scale - 0.5).max(0.0);
+                let x0 = (x.floor() as usize).min(n_in - 1);
+                let x1 = (x0 + 1).min(n_in - 1);
+                (x0, x1, (x - x0 as f64) as f32)
+            })
+            .collect()
+    };
+    let (ty, tx) = (taps(h, oh), taps(w, ow));
+    let mut out = Vec::with_capacity(oh * ow);
+    for &(y0, y1, fy) in &ty {
+        let (r0, r1) = (&src[y0 * w..(y0 + 1) * w], &src[y1 * w..(y1 + 1) * w]);
+        for &(x0, x1, fx) in &tx {
+            let top = r0[x0] + (r0[x1] - r0[x0]) * fx;
+            let bot = r1[x0] + (r1[x1] - r1[x0]) * fx;
+            out.push(top + (bot - top) * fy);
+        }
+    }
+    out
 }
 
 /// Bicubic resize of `c` planes `(h, w)` to `(oh, ow)`: PyTorch's `align_corners=False`

@@ -1,11 +1,13 @@
 //! The network: config -> loader -> forward, in one file (candle-transformers style).
 
-use crate::config::{DptConfig, ModelConfig, PtsHeadConfig};
+use crate::config::{DptConfig, EncoderKind, ModelConfig, PtsHeadConfig};
+use crate::dinov2::Dinov2;
 use crate::ops::{
     gelu, grid_positions, pixel_shuffle, relu, sdpa, upsample2x, Conv, ConvTranspose, LayerNorm, Linear, Rope,
 };
 use crate::weights::{Weights, WeightsError};
 use burn::tensor::{Device, Tensor};
+use std::sync::Arc;
 
 // ---------------------------------------------------------------------------------------------
 // Loading helpers
@@ -403,14 +405,18 @@ pub struct Predictions {
     pub views: [ViewPrediction; 2],
 }
 
+/// The encoder: the checkpoint's ViT, or a frozen DINOv2 attached after loading.
+enum Encoder {
+    Vit { patch: Box<Conv>, blocks: Vec<EncoderBlock>, norm: Box<LayerNorm> },
+    Dinov2(Option<Arc<Dinov2>>),
+}
+
 /// A loaded Dens3R / DUSt3R / MASt3R network.
 pub struct Dens3r {
     /// The configuration read from the weights.
     pub config: ModelConfig,
     device: Device,
-    patch: Conv,
-    enc_blocks: Vec<EncoderBlock>,
-    enc_norm: LayerNorm,
+    encoder: Encoder,
     decoder_embed: Linear,
     dec_blocks: Vec<DecoderBlock>,
     dec_blocks2: Option<Vec<DecoderBlock>>,
@@ -452,11 +458,21 @@ impl Dens3r {
 
     fn build(l: &Loader, config: ModelConfig, device: &Device) -> Self {
         let c = &config;
-        let patch = l.conv("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, true);
-        let patch = Conv::new(patch.weight, patch.bias, c.patch, 0);
-        let enc_blocks = (0..c.enc_depth)
-            .map(|i| EncoderBlock::load(l, &format!("enc_blocks.{i}"), c.enc_dim, c.enc_heads, c.mlp_hidden.0))
-            .collect();
+        let encoder = match c.encoder {
+            EncoderKind::Vit => {
+                let patch = l.conv("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, true);
+                Encoder::Vit {
+                    patch: Box::new(Conv::new(patch.weight, patch.bias, c.patch, 0)),
+                    blocks: (0..c.enc_depth)
+                        .map(|i| {
+                            EncoderBlock::load(l, &format!("enc_blocks.{i}"), c.enc_dim, c.enc_heads, c.mlp_hidden.0)
+                        })
+                        .collect(),
+                    norm: Box::new(l.norm("enc_norm", c.enc_dim)),
+                }
+            }
+            EncoderKind::Dinov2 => Encoder::Dinov2(None),
+        };
         let dec = |name: &str| {
             (0..c.dec_depth)
                 .map(|i| DecoderBlock::load(l, &format!("{name}.{i}"), c.dec_dim, c.dec_heads, c.mlp_hidden.1))
@@ -472,9 +488,7 @@ impl Dens3r {
         };
         Self {
             device: device.clone(),
-            patch,
-            enc_blocks,
-            enc_norm: l.norm("enc_norm", c.enc_dim),
+            encoder,
             decoder_embed: l.linear("decoder_embed", c.enc_dim, c.dec_dim),
             dec_blocks: dec("dec_blocks"),
             dec_blocks2: (!c.shared_decoder).then(|| dec("dec_blocks2")),
@@ -495,20 +509,56 @@ impl Dens3r {
         Rope::new(&grid_positions(grid.0, grid.1), head_dim, self.config.rope_base, self.config.rope, &self.device)
     }
 
+    /// Attaches the frozen DINOv2 of a network whose encoder is one
+    /// ([`EncoderKind::Dinov2`]); an error when the widths differ or the network has its own.
+    pub fn attach_dinov2(&mut self, dinov2: Arc<Dinov2>) -> Result<(), String> {
+        let Encoder::Dinov2(slot) = &mut self.encoder else {
+            return Err("this network has its own ViT encoder; a DINOv2 cannot replace it".into());
+        };
+        if dinov2.config.dim != self.config.enc_dim {
+            return Err(format!(
+                "{}: a {}-wide DINOv2, but the decoder reads {}-wide tokens; use the encoder the network was trained with",
+                dinov2.path.display(),
+                dinov2.config.dim,
+                self.config.enc_dim
+            ));
+        }
+        *slot = Some(dinov2);
+        Ok(())
+    }
+
     /// Encoder tokens `(B, N, D_enc)` of normalised images `(B, 3, H, W)` (H, W multiples of
     /// the patch size).
+    ///
+    /// # Panics
+    /// For a DINOv2-encoder network whose DINOv2 was never attached
+    /// ([`Dens3r::attach_dinov2`]; `verify::load_model` attaches it).
     pub fn encode_image(&self, img: Tensor<4>) -> (Tensor<3>, (usize, usize)) {
         let [b, _, h, w] = img.dims();
         let p = self.config.patch;
         let grid = (h / p, w / p);
-        let x = self.patch.forward(img); // (B, D, h, w)
-        let d = self.config.enc_dim;
-        let mut x = x.reshape([b, d, grid.0 * grid.1]).swap_dims(1, 2);
-        let rope = self.rope(grid, d / self.config.enc_heads);
-        for blk in &self.enc_blocks {
-            x = blk.forward(x, &rope);
+        match &self.encoder {
+            Encoder::Vit { patch, blocks, norm } => {
+                let x = patch.forward(img); // (B, D, h, w)
+                let d = self.config.enc_dim;
+                let mut x = x.reshape([b, d, grid.0 * grid.1]).swap_dims(1, 2);
+                let rope = self.rope(grid, d / self.config.enc_heads);
+                for blk in blocks {
+                    x = blk.forward(x, &rope);
+                }
+                (norm.forward(x), grid)
+            }
+            Encoder::Dinov2(Some(d)) => d.encode_dens3r(img, p),
+            Encoder::Dinov2(None) => panic!("the network's DINOv2 encoder was not attached (Dens3r::attach_dinov2)"),
         }
-        (self.enc_norm.forward(x), grid)
+    }
+
+    /// The attached DINOv2 encoder, if the network has one.
+    pub fn dinov2(&self) -> Option<&Arc<Dinov2>> {
+        match &self.encoder {
+            Encoder::Dinov2(d) => d.as_ref(),
+            Encoder::Vit { .. } => None,
+        }
     }
 
     /// Runs encoder and decoder on a pair of normalised images `(B, 3, H, W)` in `[-1, 1]`.

@@ -3,11 +3,13 @@
 //! them, tracked by autodiff on an autodiff device.
 
 use crate::config::ModelConfig;
+use crate::dinov2::Dinov2;
 use crate::model::Dens3r;
 use crate::weights::{is_layer_norm, Weights, WeightsError};
 use burn::tensor::{Device, Tensor, TensorData};
 use std::collections::HashMap;
 use std::path::Path;
+use std::sync::Arc;
 
 /// Named parameters of one network configuration, in [`Dens3r::parameter_layout`] order.
 #[derive(Debug, Clone)]
@@ -20,6 +22,9 @@ pub struct Params {
     pub shapes: Vec<Vec<usize>>,
     /// Values, row-major.
     pub values: Vec<Vec<f32>>,
+    /// The frozen DINOv2 of a network whose encoder is one (not a parameter: never trained or
+    /// saved); [`Params::model`] attaches it.
+    pub dinov2: Option<Arc<Dinov2>>,
 }
 
 /// Which parameters train; the others stay as loaded.
@@ -110,7 +115,7 @@ impl Params {
             });
         }
         let (names, shapes) = layout.into_iter().unzip();
-        Self { config: config.clone(), names, shapes, values }
+        Self { config: config.clone(), names, shapes, values, dinov2: None }
     }
 
     /// Reads every parameter of `config` from a checkpoint (missing or mis-shaped keys are
@@ -121,7 +126,7 @@ impl Params {
             layout.iter().map(|(n, s)| w.values(n, s).unwrap_or_else(|| vec![0.0; s.iter().product()])).collect();
         w.finish()?;
         let (names, shapes) = layout.into_iter().unzip();
-        Ok(Self { config: config.clone(), names, shapes, values })
+        Ok(Self { config: config.clone(), names, shapes, values, dinov2: None })
     }
 
     /// Number of scalar parameters.
@@ -158,7 +163,29 @@ impl Params {
             let i = *index.get(name).unwrap_or_else(|| panic!("parameter layout has no '{name}'"));
             tensors[i].clone()
         };
-        Dens3r::from_flat(self.config.clone(), device, &get)
+        let mut model = Dens3r::from_flat(self.config.clone(), device, &get);
+        if let Some(d) = &self.dinov2 {
+            // Widths were checked when the encoder was set (`Params::with_dinov2`).
+            model.attach_dinov2(d.clone()).expect("DINOv2 width checked by with_dinov2");
+        }
+        model
+    }
+
+    /// These parameters with the frozen DINOv2 encoder their configuration needs.
+    pub fn with_dinov2(mut self, dinov2: Arc<Dinov2>) -> Result<Self, String> {
+        if self.config.encoder != crate::config::EncoderKind::Dinov2 {
+            return Err("the network has its own ViT encoder; --dinov2 is only for a DINOv2-encoder network".into());
+        }
+        if dinov2.config.dim != self.config.enc_dim {
+            return Err(format!(
+                "{}: a {}-wide DINOv2, but the network's decoder reads {}-wide tokens",
+                dinov2.path.display(),
+                dinov2.config.dim,
+                self.config.enc_dim
+            ));
+        }
+        self.dinov2 = Some(dinov2);
+        Ok(self)
     }
 
     /// Writes the parameters as a safetensors checkpoint with the official key names

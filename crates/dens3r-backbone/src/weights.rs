@@ -41,6 +41,8 @@ pub struct Weights {
     used: RefCell<BTreeSet<String>>,
     missing: RefCell<Vec<String>>,
     misshaped: RefCell<Vec<String>>,
+    /// Tensors holding NaN or Inf values.
+    nonfinite: RefCell<Vec<String>>,
     /// Synthetic mode: `(rng state, std)`; missing keys are generated and recorded.
     synthetic: Option<RefCell<(u64, f32)>>,
     generated: RefCell<Vec<(String, Stored)>>,
@@ -117,6 +119,7 @@ impl Weights {
             used: Default::default(),
             missing: Default::default(),
             misshaped: Default::default(),
+            nonfinite: Default::default(),
             synthetic: synthetic.map(RefCell::new),
             generated: Default::default(),
             args_model,
@@ -262,7 +265,11 @@ impl Weights {
                 self.mark_used(name, key);
                 if shape.as_slice() == expect {
                     match self.read(extent) {
-                        Ok(values) => return Some(values),
+                        Ok(values) if values.iter().all(|v| v.is_finite()) => return Some(values),
+                        Ok(values) => {
+                            let bad = values.iter().filter(|v| !v.is_finite()).count();
+                            self.nonfinite.borrow_mut().push(format!("{name} ({bad} of {})", values.len()));
+                        }
                         Err(e) => self.unreadable.borrow_mut().push(format!("{name}: {e}")),
                     }
                 } else {
@@ -285,6 +292,15 @@ impl Weights {
                 "cannot read {} tensors ({}); check the file and re-copy it",
                 unreadable.len(),
                 preview(&unreadable)
+            );
+            return Err(WeightsError { path: self.path.clone(), message: m });
+        }
+        let nonfinite = self.nonfinite.borrow();
+        if !nonfinite.is_empty() {
+            let m = format!(
+                "{} tensors hold NaN or Inf values ({}): a damaged or diverged checkpoint; re-download or re-export it (a training run: resume from an earlier checkpoint with a lower --lr)",
+                nonfinite.len(),
+                preview(&nonfinite)
             );
             return Err(WeightsError { path: self.path.clone(), message: m });
         }

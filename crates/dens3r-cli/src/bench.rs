@@ -257,7 +257,9 @@ fn backbone(a: BackboneArgs) -> Result<()> {
     let dir = a.peer.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
     std::fs::create_dir_all(&dir)?;
     let exe = std::env::current_exe()?;
-    // The weights both sides read (f32), their head counts and a description.
+    // The weights both sides read (f32), their head counts and a description; a frozen DINOv2
+    // encoder stays in its own file (the Rust side is pointed at it).
+    let mut dinov2: Option<PathBuf> = None;
     let (weights, heads, what) = match &a.weights {
         None => {
             let weights = dir.join("dens3r_full_random.safetensors");
@@ -276,6 +278,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             let given = (w != dens3r_backbone::default_model::NAME).then(|| PathBuf::from(w));
             let (file, config) = crate::model_args::resolve_model(given.as_deref(), a.config.as_deref())?;
             let model = crate::model_args::load_network(&file, config.as_deref())?;
+            dinov2 = model.dinov2().map(|d| d.path.clone());
             let c = &model.config;
             let what = format!(
                 "{} ({}x{} encoder, {}x{} decoder), trained weights",
@@ -293,11 +296,14 @@ fn backbone(a: BackboneArgs) -> Result<()> {
     let heads_json = dir.join("bench_heads.json");
     std::fs::write(&heads_json, serde_json::json!({"enc_num_heads": heads.0, "dec_num_heads": heads.1}).to_string())?;
     let python = bench_python(a.peer.python.clone());
-    let torch_ok = Command::new(&python)
-        .args(["-c", "import torch, safetensors, numpy"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !torch_ok {
+    let torch_ok = dinov2.is_none()
+        && Command::new(&python)
+            .args(["-c", "import torch, safetensors, numpy"])
+            .output()
+            .is_ok_and(|o| o.status.success());
+    if dinov2.is_some() {
+        eprintln!("note: bench/torch_dens3r.py has no DINOv2 encoder: Rust only for this network");
+    } else if !torch_ok {
         eprintln!(
             "note: {} has no torch/safetensors/numpy: run scripts/bench-setup.sh for the PyTorch peer; Rust only",
             python.display()
@@ -322,6 +328,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
                 .arg(a.repeat.to_string())
                 .arg("--config")
                 .arg(&heads_json)
+                .envs(dinov2.iter().map(|p| (dens3r_backbone::verify::DINOV2_ENV, p)))
                 .env("RAYON_NUM_THREADS", threads.to_string()),
             "Rust",
         )?;

@@ -50,6 +50,18 @@ pub struct FuseArgs {
     /// Integrate on the GPU (wgpu: Vulkan, Metal or DX12); extraction stays on the CPU.
     #[arg(long)]
     gpu: bool,
+    /// Allow OUTPUT to replace an existing file inside the input scene folder (such as its
+    /// gt_mesh.ply), which is refused otherwise.
+    #[arg(long)]
+    overwrite: bool,
+}
+
+/// Whether `out` is an existing file inside the folder `scene` (one of its files).
+pub fn inside_existing(out: &std::path::Path, scene: &std::path::Path) -> bool {
+    match (out.canonicalize(), scene.canonicalize()) {
+        (Ok(o), Ok(s)) => o.is_file() && o.starts_with(s),
+        _ => false,
+    }
 }
 
 pub fn run(a: FuseArgs) -> Result<()> {
@@ -57,11 +69,21 @@ pub fn run(a: FuseArgs) -> Result<()> {
     if !["ply", "obj", "glb"].contains(&ext.as_str()) {
         bail!("{}: unknown mesh format: use .ply, .obj or .glb", a.output.display());
     }
+    if !a.overwrite && inside_existing(&a.output, &a.scene) {
+        bail!(
+            "{}: a file of the input scene {}; write the mesh elsewhere (or pass --overwrite to replace it)",
+            a.output.display(),
+            a.scene.display()
+        );
+    }
     if a.trunc.is_nan() || a.trunc < 1.0 {
         bail!("--trunc {} must be at least 1 voxel", a.trunc);
     }
     if a.budget_mb.is_nan() || a.budget_mb <= 0.0 {
         bail!("--budget-mb must be positive");
+    }
+    if !a.min_conf.is_finite() {
+        bail!("--min-conf {}: expected a finite confidence (e.g. 1.5; confidences are 1 + exp(x))", a.min_conf);
     }
     let crop = match &a.crop {
         Some(c) if c.len() == 6 && c[0] < c[3] && c[1] < c[4] && c[2] < c[5] => {

@@ -37,6 +37,11 @@ pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(P
             w.display(),
             default_model::NAME
         ),
+        // A Hugging Face style folder: its files, so that callers reading the weights see one.
+        Some(w) if w.is_dir() && w.join("model.safetensors").is_file() => {
+            let cfg = config.map(Path::to_path_buf).or_else(|| Some(w.join("config.json")).filter(|c| c.is_file()));
+            Ok((w.join("model.safetensors"), cfg))
+        }
         Some(w) => Ok((w.to_path_buf(), config.map(Path::to_path_buf))),
         None => {
             let dir = default_model::locate().map_err(anyhow::Error::msg)?;

@@ -51,9 +51,25 @@ pub struct PredictArgs {
     /// Input images (PNG or JPEG).
     #[arg(required = true)]
     images: Vec<PathBuf>,
-    /// Output folder (a scene folder when --weights is given).
+    /// Output folder (a scene folder when the network runs).
     #[arg(short, long)]
     output: PathBuf,
+    /// Replace the scene folder OUTPUT already holds (the new one is written beside it and
+    /// swapped in at the end, so images read from it stay intact until then).
+    #[arg(long)]
+    overwrite: bool,
+}
+
+/// The error for an output folder that already holds a scene, unless `--overwrite`: a scene
+/// is never rewritten silently (its images may be this run's inputs).
+pub fn refuse_existing_scene(out: &Path, overwrite: bool) -> Result<()> {
+    if !overwrite && dens3r_scene::holds_scene(out) {
+        bail!(
+            "{}: already holds a scene (cameras.json); write to a new folder, or pass --overwrite to replace it",
+            out.display()
+        );
+    }
+    Ok(())
 }
 
 /// A loaded head and where its outputs go.
@@ -68,6 +84,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
             bail!("{}: image not found", p.display());
         }
     }
+    refuse_existing_scene(&a.output, a.overwrite)?;
     let heads = load_heads(&a.heads)?;
     // The network runs unless only heads on another backbone are asked for; without
     // --weights it is the bundled default model.
@@ -137,8 +154,10 @@ pub fn run(a: PredictArgs) -> Result<()> {
             None
         }
     };
+    // Every file goes where the writer writes (a staging folder while a scene is replaced).
+    let root = writer.as_ref().map_or_else(|| a.output.clone(), |w| w.root().to_path_buf());
     for h in &heads {
-        let dir = a.output.join("heads").join(&h.stem);
+        let dir = root.join("heads").join(&h.stem);
         std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
         if let Task::Seg { classes } = &h.head.config.task {
             let map = classes.iter().enumerate().map(|(i, c)| (i as u16, c.clone())).collect();
@@ -164,7 +183,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
             if let Some(src) = source.as_ref().filter(|_| a.original_size) {
                 pred.rgb = src.clone();
             }
-            write_network_outputs(writer, &a.output, name, prep, &pred)?;
+            write_network_outputs(writer, &root, name, prep, &pred)?;
             if let Some(f) = features {
                 for h in &heads {
                     // The network frame back to the image's orientation and map size.
@@ -173,7 +192,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
                         HeadOutput::Labels(l) => HeadOutput::Labels(to_image_grid(l, 1, size, &prep.info, res).0),
                         HeadOutput::Depth(d) => HeadOutput::Depth(to_image_grid(d, 1, size, &prep.info, res).0),
                     };
-                    write_head_output(&a.output, h, name, out, &pred.rgb)?;
+                    write_head_output(&root, h, name, out, &pred.rgb)?;
                 }
             }
             picture = Some(pred.rgb);
@@ -190,7 +209,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
                     HeadOutput::Labels(l) => HeadOutput::Labels(resize_nearest(&l, iw, ih, ow, oh)),
                     HeadOutput::Depth(d) => HeadOutput::Depth(resize_nearest(&d, iw, ih, ow, oh)),
                 };
-                write_head_output(&a.output, h, name, out, &picture)?;
+                write_head_output(&root, h, name, out, &picture)?;
             }
         }
         bar.inc(1);

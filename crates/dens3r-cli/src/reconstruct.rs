@@ -92,13 +92,16 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         Graph::Logwin => PairGraph::LogWindow { k: a.window.max(1), cyclic: a.cyclic },
         Graph::Oneref => PairGraph::OneReference { reference: 0 },
     };
-    let (weights, config) = a.model.resolve()?;
     if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         bail!("--voxel must be positive");
     }
     if !(a.budget_mb.is_finite() && a.budget_mb > 0.0) {
         bail!("--budget-mb must be positive");
     }
+    if !a.min_conf.is_finite() {
+        bail!("--min-conf {}: expected a finite confidence (e.g. 1.5; confidences are 1 + exp(x))", a.min_conf);
+    }
+    let (weights, config) = a.model.resolve()?;
     let t0 = Instant::now();
     // Every photo is decoded before the model loads: a bad photo fails in a second.
     let paths = list_images(&a.photos)?;

@@ -63,12 +63,16 @@ pub struct RenderArgs {
     /// Output scene folder.
     #[arg(short, long)]
     output: PathBuf,
+    /// Replace the scene OUTPUT already holds (the new one is swapped in whole at the end).
+    #[arg(long)]
+    overwrite: bool,
 }
 
 /// Most pixels per rendered view (8192 x 8192).
 const MAX_RENDER_PIXELS: usize = 8192 * 8192;
 
 pub fn run(a: RenderArgs) -> Result<()> {
+    crate::predict::refuse_existing_scene(&a.output, a.overwrite)?;
     if a.views == 0 || a.views > 10_000 {
         bail!("--views must be in 1..=10000, got {}", a.views);
     }

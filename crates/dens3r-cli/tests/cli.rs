@@ -934,6 +934,22 @@ fn unbounded_options_are_refused_up_front() {
     let head = dir.path().join("head");
     let line = failing_pixel_head(&samples.join("room"), "100000", &head);
     assert!(line.contains("--size 100000"), "{line}");
+    // A NaN threshold is not a threshold (defect 8).
+    let room = samples.join("room");
+    let mesh = dir.path().join("m.ply");
+    let line =
+        fails(&["fuse", room.to_str().unwrap(), "-o", mesh.to_str().unwrap(), "--conf-weight", "--min-conf", "nan"]);
+    assert!(line.contains("--min-conf NaN"), "{line}");
+    assert!(!mesh.exists());
+    let line = fails(&[
+        "reconstruct",
+        room.join("images").to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--min-conf",
+        "nan",
+    ]);
+    assert!(line.contains("--min-conf NaN"), "{line}");
 }
 
 /// `eval depth` takes a folder of `NAME.npy` maps (as `predict --head` writes) for the frames it
@@ -959,4 +975,94 @@ fn eval_depth_reads_a_folder_of_npy_maps() {
     dens3r_scene::npy::write_f32(&maps.join("0001.npy"), &[4, 4], &[1.0; 16]).unwrap();
     let e = fails(&["eval", "depth", m, s]);
     assert!(e.contains("0001.npy") && e.contains("--original-size"), "{e}");
+}
+
+/// Issue 22, defect 5: an existing scene is never rewritten silently. predict / render into a
+/// scene folder are refused (its files untouched) unless --overwrite, which swaps the new scene
+/// in whole (no stale frame survives, inputs read from the old scene stay intact until then);
+/// fuse refuses to write over a file of its input scene.
+#[test]
+fn existing_scenes_are_not_overwritten() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let s = scene.to_str().unwrap();
+    let render = |extra: &[&'static str]| {
+        let mut args = vec!["render", "--procedural", "room", "--views", "3", "--width", "32", "--height", "24"];
+        args.extend_from_slice(extra);
+        args.extend(["-o", s]);
+        args
+    };
+    ok(&render(&[]));
+    let read = |p: &str| std::fs::read(scene.join(p)).unwrap();
+    let (cams, mesh, img) = (read("cameras.json"), read("gt_mesh.ply"), read("images/0001.png"));
+
+    let e = fails(&render(&["--seed", "2"]));
+    assert!(e.contains("already holds a scene") && e.contains("--overwrite"), "{e}");
+    let a = parity(A);
+    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
+    let input = scene.join("images/0001.png");
+    let predict = |extra: &[&str]| {
+        let mut args = vec!["predict", "--weights", w.to_str().unwrap(), "--config", c.to_str().unwrap()];
+        args.extend(["--size", "64", input.to_str().unwrap(), "-o", s]);
+        args.extend_from_slice(extra);
+        dens3r(&args)
+    };
+    let out = predict(&[]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("already holds a scene"));
+    let gt = scene.join("gt_mesh.ply");
+    let e = fails(&["fuse", s, "-o", gt.to_str().unwrap(), "--voxel", "0.05"]);
+    assert!(e.contains("a file of the input scene"), "{e}");
+    assert_eq!((read("cameras.json"), read("gt_mesh.ply"), read("images/0001.png")), (cams, mesh, img.clone()));
+
+    // --overwrite: predict reads the scene's own image and replaces the scene whole.
+    let out = predict(&["--overwrite"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let sc = dens3r_scene::Scene::open(&scene).unwrap();
+    assert_eq!(sc.frames().len(), 1);
+    assert_eq!(sc.frames()[0].name, "0001");
+    assert!(!scene.join("gt_mesh.ply").exists() && !scene.join("depth/0000.npy").exists(), "stale files survive");
+    // The picture written is the photo that was read (64x48 network input of a 32x24 image).
+    let rgb = sc.image(&sc.frames()[0]).unwrap();
+    assert_eq!((rgb.width(), rgb.height()), (64, 48));
+    // And render --overwrite brings the ground truth back.
+    ok(&render(&["--overwrite"]));
+    assert_eq!(dens3r_scene::Scene::open(&scene).unwrap().frames().len(), 3);
+    assert!(scene.join("gt_mesh.ply").is_file());
+    // No staging folder is left beside the scene.
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(left, [std::ffi::OsString::from("scene")], "{left:?}");
+}
+
+/// Issue 22, defect 8: a checkpoint with a NaN weight is refused at load with the tensor's
+/// name (it used to give NaN maps and exit 0).
+#[test]
+fn nan_weights_are_refused_by_name() {
+    let a = parity(A);
+    let w = dens3r_backbone::Weights::from_safetensors(&a.join("weights.safetensors")).unwrap();
+    let heads = dens3r_backbone::verify::heads_from_config(&a.join("config.json")).unwrap();
+    let cfg = dens3r_backbone::ModelConfig::from_weights(&w, heads).unwrap();
+    let mut p = dens3r_backbone::Params::from_weights(&w, &cfg).unwrap();
+    let k = p.names.iter().position(|n| n == "dec_blocks.1.mlp.fc1.weight").unwrap();
+    p.values[k][7] = f32::NAN;
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("nan.safetensors");
+    p.save(&bad).unwrap();
+    let img = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/room/images/0000.png");
+    let out = dir.path().join("out");
+    let c = a.join("config.json");
+    let e = fails(&[
+        "predict",
+        "--weights",
+        bad.to_str().unwrap(),
+        "--config",
+        c.to_str().unwrap(),
+        "--size",
+        "64",
+        img.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(e.contains("nan.safetensors") && e.contains("dec_blocks.1.mlp.fc1.weight") && e.contains("NaN"), "{e}");
+    assert!(!out.exists());
 }

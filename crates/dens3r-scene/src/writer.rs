@@ -13,23 +13,63 @@ use std::path::{Path, PathBuf};
 
 /// Writes a scene folder file by file (each atomically); [`SceneWriter::finish`] writes
 /// `cameras.json` last.
+///
+/// A folder that already holds a scene is never written into: the new scene is staged in a
+/// hidden sibling folder and replaces the old one whole when `finish` succeeds, so the old
+/// scene (which may hold this run's inputs) stays intact and readable until then, and no stale
+/// frame of it survives. A staging folder left by a killed run is removed by the next one.
 #[derive(Debug)]
 pub struct SceneWriter {
     root: PathBuf,
+    /// The folder the staged scene replaces on `finish` (`None`: writing in place).
+    dest: Option<PathBuf>,
     frames: Vec<Frame>,
     extra: serde_json::Map<String, serde_json::Value>,
 }
 
+/// Whether `dir` holds a scene folder (its `cameras.json`).
+pub fn holds_scene(dir: &Path) -> bool {
+    dir.join("cameras.json").is_file()
+}
+
+/// The hidden siblings a replacement of `dir` stages in (`.NAME.dens3r-stage-PID`) and moves
+/// the old scene to (`.NAME.dens3r-old-PID`).
+fn siblings(dir: &Path, kind: &str) -> PathBuf {
+    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into());
+    dir.with_file_name(format!(".{name}.dens3r-{kind}-{}", std::process::id()))
+}
+
+/// Removes staging and old-scene folders of `dir` that killed runs left behind.
+fn sweep_stale(dir: &Path) {
+    let (Some(parent), Some(name)) = (dir.parent(), dir.file_name()) else { return };
+    let parent = if parent.as_os_str().is_empty() { Path::new(".") } else { parent };
+    let prefix = format!(".{}.dens3r-", name.to_string_lossy());
+    let Ok(entries) = std::fs::read_dir(parent) else { return };
+    for e in entries.flatten() {
+        let n = e.file_name().to_string_lossy().into_owned();
+        if n.starts_with(&prefix) && (n.contains(".dens3r-stage-") || n.contains(".dens3r-old-")) {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
+
 impl SceneWriter {
-    /// Starts a scene in `dir` (created if missing). An existing `cameras.json` is replaced
-    /// only when `finish` succeeds.
+    /// Starts a scene in `dir` (created if missing). When `dir` already holds a scene, the new
+    /// one is staged beside it and replaces it whole only when `finish` succeeds.
     pub fn create(dir: &Path) -> Result<Self, SceneError> {
-        std::fs::create_dir_all(dir)
+        sweep_stale(dir);
+        let (root, dest) = if holds_scene(dir) {
+            (siblings(dir, "stage"), Some(dir.to_path_buf()))
+        } else {
+            (dir.to_path_buf(), None)
+        };
+        std::fs::create_dir_all(&root)
             .map_err(|e| SceneError::new(dir, format!("cannot create the scene folder: {e}")))?;
-        Ok(Self { root: dir.to_path_buf(), frames: Vec::new(), extra: Default::default() })
+        Ok(Self { root, dest, frames: Vec::new(), extra: Default::default() })
     }
 
-    /// The scene folder.
+    /// The folder being written: the scene folder itself, or while an existing scene is being
+    /// replaced, its staging folder (write every other file of the scene here too).
     pub fn root(&self) -> &Path {
         &self.root
     }
@@ -100,15 +140,29 @@ impl SceneWriter {
     }
 
     /// Writes `cameras.json`, completing the scene; returns its path.
-    pub fn finish(self) -> Result<PathBuf, SceneError> {
+    pub fn finish(mut self) -> Result<PathBuf, SceneError> {
         let path = self.root.join("cameras.json");
         if self.frames.is_empty() {
             return Err(SceneError::new(&path, "no frames were added; nothing to write"));
         }
-        let file = CamerasFile { convention: "opencv".into(), frames: self.frames, extra: self.extra };
+        let file = CamerasFile {
+            convention: "opencv".into(),
+            frames: std::mem::take(&mut self.frames),
+            extra: std::mem::take(&mut self.extra),
+        };
         let text = serde_json::to_string_pretty(&file).expect("cameras serialise");
         write_atomic(&path, |w| std::io::Write::write_all(w, text.as_bytes()))?;
-        Ok(path)
+        let Some(dest) = self.dest.take() else { return Ok(path) };
+        // Swap: the old scene aside, the staged one in, the old one removed.
+        let old = siblings(&dest, "old");
+        std::fs::rename(&dest, &old)
+            .map_err(|e| SceneError::new(&dest, format!("cannot move the old scene aside to replace it: {e}")))?;
+        if let Err(e) = std::fs::rename(&self.root, &dest) {
+            let _ = std::fs::rename(&old, &dest);
+            return Err(SceneError::new(&dest, format!("cannot move the new scene into place: {e}")));
+        }
+        let _ = std::fs::remove_dir_all(&old);
+        Ok(dest.join("cameras.json"))
     }
 
     fn target(&self, name: &str, layer: Layer) -> Result<(PathBuf, &Frame), SceneError> {
@@ -139,6 +193,16 @@ impl SceneWriter {
         let (path, f) = self.target(name, layer)?;
         self.check_size(&path, f, ids.width(), ids.height())?;
         write_id_png(&path, ids.data(), f.width as u32, f.height as u32)
+    }
+}
+
+/// A writer dropped before `finish` (an error) removes its staging folder: the scene it was
+/// to replace stays as it was.
+impl Drop for SceneWriter {
+    fn drop(&mut self) {
+        if self.dest.is_some() {
+            let _ = std::fs::remove_dir_all(&self.root);
+        }
     }
 }
 

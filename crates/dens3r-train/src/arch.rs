@@ -1,7 +1,7 @@
 //! A network architecture described by the official constructor's keywords (`--arch
 //! small.toml`), turned into the [`ModelConfig`] the backbone builds.
 
-use dens3r_backbone::config::{DptConfig, PtsHeadConfig, RopeScaling};
+use dens3r_backbone::config::{DptConfig, EncoderKind, PtsHeadConfig, RopeScaling};
 use dens3r_backbone::ModelConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -11,6 +11,11 @@ use std::path::Path;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Arch {
+    /// The encoder: `vit` (trained with the network, stored in its checkpoint) or `dinov2`
+    /// (a frozen DINOv2 read from its `.onnx`, `--dinov2`; then `enc_*` must describe it:
+    /// ViT-S/14 is 384 wide, 12 blocks, 6 heads).
+    #[serde(default)]
+    pub encoder: ArchEncoder,
     /// Patch size.
     #[serde(default = "patch")]
     pub patch_size: usize,
@@ -47,6 +52,17 @@ pub struct Arch {
     /// A separate descriptor confidence channel.
     #[serde(default)]
     pub desc_conf: bool,
+}
+
+/// [`Arch::encoder`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ArchEncoder {
+    /// The CroCo ViT.
+    #[default]
+    Vit,
+    /// A frozen DINOv2.
+    Dinov2,
 }
 
 fn patch() -> usize {
@@ -107,6 +123,10 @@ impl Arch {
             mlp_hidden: Some(self.desc_mlp_ratio * (self.enc_embed_dim + self.dec_embed_dim)),
         };
         ModelConfig {
+            encoder: match self.encoder {
+                ArchEncoder::Vit => EncoderKind::Vit,
+                ArchEncoder::Dinov2 => EncoderKind::Dinov2,
+            },
             patch: self.patch_size,
             enc_dim: self.enc_embed_dim,
             enc_depth: self.enc_depth,
@@ -131,7 +151,7 @@ impl Arch {
 /// The `config.json` written beside a trained checkpoint: the constructor keywords the
 /// official loader and `--config` read (head counts cannot be recovered from shapes).
 pub fn config_json(c: &ModelConfig) -> serde_json::Value {
-    serde_json::json!({
+    let mut v = serde_json::json!({
         "output_mode": "unify",
         "head_type": "catmlp+dpt",
         "depth_mode": ["exp", "-inf", "inf"],
@@ -150,5 +170,11 @@ pub fn config_json(c: &ModelConfig) -> serde_json::Value {
         "dec_num_heads": c.dec_heads,
         "landscape_only": false,
         "symmetrize_dec": c.shared_decoder,
-    })
+    });
+    if c.encoder == EncoderKind::Dinov2 {
+        // The encoder is not in the weights: its file, looked up beside them (or $DENS3R_DINOV2).
+        v["encoder"] = "dinov2".into();
+        v["dinov2_onnx"] = dens3r_backbone::verify::DINOV2_FILE.into();
+    }
+    v
 }

