@@ -180,3 +180,38 @@ fn writer_refuses_mismatched_layers_and_finishing_empty() {
     let w = SceneWriter::create(&dir.path().join("empty")).unwrap();
     assert!(w.finish().unwrap_err().to_string().contains("no frames"));
 }
+
+/// Writing into a folder that holds a scene replaces it whole at `finish` (no stale frame or
+/// layer survives); a writer dropped before `finish` leaves the old scene exactly as it was,
+/// and neither leaves a staging folder beside it.
+#[test]
+fn an_existing_scene_is_replaced_whole_or_not_at_all() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("s");
+    write_scene(&dir);
+    let before = walk(&dir);
+    let rgb = image::RgbImage::from_pixel(W as u32, H as u32, image::Rgb([1, 2, 3]));
+
+    // Abandoned half-way: the old scene is untouched.
+    {
+        let mut w = SceneWriter::create(&dir).unwrap();
+        w.add_frame(Frame::new("c", &cam()), &rgb).unwrap();
+        assert_ne!(w.root(), dir.as_path(), "an existing scene is never written into");
+        assert_eq!(Scene::open(&dir).unwrap().frames().len(), 2, "the old scene reads while the new one is staged");
+    }
+    assert_eq!(walk(&dir), before);
+    assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 1, "staging folder left behind");
+
+    // Finished: only the new frame remains.
+    let mut w = SceneWriter::create(&dir).unwrap();
+    w.add_frame(Frame::new("c", &cam()), &rgb).unwrap();
+    w.write_depth("c", &Raster::filled(W, H, 1.0)).unwrap();
+    w.finish().unwrap();
+    let s = Scene::open(&dir).unwrap();
+    assert_eq!(s.frames().iter().map(|f| f.name.as_str()).collect::<Vec<_>>(), ["c"]);
+    let mut files: Vec<String> =
+        walk(&dir).iter().map(|f| Path::new(f).strip_prefix(&dir).unwrap().display().to_string()).collect();
+    files.sort();
+    assert_eq!(files, ["cameras.json", "depth/c.npy", "images/c.png"]);
+    assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 1);
+}

