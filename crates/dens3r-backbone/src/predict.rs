@@ -1,7 +1,7 @@
 //! Single-image and pair prediction (spec section 2 "Single image" and 3.2), mapped back to
 //! the un-rotated image frame, optionally at the original resolution, in our conventions.
 
-use crate::model::{Dens3r, ViewFeatures, ViewPrediction};
+use crate::model::{Dens3r, Features, Predictions, ViewFeatures, ViewPrediction};
 use crate::preprocess::{rescale_to_original, rotate_map_clockwise, unrotate_vector, PrepInfo, Prepared};
 use burn::tensor::Tensor;
 use dens3r_geom::{NormalConvention, Raster, Vec3};
@@ -160,8 +160,36 @@ pub fn predict_pair_encoded(
     (second, e2): (&Prepared, &Encoded),
     res: Resolution,
 ) -> [ViewMaps; 2] {
-    let features = model.decode(e1.tokens.clone(), e1.grid, e2.tokens.clone(), e2.grid);
-    let pred = model.heads(&features);
+    predict_pair_features(model, &decode_pair(model, e1, e2), first, second, res)
+}
+
+/// The decoder on two encoded images: the pair's features.
+pub fn decode_pair(model: &Dens3r, e1: &Encoded, e2: &Encoded) -> Features {
+    model.decode(e1.tokens.clone(), e1.grid, e2.tokens.clone(), e2.grid)
+}
+
+/// The features of the pair the other way round, when the network's one decoder is shared by
+/// both views: each view's stream then runs the same blocks on the same inputs in either
+/// order, so `decode(b, a)` is `decode(a, b)` with its views swapped, exactly. `None` for a
+/// network with two decoders.
+pub fn swapped_features(model: &Dens3r, f: &Features) -> Option<Features> {
+    model.config.shared_decoder.then(|| Features { views: [f.views[1].clone(), f.views[0].clone()] })
+}
+
+/// The heads on a pair's features ([`decode_pair`]) into maps: [`predict_pair_encoded`]
+/// without the decoder.
+pub fn predict_pair_features(
+    model: &Dens3r,
+    features: &Features,
+    first: &Prepared,
+    second: &Prepared,
+    res: Resolution,
+) -> [ViewMaps; 2] {
+    pair_maps(&model.heads(features), first, second, res)
+}
+
+/// A pair's head outputs into maps (view 1 then view 2).
+pub fn pair_maps(pred: &Predictions, first: &Prepared, second: &Prepared, res: Resolution) -> [ViewMaps; 2] {
     let r = first.info.rotated;
     [view_maps(&pred.views[0], first, 0, r, res), view_maps(&pred.views[1], second, 0, r, res)]
 }

@@ -95,7 +95,10 @@ pub fn reconstruct(
         return Err(ReconError::Other(format!("reconstruction needs at least 2 photos, got {n}")));
     }
     let sizes: Vec<(usize, usize)> = images.iter().map(|im| im.size()).collect();
-    let order = make_pairs(n, opts.graph, true);
+    // Every pair, each followed by its reverse (the set DUSt3R symmetrises to): a predictor
+    // may reuse work between the two runs of one pair.
+    let order: Vec<(usize, usize)> =
+        make_pairs(n, opts.graph, false).into_iter().flat_map(|(i, j)| [(i, j), (j, i)]).collect();
     let ordered: HashSet<(usize, usize)> = order.iter().copied().collect();
     let mut stats = ReconStats { pairs: order.len(), ..Default::default() };
     let id = predictor.id();

@@ -3,7 +3,10 @@
 
 use crate::input::InputImage;
 use dens3r_backbone::model::Dens3r;
-use dens3r_backbone::predict::{encode, predict_pair_encoded, DescriptorMap, Encoded, Resolution, ViewMaps};
+use dens3r_backbone::predict::{
+    decode_pair, encode, pair_maps, swapped_features, DescriptorMap, Encoded, Resolution, ViewMaps,
+};
+use dens3r_backbone::{Features, HeadOutputs, Tensor};
 use dens3r_geom::{Raster, Vec3};
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -73,17 +76,34 @@ type ImageKey = (u64, (u32, u32, u32, u32), bool);
 
 /// The Dens3R / DUSt3R / MASt3R network at its input resolution. Each image is encoded once
 /// and its encoder tokens reused in every pair it is in (the siamese encoder's output does not
-/// depend on the other view), so only the decoder and heads run per pair.
+/// depend on the other view), so only the decoder and heads run per pair; with a decoder shared
+/// by both views, the pair `(j, i)` asked right after `(i, j)` reuses its decoder pass with the
+/// views swapped (exactly what running it gives), and the normal head's outputs (one head
+/// for both views, on the same features), so only its point and descriptor heads run.
 pub struct NetworkPredictor<'a> {
     model: &'a Dens3r,
     weights_id: String,
     encoded: RefCell<HashMap<ImageKey, Encoded>>,
+    /// The last pair's work for the reverse pair, under that pair's key.
+    pending: RefCell<Option<((ImageKey, ImageKey), Reverse)>>,
+    decoded: std::cell::Cell<usize>,
 }
 
 impl<'a> NetworkPredictor<'a> {
     /// `weights_id` identifies the weights and input size in the pair cache (see [`weights_id`]).
     pub fn new(model: &'a Dens3r, weights_id: String) -> Self {
-        Self { model, weights_id, encoded: RefCell::new(HashMap::new()) }
+        Self {
+            model,
+            weights_id,
+            encoded: RefCell::new(HashMap::new()),
+            pending: RefCell::new(None),
+            decoded: std::cell::Cell::new(0),
+        }
+    }
+
+    /// Decoder passes run so far.
+    pub fn decoder_passes(&self) -> usize {
+        self.decoded.get()
     }
 
     /// Images encoded so far.
@@ -92,8 +112,7 @@ impl<'a> NetworkPredictor<'a> {
     }
 
     fn encoding(&self, im: &InputImage) -> Encoded {
-        let key = (im.hash, im.prep.info.crop, im.prep.info.rotated);
-        self.encoded.borrow_mut().entry(key).or_insert_with(|| encode(self.model, &im.prep)).clone()
+        self.encoded.borrow_mut().entry(image_key(im)).or_insert_with(|| encode(self.model, &im.prep)).clone()
     }
 }
 
@@ -104,10 +123,41 @@ impl PairPredictor for NetworkPredictor<'_> {
 
     fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String> {
         let (a, b) = (&images[i], &images[j]);
-        let (ea, eb) = (self.encoding(a), self.encoding(b));
-        let [va, vb] = predict_pair_encoded(self.model, (&a.prep, &ea), (&b.prep, &eb), Resolution::Network);
+        let key = (image_key(a), image_key(b));
+        let reuse = self.pending.borrow_mut().take().filter(|(k, _)| *k == key).map(|(_, r)| r);
+        let pred = match reuse {
+            Some(r) => {
+                let mut pred = self.model.heads_with(&r.features, HeadOutputs { normal: false, desc: true });
+                for (v, n) in pred.views.iter_mut().zip(r.normals) {
+                    (v.normal, v.raw_normal) = n;
+                }
+                pred
+            }
+            None => {
+                let f = decode_pair(self.model, &self.encoding(a), &self.encoding(b));
+                self.decoded.set(self.decoded.get() + 1);
+                let pred = self.model.heads(&f);
+                if let Some(features) = swapped_features(self.model, &f) {
+                    let n = |k: usize| (pred.views[k].normal.clone(), pred.views[k].raw_normal.clone());
+                    *self.pending.borrow_mut() = Some(((key.1, key.0), Reverse { features, normals: [n(1), n(0)] }));
+                }
+                pred
+            }
+        };
+        let [va, vb] = pair_maps(&pred, &a.prep, &b.prep, Resolution::Network);
         Ok([ViewOutput::from_maps(va), ViewOutput::from_maps(vb)])
     }
+}
+
+/// What the reverse of a pair reuses: the swapped decoder features and each view's normals
+/// (the normal head reads the same features of a view in either order).
+struct Reverse {
+    features: Features,
+    normals: [(Option<Tensor<4>>, Option<Tensor<4>>); 2],
+}
+
+fn image_key(im: &InputImage) -> ImageKey {
+    (im.hash, im.prep.info.crop, im.prep.info.rotated)
 }
 
 /// A weights file's identity for the cache: canonical path, length and modification time

@@ -291,3 +291,44 @@ fn oracle_photos_become_the_true_scene() {
     let e = reconstruct(&images, &Refuses, &cache, &opts, |_, _, _| {}).unwrap_err().to_string();
     assert!(e.contains("pair (view") && e.contains("the network was called"), "{e}");
 }
+
+#[path = "../../../tests/support/fixtures.rs"]
+mod fixtures;
+
+/// With the decoder shared by both views (fixture A), the pair `(1, 0)` asked right after
+/// `(0, 1)` reuses that decoder pass with the views swapped (and the normal head's outputs),
+/// and gives exactly what a
+/// predictor that never saw `(0, 1)` gives; an unrelated pair in between is decoded anew.
+#[test]
+fn the_reverse_pair_reuses_the_decoder_pass_exactly() {
+    use dens3r_recon::NetworkPredictor;
+    let a = fixtures::parity(fixtures::A);
+    let device = dens3r_backbone::Device::flex();
+    let (model, _) =
+        dens3r_backbone::verify::load_model(&a.join("weights.safetensors"), Some(&a.join("config.json")), &device)
+            .unwrap();
+    assert!(model.config.shared_decoder);
+    let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/room/images");
+    let paths: Vec<_> = ["0000.png", "0001.png", "0002.png"].iter().map(|n| samples.join(n)).collect();
+    let images = load_images(&paths, 64, true).unwrap();
+    let both = NetworkPredictor::new(&model, "a".into());
+    let _ = both.predict(&images, 0, 1).unwrap();
+    let reused = both.predict(&images, 1, 0).unwrap();
+    assert_eq!(both.decoder_passes(), 1);
+    let alone = NetworkPredictor::new(&model, "a".into());
+    let direct = alone.predict(&images, 1, 0).unwrap();
+    for v in 0..2 {
+        assert_eq!(reused[v].points.data(), direct[v].points.data(), "view {v} points");
+        assert_eq!(reused[v].conf.data(), direct[v].conf.data(), "view {v} conf");
+        let (Some(x), Some(y)) = (&reused[v].desc, &direct[v].desc) else { panic!("descriptors") };
+        assert_eq!(x.data, y.data);
+        let (Some(x), Some(y)) = (&reused[v].normals, &direct[v].normals) else { panic!("normals") };
+        assert_eq!(x.data(), y.data(), "view {v} normals");
+    }
+    // (0, 2) then (1, 0): nothing pending fits, both are decoded.
+    let mixed = NetworkPredictor::new(&model, "a".into());
+    let _ = mixed.predict(&images, 0, 2).unwrap();
+    let again = mixed.predict(&images, 1, 0).unwrap();
+    assert_eq!(mixed.decoder_passes(), 2);
+    assert_eq!(again[0].points.data(), direct[0].points.data());
+}
