@@ -98,6 +98,13 @@ fn quiet_on_closed_stdout() {
 
 fn main() {
     quiet_on_closed_stdout();
+    // SIGINT / SIGTERM: remove what is half-written (temporary files, staging folders, output
+    // folders not yet complete), then stop with the shell's status for a signal.
+    let _ = ctrlc::set_handler(|| {
+        dens3r_mesh::cleanup::stop();
+        eprintln!("interrupted: unfinished outputs removed");
+        std::process::exit(130);
+    });
     // DENS3R_CACHE_MB: how much freed activation memory to keep for reuse (default 1024;
     // 0 = none, lowest peak memory, ~10% slower forward passes).
     if let Some(mb) = std::env::var("DENS3R_CACHE_MB").ok().and_then(|v| v.trim().parse::<usize>().ok()) {
@@ -119,6 +126,10 @@ fn main() {
         Command::TrainHead(a) => train_head::run(a),
         Command::Bench(c) => bench::run(c),
     };
+    // Stopped by a signal: the handler cleans up and exits (the failed write was its doing).
+    while dens3r_mesh::cleanup::stopping() {
+        std::thread::park();
+    }
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(2);

@@ -1066,3 +1066,37 @@ fn nan_weights_are_refused_by_name() {
     assert!(e.contains("nan.safetensors") && e.contains("dec_blocks.1.mlp.fc1.weight") && e.contains("NaN"), "{e}");
     assert!(!out.exists());
 }
+
+/// Issue 22, defect 6: SIGINT or SIGTERM in the middle of a command removes what it had
+/// half-written (the new scene folder, temporary files; a scene being replaced stays as it
+/// was, with no staging folder beside it), exits 130, and a rerun succeeds.
+#[test]
+fn a_signal_leaves_no_partial_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("long");
+    let o = out.to_str().unwrap();
+    let long = ["render", "--procedural", "room", "--views", "3000", "--width", "160", "--height", "120", "-o", o];
+    let interrupt = |args: &[&str], signal: &str| {
+        let child = Command::new(env!("CARGO_BIN_EXE_dens3r")).args(args).stderr(std::process::Stdio::piped()).spawn();
+        let child = child.unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(1500));
+        let sent = Command::new("kill").args([signal, &child.id().to_string()]).status().unwrap();
+        assert!(sent.success());
+        let res = child.wait_with_output().unwrap();
+        assert_eq!(res.status.code(), Some(130), "{}", String::from_utf8_lossy(&res.stderr));
+    };
+    interrupt(&long, "-INT");
+    assert!(!out.exists(), "a new scene folder is removed whole");
+    assert_no_temp_files(dir.path());
+    // A scene being replaced: the old one stays, nothing beside it.
+    ok(&["render", "--procedural", "room", "--views", "2", "--width", "32", "--height", "24", "-o", o]);
+    let before = std::fs::read(out.join("cameras.json")).unwrap();
+    let mut again = long.to_vec();
+    again.push("--overwrite");
+    interrupt(&again, "-TERM");
+    assert_eq!(std::fs::read(out.join("cameras.json")).unwrap(), before);
+    let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(names, [std::ffi::OsString::from("long")], "{names:?}");
+    assert_no_temp_files(dir.path());
+    ok(&["render", "--procedural", "room", "--views", "2", "--width", "32", "--height", "24", "-o", o, "--overwrite"]);
+}

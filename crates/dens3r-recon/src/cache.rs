@@ -55,8 +55,11 @@ impl PairCache {
     pub fn store(&self, key: &str, out: &[ViewOutput; 2]) -> Result<(), String> {
         let Some(root) = &self.dir else { return Ok(()) };
         std::fs::create_dir_all(root).map_err(|e| format!("{}: cannot create the pair cache ({e})", root.display()))?;
-        let tmp = root.join(format!(".{key}.tmp-{}", std::process::id()));
+        // Entries of killed runs are swept; this one is removed if the process is stopped.
+        dens3r_mesh::cleanup::sweep_stale(root);
+        let tmp = root.join(format!(".{key}{}d", dens3r_mesh::cleanup::temp_prefix()));
         let _ = std::fs::remove_dir_all(&tmp);
+        let _staged = dens3r_mesh::cleanup::stage(&tmp);
         std::fs::create_dir_all(&tmp).map_err(|e| format!("{}: cannot write the pair cache ({e})", tmp.display()))?;
         let res = out.iter().enumerate().try_for_each(|(v, o)| write_view(&tmp, v, o));
         if let Err(e) = res {

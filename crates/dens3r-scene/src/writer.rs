@@ -23,6 +23,9 @@ pub struct SceneWriter {
     root: PathBuf,
     /// The folder the staged scene replaces on `finish` (`None`: writing in place).
     dest: Option<PathBuf>,
+    /// The staging folder, or a folder this writer created, removed if the process is stopped
+    /// before `finish`.
+    staged: Option<dens3r_mesh::cleanup::Staged>,
     frames: Vec<Frame>,
     extra: serde_json::Map<String, serde_json::Value>,
 }
@@ -39,33 +42,23 @@ fn siblings(dir: &Path, kind: &str) -> PathBuf {
     dir.with_file_name(format!(".{name}.dens3r-{kind}-{}", std::process::id()))
 }
 
-/// Removes staging and old-scene folders of `dir` that killed runs left behind.
-fn sweep_stale(dir: &Path) {
-    let (Some(parent), Some(name)) = (dir.parent(), dir.file_name()) else { return };
-    let parent = if parent.as_os_str().is_empty() { Path::new(".") } else { parent };
-    let prefix = format!(".{}.dens3r-", name.to_string_lossy());
-    let Ok(entries) = std::fs::read_dir(parent) else { return };
-    for e in entries.flatten() {
-        let n = e.file_name().to_string_lossy().into_owned();
-        if n.starts_with(&prefix) && (n.contains(".dens3r-stage-") || n.contains(".dens3r-old-")) {
-            let _ = std::fs::remove_dir_all(e.path());
-        }
-    }
-}
-
 impl SceneWriter {
     /// Starts a scene in `dir` (created if missing). When `dir` already holds a scene, the new
     /// one is staged beside it and replaces it whole only when `finish` succeeds.
     pub fn create(dir: &Path) -> Result<Self, SceneError> {
-        sweep_stale(dir);
+        if let Some(parent) = dir.parent() {
+            dens3r_mesh::cleanup::sweep_stale(if parent.as_os_str().is_empty() { Path::new(".") } else { parent });
+        }
         let (root, dest) = if holds_scene(dir) {
             (siblings(dir, "stage"), Some(dir.to_path_buf()))
         } else {
             (dir.to_path_buf(), None)
         };
+        let fresh = !root.exists();
         std::fs::create_dir_all(&root)
             .map_err(|e| SceneError::new(dir, format!("cannot create the scene folder: {e}")))?;
-        Ok(Self { root, dest, frames: Vec::new(), extra: Default::default() })
+        let staged = fresh.then(|| dens3r_mesh::cleanup::stage(&root));
+        Ok(Self { root, dest, staged, frames: Vec::new(), extra: Default::default() })
     }
 
     /// The folder being written: the scene folder itself, or while an existing scene is being
@@ -152,7 +145,10 @@ impl SceneWriter {
         };
         let text = serde_json::to_string_pretty(&file).expect("cameras serialise");
         write_atomic(&path, |w| std::io::Write::write_all(w, text.as_bytes()))?;
-        let Some(dest) = self.dest.take() else { return Ok(path) };
+        let Some(dest) = self.dest.take() else {
+            self.staged = None;
+            return Ok(path);
+        };
         // Swap: the old scene aside, the staged one in, the old one removed.
         let old = siblings(&dest, "old");
         std::fs::rename(&dest, &old)
@@ -161,6 +157,7 @@ impl SceneWriter {
             let _ = std::fs::rename(&old, &dest);
             return Err(SceneError::new(&dest, format!("cannot move the new scene into place: {e}")));
         }
+        self.staged = None;
         let _ = std::fs::remove_dir_all(&old);
         Ok(dest.join("cameras.json"))
     }

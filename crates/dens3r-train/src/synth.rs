@@ -136,6 +136,7 @@ pub fn synthesise(
                     std::fs::remove_dir_all(d).map_err(|e| format!("{}: cannot remove ({e})", d.display()))?;
                 }
             }
+            let _staged = dens3r_mesh::cleanup::stage(&tmp);
             let scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;
             render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})
                 .map_err(|e| e.to_string())?;

@@ -728,3 +728,35 @@ desc_mlp_ratio = 1
     assert_eq!(m.config, arch.config());
     assert!(m.dinov2().is_some());
 }
+
+/// Ground-truth correspondences of a rendered pair, cropped and resized as training does, land
+/// on the same surface: their colours agree far better than random pixel pairs' (an
+/// independent check of the windows' intrinsics and the poses the matching loss trusts).
+#[test]
+fn correspondences_of_cropped_views_agree_in_colour() {
+    use dens3r_train::pair::{crop_window, pair_target, View};
+    let scene = dens3r_scene::Scene::open(&samples().join("room")).unwrap();
+    let f = scene.frames();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let (mut matched, mut random, mut n) = (0f64, 0f64, 0usize);
+    for (a, b) in [(1usize, 2usize), (2, 3), (2, 1)] {
+        let size = (96usize, 64usize);
+        let load = |k: usize, scale: f64, at: (f64, f64)| {
+            View::load_window(&scene, &f[k], crop_window((f[k].width, f[k].height), size, scale, at), size).unwrap()
+        };
+        let (v1, v2) = (load(a, 0.8, (0.2, 0.7)), load(b, 0.9, (0.6, 0.3)));
+        let t = pair_target(&v1, &v2);
+        assert!(t.matches.idx1.len() > 500, "pair {a}-{b}: {} matches", t.matches.idx1.len());
+        let px = |img: &image::RgbImage, i: u32| img.get_pixel(i % size.0 as u32, i / size.0 as u32).0.map(f64::from);
+        let diff = |p: [f64; 3], q: [f64; 3]| p.iter().zip(&q).map(|(x, y)| (x - y).abs()).sum::<f64>() / 3.0;
+        for (&i1, &i2) in t.matches.idx1.iter().zip(&t.matches.idx2) {
+            matched += diff(px(&v1.image, i1), px(&v2.image, i2));
+            let r = rng.gen_range(0..(size.0 * size.1) as u32);
+            random += diff(px(&v1.image, i1), px(&v2.image, r));
+            n += 1;
+        }
+    }
+    let (matched, random) = (matched / n as f64, random / n as f64);
+    eprintln!("mean |RGB difference|: matched {matched:.1}, random {random:.1} (of 255)");
+    assert!(matched < 0.35 * random, "matched {matched:.1} vs random {random:.1}");
+}

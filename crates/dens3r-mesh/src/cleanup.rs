@@ -1,0 +1,137 @@
+//! Temporary files and folders of unfinished outputs, removed when the process is told to stop.
+//!
+//! Every writer that stages an output (a temporary file before its rename, a staging folder, a
+//! new output folder not yet complete) registers it here for as long as it exists; a binary's
+//! SIGINT / SIGTERM handler calls [`remove_all`] before exiting, so an interrupted command
+//! leaves nothing half-written behind. What a `kill -9` leaves is swept by the next run
+//! ([`sweep_stale`]): temporary names carry the writing process's id, and those of processes
+//! that no longer run are removed.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+static STAGED: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+static STOPPING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+static SWEPT: Mutex<Option<HashSet<PathBuf>>> = Mutex::new(None);
+
+/// A registered path, unregistered when dropped (it is then finished, or removed by its owner).
+#[derive(Debug)]
+pub struct Staged(PathBuf);
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        // While stopping, a writer giving up on its failed write still leaves the path to the
+        // handler's removal.
+        if stopping() {
+            return;
+        }
+        let mut s = STAGED.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(i) = s.iter().rposition(|p| *p == self.0) {
+            s.swap_remove(i);
+        }
+    }
+}
+
+/// Registers `path` (a file or folder) to be removed if the process is stopped while the
+/// returned guard lives.
+pub fn stage(path: &Path) -> Staged {
+    STAGED.lock().unwrap_or_else(|e| e.into_inner()).push(path.to_path_buf());
+    Staged(path.to_path_buf())
+}
+
+/// Whether the process is stopping ([`stop`]): writers start nothing new.
+pub fn stopping() -> bool {
+    STOPPING.load(std::sync::atomic::Ordering::SeqCst)
+}
+
+/// The signal handler's work: marks the process as stopping (so [`crate::io::write_atomic`]
+/// starts and finishes no file), lets writes in flight end, then removes every registered
+/// path. Returns how many were removed.
+pub fn stop() -> usize {
+    STOPPING.store(true, std::sync::atomic::Ordering::SeqCst);
+    std::thread::sleep(std::time::Duration::from_millis(100));
+    remove_all()
+}
+
+/// Removes every registered path. Returns how many were removed.
+pub fn remove_all() -> usize {
+    let paths = std::mem::take(&mut *STAGED.lock().unwrap_or_else(|e| e.into_inner()));
+    let mut n = 0;
+    for p in paths.iter().rev() {
+        let r = if p.is_dir() { std::fs::remove_dir_all(p) } else { std::fs::remove_file(p) };
+        n += r.is_ok() as usize;
+    }
+    n
+}
+
+/// The marker temporary names carry: `.dens3r-tmp-PID-` (see [`sweep_stale`]).
+pub fn temp_prefix() -> String {
+    format!(".dens3r-tmp-{}-", std::process::id())
+}
+
+/// Whether process `pid` still runs (Linux: `/proc/PID`; elsewhere assumed to, so nothing of
+/// a live writer is ever removed).
+fn alive(pid: u32) -> bool {
+    if cfg!(target_os = "linux") {
+        Path::new(&format!("/proc/{pid}")).exists()
+    } else {
+        true
+    }
+}
+
+/// Removes temporary files and staging folders in `dir` (names containing `.dens3r-tmp-PID-`,
+/// `.dens3r-stage-PID` or `.dens3r-old-PID`) left by processes that no longer run; each
+/// folder is swept once per process.
+pub fn sweep_stale(dir: &Path) {
+    {
+        let mut swept = SWEPT.lock().unwrap_or_else(|e| e.into_inner());
+        if !swept.get_or_insert_with(HashSet::new).insert(dir.to_path_buf()) {
+            return;
+        }
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let pid = ["dens3r-tmp-", "dens3r-stage-", "dens3r-old-"].iter().find_map(|m| {
+            let rest = &name[name.find(m)? + m.len()..];
+            rest.split(|c: char| !c.is_ascii_digit()).next()?.parse::<u32>().ok()
+        });
+        if pid.is_some_and(|p| p != std::process::id() && !alive(p)) {
+            let p = e.path();
+            let _ = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn staged_paths_are_removed_and_stale_ones_swept() {
+        let dir = tempfile::tempdir().unwrap();
+        let (f, d) = (dir.path().join("a.tmp"), dir.path().join("b.stage"));
+        std::fs::write(&f, b"x").unwrap();
+        std::fs::create_dir_all(d.join("inner")).unwrap();
+        let (_gf, _gd) = (stage(&f), stage(&d));
+        let kept = dir.path().join("kept");
+        std::fs::write(&kept, b"y").unwrap();
+        drop(stage(&kept)); // finished: no longer removed
+        assert!(remove_all() >= 2);
+        assert!(!f.exists() && !d.exists() && kept.exists());
+
+        // A dead writer's leftovers go, a live one's (ours) and other files stay.
+        let dead = dir.path().join(".dens3r-tmp-4000000000-abc");
+        let ours = dir.path().join(format!("{}xyz", temp_prefix()));
+        let stage_dir = dir.path().join(".s.dens3r-stage-4000000001");
+        std::fs::write(&dead, b"").unwrap();
+        std::fs::write(&ours, b"").unwrap();
+        std::fs::create_dir(&stage_dir).unwrap();
+        sweep_stale(dir.path());
+        if cfg!(target_os = "linux") {
+            assert!(!dead.exists() && !stage_dir.exists());
+        }
+        assert!(ours.exists() && kept.exists());
+    }
+}
