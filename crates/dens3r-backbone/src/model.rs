@@ -405,6 +405,23 @@ pub struct Predictions {
     pub views: [ViewPrediction; 2],
 }
 
+/// Whether `dinov2` can be the encoder of a network of `config`: the network's encoder must be
+/// a DINOv2 ([`EncoderKind::Dinov2`]) of the width its decoder reads.
+pub fn dinov2_fits(config: &ModelConfig, dinov2: &Dinov2) -> Result<(), String> {
+    if config.encoder != EncoderKind::Dinov2 {
+        return Err("the network has its own ViT encoder; a DINOv2 is only for a DINOv2-encoder network".into());
+    }
+    if dinov2.config.dim != config.enc_dim {
+        return Err(format!(
+            "{}: a {}-wide DINOv2, but the decoder reads {}-wide tokens; use the encoder the network was trained with",
+            dinov2.path.display(),
+            dinov2.config.dim,
+            config.enc_dim
+        ));
+    }
+    Ok(())
+}
+
 /// The encoder: the checkpoint's ViT, or a frozen DINOv2 attached after loading.
 enum Encoder {
     Vit { patch: Box<Conv>, blocks: Vec<EncoderBlock>, norm: Box<LayerNorm> },
@@ -512,18 +529,10 @@ impl Dens3r {
     /// Attaches the frozen DINOv2 of a network whose encoder is one
     /// ([`EncoderKind::Dinov2`]); an error when the widths differ or the network has its own.
     pub fn attach_dinov2(&mut self, dinov2: Arc<Dinov2>) -> Result<(), String> {
-        let Encoder::Dinov2(slot) = &mut self.encoder else {
-            return Err("this network has its own ViT encoder; a DINOv2 cannot replace it".into());
-        };
-        if dinov2.config.dim != self.config.enc_dim {
-            return Err(format!(
-                "{}: a {}-wide DINOv2, but the decoder reads {}-wide tokens; use the encoder the network was trained with",
-                dinov2.path.display(),
-                dinov2.config.dim,
-                self.config.enc_dim
-            ));
+        dinov2_fits(&self.config, &dinov2)?;
+        if let Encoder::Dinov2(slot) = &mut self.encoder {
+            *slot = Some(dinov2);
         }
-        *slot = Some(dinov2);
         Ok(())
     }
 

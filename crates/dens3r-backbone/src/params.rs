@@ -165,25 +165,15 @@ impl Params {
         };
         let mut model = Dens3r::from_flat(self.config.clone(), device, &get);
         if let Some(d) = &self.dinov2 {
-            // Widths were checked when the encoder was set (`Params::with_dinov2`).
-            model.attach_dinov2(d.clone()).expect("DINOv2 width checked by with_dinov2");
+            // Checked when the encoder was set (`Params::with_dinov2`).
+            model.attach_dinov2(d.clone()).expect("DINOv2 checked by with_dinov2");
         }
         model
     }
 
     /// These parameters with the frozen DINOv2 encoder their configuration needs.
     pub fn with_dinov2(mut self, dinov2: Arc<Dinov2>) -> Result<Self, String> {
-        if self.config.encoder != crate::config::EncoderKind::Dinov2 {
-            return Err("the network has its own ViT encoder; --dinov2 is only for a DINOv2-encoder network".into());
-        }
-        if dinov2.config.dim != self.config.enc_dim {
-            return Err(format!(
-                "{}: a {}-wide DINOv2, but the network's decoder reads {}-wide tokens",
-                dinov2.path.display(),
-                dinov2.config.dim,
-                self.config.enc_dim
-            ));
-        }
+        crate::model::dinov2_fits(&self.config, &dinov2)?;
         self.dinov2 = Some(dinov2);
         Ok(self)
     }
