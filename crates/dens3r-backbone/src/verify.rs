@@ -12,7 +12,7 @@ use crate::weights::Weights;
 use burn::tensor::{Device, Tensor, TensorData};
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// Absolute tolerance (tokens, raw outputs, points, normals, descriptors).
 pub const ABS_TOL: f64 = 1e-4;
@@ -83,16 +83,8 @@ pub fn heads_from_args(args: &str) -> Option<(usize, usize)> {
 /// `config` is set.
 pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Result<(Dens3r, Vec<String>), String> {
     if weights.is_dir() {
-        let file = weights.join("model.safetensors");
-        if !file.is_file() {
-            return Err(format!(
-                "{}: a folder without model.safetensors; give a checkpoint file or a Hugging Face model folder",
-                weights.display()
-            ));
-        }
-        let hf = weights.join("config.json");
-        let config = config.or_else(|| hf.is_file().then_some(hf.as_path()));
-        return load_model(&file, config, device);
+        let (file, hf) = model_folder_files(weights)?;
+        return load_model(&file, config.or(hf.as_deref()), device);
     }
     let w = Weights::from_safetensors(weights).map_err(|e| e.to_string())?;
     let heads = match config {
@@ -111,6 +103,20 @@ pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Res
         model.attach_dinov2(d)?;
     }
     Ok((model, unexpected))
+}
+
+/// The files of a Hugging Face style model folder: `model.safetensors` and, when present,
+/// `config.json`; an error for a folder without weights.
+pub fn model_folder_files(dir: &Path) -> Result<(std::path::PathBuf, Option<std::path::PathBuf>), String> {
+    let file = dir.join("model.safetensors");
+    if !file.is_file() {
+        return Err(format!(
+            "{}: a folder without model.safetensors; give a checkpoint file or a Hugging Face model folder",
+            dir.display()
+        ));
+    }
+    let config = dir.join("config.json");
+    Ok((file, config.is_file().then_some(config)))
 }
 
 /// Environment variable naming the DINOv2 `.onnx` of a DINOv2-encoder network, when it is not
@@ -157,17 +163,10 @@ pub fn find_dinov2(weights: &Path, config: Option<&Path>) -> Result<std::path::P
         })
 }
 
-/// Loads a DINOv2 `.onnx` once per process and path (a run that loads the network again,
-/// e.g. per command stage, reads the 88 MB file once).
+/// Loads a DINOv2 `.onnx` onto `device`, shared (the network, its parameters and training
+/// hold the one copy).
 pub fn load_dinov2(path: &Path, device: &Device) -> Result<Arc<Dinov2>, String> {
-    static CACHE: Mutex<Vec<(std::path::PathBuf, Device, Arc<Dinov2>)>> = Mutex::new(Vec::new());
-    let mut cache = CACHE.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some((_, _, d)) = cache.iter().find(|(p, dev, _)| p == path && dev == device) {
-        return Ok(d.clone());
-    }
-    let d = Arc::new(Dinov2::load(path, device).map_err(|e| e.to_string())?);
-    cache.push((path.to_path_buf(), device.clone(), d.clone()));
-    Ok(d)
+    Dinov2::load(path, device).map(Arc::new).map_err(|e| e.to_string())
 }
 
 /// Our arrays under the reference file stems.

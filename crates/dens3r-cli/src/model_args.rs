@@ -38,9 +38,9 @@ pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(P
             default_model::NAME
         ),
         // A Hugging Face style folder: its files, so that callers reading the weights see one.
-        Some(w) if w.is_dir() && w.join("model.safetensors").is_file() => {
-            let cfg = config.map(Path::to_path_buf).or_else(|| Some(w.join("config.json")).filter(|c| c.is_file()));
-            Ok((w.join("model.safetensors"), cfg))
+        Some(w) if w.is_dir() => {
+            let (file, cfg) = dens3r_backbone::verify::model_folder_files(w).map_err(anyhow::Error::msg)?;
+            Ok((file, config.map(Path::to_path_buf).or(cfg)))
         }
         Some(w) => Ok((w.to_path_buf(), config.map(Path::to_path_buf))),
         None => {
@@ -49,8 +49,8 @@ pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(P
             if dir.is_file() {
                 return Ok((dir, config.map(Path::to_path_buf)));
             }
-            let cfg = config.map(Path::to_path_buf).or_else(|| Some(dir.join("config.json")).filter(|c| c.is_file()));
-            Ok((dir.join("model.safetensors"), cfg))
+            let (file, cfg) = dens3r_backbone::verify::model_folder_files(&dir).map_err(anyhow::Error::msg)?;
+            Ok((file, config.map(Path::to_path_buf).or(cfg)))
         }
     }
 }

