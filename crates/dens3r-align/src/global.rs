@@ -342,22 +342,10 @@ pub fn global_align(
                 samples.len()
             )));
         }
-        // PnP-RANSAC, so depth-edge smears do not pull the camera. A pointmap no camera
-        // explains (untrained weights) keeps the pair frame as the camera frame, which is what
-        // Dens3R outputs anyway.
-        let ransac = resection::RansacOptions::for_image(wk, hk);
-        // The pair frame itself (what Dens3R outputs) is the first candidate; a resected camera
-        // replaces it only when it explains clearly more of the points: on imperfect
-        // predictions RANSAC otherwise finds degenerate cameras (focal near 0).
-        let inlier_weight = |r: &resection::Resection| resection::inliers(&samples, r, ransac.threshold).0;
-        let own = focal_from_pointmap(pts, (cx, cy), FocalMode::Weiszfeld)
-            .filter(|f| f.is_finite() && *f > 0.0)
-            .map(|focal| resection::Resection { rotation: DMat3::IDENTITY, translation: DVec3::ZERO, focal });
-        let (rot, tr) = match resection::resect_ransac(&samples, &ransac) {
-            Some((r, _)) if own.as_ref().is_some_and(|o| inlier_weight(o) >= 0.9 * inlier_weight(&r)) => {
-                (DMat3::IDENTITY, DVec3::ZERO)
-            }
-            Some((r, _)) => (r.rotation, r.translation),
+        // A pointmap no camera explains (untrained weights) keeps the pair frame as the camera
+        // frame, which is what Dens3R outputs anyway.
+        let (rot, tr) = match resection::pointmap_camera(pts, &samples) {
+            Some(c) => c,
             None => {
                 warnings.push(format!(
                     "image {k}: no camera explains its pointmap; taking the pair frame as its camera frame"

@@ -3,9 +3,12 @@
 //! `PointCloudOptimizer` with the minimum-spanning-tree initialisation, written natively), and
 //! [`matching`] finds MASt3R fast reciprocal nearest-neighbour correspondences between
 //! descriptor maps and joins them into tracks; [`two_view`] gives a pair's relative pose by
-//! PnP-RANSAC ([`resection`]) without global optimisation.
+//! PnP-RANSAC ([`resection`]) without global optimisation; [`match_pose`] places a pair's
+//! second view by its matches and its own-frame pointmap instead of the network's cross-view
+//! pointmap.
 
 pub mod global;
+pub mod match_pose;
 pub mod matching;
 pub mod pairs;
 pub mod resection;

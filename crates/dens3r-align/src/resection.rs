@@ -189,6 +189,33 @@ pub fn pointmap_samples(
     out
 }
 
+/// The camera of a `pts` pointmap in its own frame (`x_cam = R X + t`), from its
+/// [`pointmap_samples`]: the frame itself (what Dens3R outputs for a pair's first view) unless
+/// PnP-RANSAC finds a camera that explains clearly more of the points (on imperfect
+/// predictions RANSAC otherwise finds degenerate cameras, focal near 0). `None` when no camera
+/// explains them.
+pub fn pointmap_camera(
+    pts: &dens3r_geom::Raster<dens3r_geom::Vec3>,
+    samples: &[((f64, f64), DVec3, f64)],
+) -> Option<(DMat3, DVec3)> {
+    let (w, h) = (pts.width(), pts.height());
+    let ransac = RansacOptions::for_image(w, h);
+    let inlier_weight = |r: &Resection| inliers(samples, r, ransac.threshold).0;
+    let own = dens3r_geom::focal::focal_from_pointmap(
+        pts,
+        (w as f64 / 2.0, h as f64 / 2.0),
+        dens3r_geom::focal::FocalMode::Weiszfeld,
+    )
+    .filter(|f| f.is_finite() && *f > 0.0)
+    .map(|focal| Resection { rotation: DMat3::IDENTITY, translation: DVec3::ZERO, focal });
+    let (r, _) = resect_ransac(samples, &ransac)?;
+    if own.as_ref().is_some_and(|o| inlier_weight(o) >= 0.9 * inlier_weight(&r)) {
+        Some((DMat3::IDENTITY, DVec3::ZERO))
+    } else {
+        Some((r.rotation, r.translation))
+    }
+}
+
 /// The samples `r` reprojects within `threshold` pixels: their total weight and the mask.
 pub fn inliers(samples: &[((f64, f64), DVec3, f64)], r: &Resection, threshold: f64) -> (f64, Vec<bool>) {
     let mask: Vec<bool> = samples.iter().map(|s| reprojection_error(r, s.0, s.1) < threshold).collect();

@@ -10,6 +10,7 @@
 pub mod config;
 pub mod cpu;
 pub mod default_model;
+pub mod device;
 pub mod dinov2;
 pub mod model;
 pub mod onnx;

@@ -176,9 +176,40 @@ pub fn upsample2x(x: Tensor<4>) -> Tensor<4> {
         let y = cpu::resample::upsample2x(&cpu::to_vec(x), b * c, h, w);
         return cpu::from_vec(y, [b, c, 2 * h, 2 * w], &device);
     }
+    if x.device() != Device::flex() {
+        // GPU backends have no bilinear-interpolation backward (burn 0.22's CubeCL kernels).
+        return upsample2x_by_matmul(x);
+    }
     let opts =
         InterpolateOptions::new(InterpolateMode::Bilinear).with_align_corners(true).with_output_size([2 * h, 2 * w]);
     interpolate(x, opts)
+}
+
+/// [`upsample2x`] as two matrix products (rows, then columns), which every backend
+/// differentiates.
+fn upsample2x_by_matmul(x: Tensor<4>) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    let device = x.device();
+    let x = x.reshape([b * c * h, w]).matmul(upsample2x_matrix(w, &device).transpose());
+    let x = x.reshape([b * c, h, 2 * w]).swap_dims(1, 2).reshape([b * c * 2 * w, h]);
+    let x = x.matmul(upsample2x_matrix(h, &device).transpose());
+    x.reshape([b * c, 2 * w, 2 * h]).swap_dims(1, 2).reshape([b, c, 2 * h, 2 * w])
+}
+
+/// The `(2n, n)` matrix of linear interpolation from `n` samples to `2n` with
+/// `align_corners=True`: output `o` reads `o (n - 1) / (2n - 1)`.
+fn upsample2x_matrix(n: usize, device: &Device) -> Tensor<2> {
+    let m = 2 * n;
+    let mut a = vec![0f32; m * n];
+    for o in 0..m {
+        let src = if m > 1 { o as f64 * (n - 1) as f64 / (m - 1) as f64 } else { 0.0 };
+        let i0 = (src.floor() as usize).min(n - 1);
+        let i1 = (i0 + 1).min(n - 1);
+        let f = (src - i0 as f64) as f32;
+        a[o * n + i0] += 1.0 - f;
+        a[o * n + i1] += f;
+    }
+    Tensor::from_data(TensorData::new(a, [m, n]), device)
 }
 
 /// `(B, C r^2, h, w) -> (B, C, h r, w r)`, PyTorch's `pixel_shuffle`.
@@ -306,4 +337,25 @@ impl Rope {
 /// Row-major `(row, col)` positions of an `h x w` token grid.
 pub fn grid_positions(h: usize, w: usize) -> Vec<(usize, usize)> {
     (0..h).flat_map(|r| (0..w).map(move |c| (r, c))).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The matrix form of the x2 bilinear upsampling equals the CPU kernel (itself tested
+    /// against a direct f64 loop), odd sizes and a single row included.
+    #[test]
+    fn upsample_by_matmul_equals_the_kernel() {
+        let device = Device::flex();
+        for (b, c, h, w) in [(1, 1, 1, 5), (2, 3, 4, 7), (1, 2, 9, 6)] {
+            let v: Vec<f32> = (0..b * c * h * w).map(|i| ((i * 37 % 101) as f32 / 10.0).sin()).collect();
+            let x = Tensor::<4>::from_data(TensorData::new(v, [b, c, h, w]), &device);
+            let a = upsample2x(x.clone()).into_data().try_to_vec::<f32>().unwrap();
+            let m = upsample2x_by_matmul(x).into_data().try_to_vec::<f32>().unwrap();
+            assert_eq!(a.len(), m.len());
+            let err = a.iter().zip(&m).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+            assert!(err < 1e-6, "{b}x{c}x{h}x{w}: {err}");
+        }
+    }
 }

@@ -38,15 +38,20 @@ pub enum Freeze {
     EncoderExceptLast(usize),
     /// Encoder and decoder are frozen: only the heads train.
     Backbone,
+    /// Only the matching descriptors' MLPs (`*.head_local_features.*`) train: a matching
+    /// stage that leaves depth, confidence and normals exactly as they were.
+    Descriptors,
 }
 
 impl Freeze {
-    /// Parses `none`, `encoder`, `encoder-but-N` (last N blocks train) or `backbone` / `heads-only`.
+    /// Parses `none`, `encoder`, `encoder-but-N` (last N blocks train), `backbone` /
+    /// `heads-only` or `descriptors`.
     pub fn parse(s: &str) -> Option<Self> {
         Some(match s {
             "none" => Self::None,
             "encoder" => Self::Encoder,
             "backbone" | "heads-only" | "encoder-decoder" => Self::Backbone,
+            "descriptors" | "desc-only" => Self::Descriptors,
             _ => Self::EncoderExceptLast(s.strip_prefix("encoder-but-")?.parse().ok()?),
         })
     }
@@ -60,6 +65,7 @@ impl Freeze {
             Self::None => true,
             Self::Encoder => !encoder,
             Self::Backbone => !encoder && !decoder,
+            Self::Descriptors => name.split('.').nth(1) == Some("head_local_features"),
             Self::EncoderExceptLast(k) => {
                 if top == "enc_blocks" {
                     let i: usize = name.split('.').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);

@@ -6,7 +6,7 @@
 use dens3r_backbone::config::RopeScaling;
 use dens3r_backbone::ops::Rope;
 use dens3r_backbone::verify::verify_dir;
-use dens3r_backbone::{Device, Tensor, TensorData};
+use dens3r_backbone::{Tensor, TensorData};
 
 #[path = "../../../tests/support/fixtures.rs"]
 mod fixtures;
@@ -14,7 +14,7 @@ use fixtures::{parity, shared, shared_parity, A};
 
 #[test]
 fn rope_matches_reference_tables() {
-    let device = Device::default();
+    let device = dens3r_backbone::device::cpu();
     for grid in ["3x4", "24x32", "48x64"] {
         let dir = parity("rope");
         let (ts, tok) = dens3r_scene::npy::read_f32(&dir.join(format!("tok_{grid}.npy"))).unwrap();
@@ -35,7 +35,7 @@ fn rope_matches_reference_tables() {
 
 #[test]
 fn fixtures_match_the_pytorch_reference() {
-    let device = Device::default();
+    let device = dens3r_backbone::device::cpu();
     let mut cases = vec![(A, parity(A))];
     for case in ["B_two_dec_descconf_48x64_64x48", "C_self_pair_48x64"] {
         cases.extend(shared_parity(case, &format!("parity fixture {case}")).map(|p| (case, p)));
@@ -68,7 +68,7 @@ fn verify_fails_on_a_perturbed_reference() {
     let (shape, mut v) = dens3r_scene::npy::read_f32(&p).unwrap();
     v[1234] += 1e-3;
     dens3r_scene::npy::write_f32(&p, &shape, &v).unwrap();
-    let results = verify_dir(dir.path(), &Device::default()).unwrap();
+    let results = verify_dir(dir.path(), &dens3r_backbone::device::cpu()).unwrap();
     let bad: Vec<_> = results.iter().filter(|r| !r.pass).map(|r| r.name.as_str()).collect();
     assert_eq!(bad, ["pred1_normal"]);
     let r = results.iter().find(|r| r.name == "pred1_normal").unwrap();
@@ -97,7 +97,7 @@ fn partial_or_misshaped_checkpoint_lists_the_keys() {
     std::fs::write(&path, bytes).unwrap();
     let w = Weights::from_safetensors(&path).unwrap();
     let cfg = ModelConfig::from_weights(&w, Some((2, 2))).unwrap();
-    let err = Dens3r::load(&w, cfg, &Device::default()).err().expect("must fail").to_string();
+    let err = Dens3r::load(&w, cfg, &dens3r_backbone::device::cpu()).err().expect("must fail").to_string();
     assert!(err.contains("broken.safetensors"), "{err}");
     assert!(err.contains("missing 1 keys: enc_blocks.1.mlp.fc2.bias"), "{err}");
     assert!(err.contains("dec_norm.weight: [7], expected [32]"), "{err}");

@@ -4,7 +4,6 @@
 use dens3r_backbone::predict::{predict_mono, predict_pair, Resolution};
 use dens3r_backbone::preprocess::preprocess;
 use dens3r_backbone::verify::load_model;
-use dens3r_backbone::Device;
 use std::path::PathBuf;
 
 #[path = "../../../tests/support/fixtures.rs"]
@@ -15,7 +14,7 @@ use fixtures::{parity, shared_parity, A};
 fn pair_and_mono_agree_and_keep_orientations() {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let a = parity(A);
-    let device = Device::default();
+    let device = dens3r_backbone::device::cpu();
     let (model, _) = load_model(&a.join("weights.safetensors"), Some(&a.join("config.json")), &device).unwrap();
     let img = image::open(root.join("../../data-samples/room/images/0000.png")).unwrap();
     let land = preprocess(&img, 64, true).unwrap();
@@ -73,7 +72,7 @@ fn pair_and_mono_agree_and_keep_orientations() {
 /// shared decoder (fixture A) and for two decoders (fixture B).
 #[test]
 fn forward_mono_equals_the_self_pair() {
-    let device = Device::default();
+    let device = dens3r_backbone::device::cpu();
     let b = "B_two_dec_descconf_48x64_64x48";
     let cases = [(A, Some(parity(A))), (b, shared_parity(b, "forward_mono with two decoders (fixture B)"))];
     for (case, a) in cases.into_iter().filter_map(|(c, p)| Some((c, p?))) {

@@ -179,7 +179,7 @@ fn run_rust(
     dir: &Path,
     repeat: usize,
 ) -> Result<()> {
-    let device = dens3r_backbone::Device::default();
+    let device = dens3r_backbone::device::cpu();
     let t0 = Instant::now();
     let (model, _) = dens3r_backbone::verify::load_model(weights, config, &device).map_err(anyhow::Error::msg)?;
     let load_s = t0.elapsed().as_secs_f64();
@@ -277,7 +277,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         Some(w) => {
             let given = (w != dens3r_backbone::default_model::NAME).then(|| PathBuf::from(w));
             let (file, config) = crate::model_args::resolve_model(given.as_deref(), a.config.as_deref())?;
-            let model = crate::model_args::load_network(&file, config.as_deref())?;
+            let model = crate::model_args::load_network(&file, config.as_deref(), false)?;
             dinov2 = model.dinov2().map(|d| d.path.clone());
             let c = &model.config;
             let what = format!(

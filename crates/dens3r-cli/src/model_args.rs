@@ -62,10 +62,10 @@ impl ModelArgs {
     }
 }
 
-/// Loads the network of [`resolve_model`]'s files on the default device, warning about unused
-/// checkpoint keys.
-pub fn load_network(weights: &Path, config: Option<&Path>) -> Result<Dens3r> {
-    let device = dens3r_backbone::Device::default();
+/// Loads the network of [`resolve_model`]'s files on the CPU, or with `gpu` on the GPU
+/// ([`dens3r_backbone::device::network_device`]), warning about unused checkpoint keys.
+pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<Dens3r> {
+    let device = dens3r_backbone::device::network_device(gpu).map_err(anyhow::Error::msg)?;
     let (model, unexpected) = load_model(weights, config, &device).map_err(anyhow::Error::msg)?;
     if !unexpected.is_empty() {
         eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);

@@ -58,6 +58,9 @@ pub struct PredictArgs {
     /// swapped in at the end, so images read from it stay intact until then).
     #[arg(long)]
     overwrite: bool,
+    /// Run the network on the GPU (a build with `--features gpu-network` or `cuda`).
+    #[arg(long)]
+    gpu: bool,
 }
 
 /// The error for an output folder that already holds a scene, unless `--overwrite`: a scene
@@ -111,7 +114,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
     let heads_on_net = !heads.is_empty() && other.is_none();
     let net = if run_net {
         let (weights, config) = resolve_model(a.weights.as_deref(), a.config.as_deref())?;
-        let model = load_network(&weights, config.as_deref())?;
+        let model = load_network(&weights, config.as_deref(), a.gpu)?;
         let hash = if heads_on_net {
             file_hash(&weights).with_context(|| format!("{}: cannot read", weights.display()))?
         } else {

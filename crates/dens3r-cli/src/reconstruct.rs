@@ -3,6 +3,7 @@
 
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
+use dens3r_align::match_pose::MatchPoseOptions;
 use dens3r_align::matching::MatchOptions;
 use dens3r_align::{AlignOptions, PairGraph};
 use dens3r_recon::predictor::weights_id;
@@ -60,9 +61,15 @@ pub struct ReconstructArgs {
     /// Stop before the voxel grid exceeds this many MB.
     #[arg(long, default_value_t = 4096.0)]
     budget_mb: f64,
-    /// Fuse on the GPU (wgpu).
+    /// Run the network on the GPU (a build with `--features gpu-network` or `cuda`) and fuse
+    /// on it (wgpu).
     #[arg(long)]
     gpu: bool,
+    /// Keep the network's cross-view pointmaps for every pair (by default a pair's second view
+    /// is placed by its matches and its own-frame pointmap where enough matches agree on a
+    /// camera).
+    #[arg(long)]
+    no_match_pose: bool,
     /// Skip the mesh (scene folder and exports only).
     #[arg(long)]
     no_mesh: bool,
@@ -109,7 +116,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     if images.len() < 2 {
         bail!("reconstruction needs at least 2 photos, got {}", images.len());
     }
-    let model = crate::model_args::load_network(&weights, config.as_deref())?;
+    let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu)?;
     let predictor = NetworkPredictor::new(&model, format!("{} size {}", weights_id(&weights), a.model.size));
     let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
     let opts = ReconOptions {
@@ -117,6 +124,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         align: AlignOptions { iterations: a.iterations, optimize_focal: !a.fixed_focal, ..Default::default() },
         matching: MatchOptions::default(),
         min_track: a.min_track,
+        match_pose: (!a.no_match_pose).then(MatchPoseOptions::default),
     };
     let (pbar, abar) = (bar("pairs", 0, "pairs"), bar("align", a.iterations, "iterations"));
     let rec = reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
@@ -162,6 +170,12 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         nmatch,
         s.match_seconds,
         tracks
+    );
+    println!(
+        "pairs placed by their matches: {} of {}{}",
+        s.posed_by_matches,
+        s.pairs,
+        if opts.match_pose.is_none() { " (--no-match-pose)" } else { "" }
     );
     println!(
         "alignment: residual {:.4} -> {:.4} (scene units) in {:.1}s; focals {}",

@@ -45,12 +45,21 @@ pub struct TrainArgs {
     /// Peak learning rate (AdamW, warm-up then cosine).
     #[arg(long, default_value_t = 1e-4)]
     lr: f32,
-    /// What stays fixed: none, encoder, encoder-but-N (the last N blocks train), heads-only.
+    /// What stays fixed: none, encoder, encoder-but-N (the last N blocks train), heads-only,
+    /// descriptors (only the matching descriptors' MLPs train).
     #[arg(long, default_value = "none")]
     freeze: String,
     /// Ground-truth correspondences per pair for the matching loss.
     #[arg(long, default_value_t = 256)]
     n_corres: usize,
+    /// Correspondences per InfoNCE block of the matching loss (MASt3R: 8192); more than this
+    /// per pair are scored block-diagonally, which costs less.
+    #[arg(long, default_value_t = 8192)]
+    match_block: usize,
+    /// Loss weights pts_glb,pts_n,match,n replacing the stage's (1,0.1,0.075,0 in stage 1;
+    /// 1,0.1,0,1 in stage 2), e.g. `0,0,1,0` with `--freeze descriptors` for a matching stage.
+    #[arg(long)]
+    loss_weights: Option<String>,
     /// Colour jitter amplitude.
     #[arg(long, default_value_t = 0.2)]
     jitter: f32,
@@ -88,6 +97,10 @@ pub struct TrainArgs {
     /// Start over, discarding the run folder's checkpoint.
     #[arg(long)]
     restart: bool,
+    /// Train on the GPU (a build with `--features gpu-network` or `cuda`); a frozen DINOv2
+    /// encoder and validation stay on the CPU.
+    #[arg(long)]
+    gpu: bool,
 }
 
 pub fn parse_size(s: &str) -> Result<(usize, usize)> {
@@ -107,8 +120,23 @@ pub fn run(a: TrainArgs) -> Result<()> {
     };
     let precision = Precision::parse(&a.precision)
         .ok_or_else(|| anyhow!("--precision {:?}: expected f32, f16 or bf16", a.precision))?;
-    let freeze = Freeze::parse(&a.freeze)
-        .ok_or_else(|| anyhow!("--freeze {:?}: expected none, encoder, encoder-but-N or heads-only", a.freeze))?;
+    let freeze = Freeze::parse(&a.freeze).ok_or_else(|| {
+        anyhow!("--freeze {:?}: expected none, encoder, encoder-but-N, heads-only or descriptors", a.freeze)
+    })?;
+    let loss_weights = match &a.loss_weights {
+        None => None,
+        Some(s) => {
+            let v: Vec<f32> = s
+                .split(',')
+                .map(|x| x.trim().parse::<f32>())
+                .collect::<Result<_, _>>()
+                .map_err(|_| anyhow!("--loss-weights {s:?}: expected four numbers pts_glb,pts_n,match,n"))?;
+            let w: [f32; 4] = v
+                .try_into()
+                .map_err(|_| anyhow!("--loss-weights {s:?}: expected four numbers pts_glb,pts_n,match,n"))?;
+            Some(w)
+        }
+    };
     let config = TrainConfig {
         stage,
         size: parse_size(&a.size)?,
@@ -117,6 +145,8 @@ pub fn run(a: TrainArgs) -> Result<()> {
         lr: a.lr,
         freeze,
         n_corres: a.n_corres,
+        match_block: a.match_block,
+        loss_weights,
         jitter: a.jitter,
         crop: a.crop,
         aspects: !a.fixed_aspect,
@@ -193,7 +223,7 @@ pub fn run(a: TrainArgs) -> Result<()> {
         ProgressStyle::with_template("{bar:30} {pos}/{len} steps, {elapsed} elapsed, ETA {eta} {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());
+    let device = dens3r_backbone::device::training_device(a.gpu).map_err(anyhow::Error::msg)?;
     let start = std::time::Instant::now();
     let t = dens3r_train::run::run(&a.output, params, &data, &config, device, val.as_ref(), &mut |step, _, line| {
         bar.set_position(step as u64);

@@ -9,10 +9,13 @@ use std::path::PathBuf;
 pub struct VerifyArgs {
     /// Folder with weights.safetensors, config.json, img1.npy [img2.npy] and reference arrays.
     dir: PathBuf,
+    /// Run the network on the GPU (a build with `--features gpu-network` or `cuda`).
+    #[arg(long)]
+    gpu: bool,
 }
 
 pub fn run(a: VerifyArgs) -> Result<()> {
-    let device = dens3r_backbone::Device::default();
+    let device = dens3r_backbone::device::network_device(a.gpu).map_err(anyhow::Error::msg)?;
     let results = verify_dir(&a.dir, &device).map_err(anyhow::Error::msg)?;
     println!("{:<44} {:>20} {:>11} {:>11}  status", "array", "shape", "max abs", "max rel");
     for r in &results {

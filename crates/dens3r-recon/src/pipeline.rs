@@ -4,6 +4,7 @@ use crate::cache::PairCache;
 use crate::input::InputImage;
 use crate::predictor::{PairPredictor, ViewOutput};
 use crate::ReconError;
+use dens3r_align::match_pose::{pose_from_matches, MatchPoseOptions};
 use dens3r_align::matching::{reciprocal_matches, tracks, Descriptors, Match, MatchOptions};
 use dens3r_align::{global_align, make_pairs, AlignOptions, Alignment, PairGraph, PairPrediction};
 use dens3r_geom::{DVec3, Raster, Vec3};
@@ -23,6 +24,10 @@ pub struct ReconOptions {
     pub matching: MatchOptions,
     /// Shortest track kept as a 3-D point (2 = every reciprocal match).
     pub min_track: usize,
+    /// Place each pair's second view by its matches (PnP-RANSAC on the first view's points)
+    /// and its own-frame pointmap where enough matches agree ([`dens3r_align::match_pose`]),
+    /// instead of the network's cross-view pointmap; `None` keeps the network's everywhere.
+    pub match_pose: Option<MatchPoseOptions>,
 }
 
 impl Default for ReconOptions {
@@ -32,6 +37,7 @@ impl Default for ReconOptions {
             align: AlignOptions::default(),
             matching: MatchOptions::default(),
             min_track: 2,
+            match_pose: Some(MatchPoseOptions::default()),
         }
     }
 }
@@ -77,6 +83,9 @@ pub struct ReconStats {
     pub match_seconds: f64,
     /// Seconds aligning.
     pub align_seconds: f64,
+    /// Ordered pairs whose second view was placed by its matches (see
+    /// [`ReconOptions::match_pose`]).
+    pub posed_by_matches: usize,
     /// Things the user should know (fallbacks, cache problems).
     pub warnings: Vec<String>,
 }
@@ -147,6 +156,9 @@ pub fn reconstruct(
         progress(Stage::Predict, e + 1, order.len());
     }
     matches.sort_by_key(|m| (m.0, m.1));
+    if let Some(mp) = &opts.match_pose {
+        stats.posed_by_matches = place_by_matches(&mut preds, &order, &matches, mp);
+    }
 
     let t = Instant::now();
     let iters = opts.align.iterations;
@@ -176,6 +188,40 @@ pub fn reconstruct(
         points,
         stats,
     })
+}
+
+/// Replaces each ordered pair's cross-view pointmap (view `j` in camera `i`'s frame) by view
+/// `j`'s own-frame pointmap (from the reverse run) placed by the pair's matches, where they
+/// agree on a camera; returns how many pairs were placed so.
+fn place_by_matches(
+    preds: &mut [PairPrediction],
+    order: &[(usize, usize)],
+    matches: &[(usize, usize, Vec<Match>)],
+    opts: &MatchPoseOptions,
+) -> usize {
+    let index: std::collections::HashMap<(usize, usize), usize> =
+        order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
+    let placed: Vec<Option<(Raster<Vec3>, Raster<f32>)>> = order
+        .iter()
+        .map(|&(i, j)| {
+            let rev = *index.get(&(j, i))?;
+            let (a, b) = (i.min(j), i.max(j));
+            let ms = &matches.iter().find(|m| m.0 == a && m.1 == b)?.2;
+            let ms: Vec<Match> = if i < j { ms.clone() } else { ms.iter().copied().map(swap).collect() };
+            let e = index[&(i, j)];
+            let pose = pose_from_matches(&preds[e].pts_i, &preds[rev].pts_i, &ms, opts)?;
+            Some((pose.points, preds[rev].conf_i.clone()))
+        })
+        .collect();
+    let mut n = 0;
+    for (e, p) in placed.into_iter().enumerate() {
+        if let Some((pts, conf)) = p {
+            preds[e].pts_j = pts;
+            preds[e].conf_j = conf;
+            n += 1;
+        }
+    }
+    n
 }
 
 fn swap(m: Match) -> Match {

@@ -332,3 +332,72 @@ fn the_reverse_pair_reuses_the_decoder_pass_exactly() {
     assert_eq!(mixed.decoder_passes(), 2);
     assert_eq!(again[0].points.data(), direct[0].points.data());
 }
+
+/// The oracle, except that each pair's second view comes back in its own camera frame instead
+/// of the first camera's: a network that has learned single-view geometry but not the pair's
+/// relative pose (as a small model trained briefly has).
+struct NoCrossView<'a>(Oracle<'a>);
+
+impl PairPredictor for NoCrossView<'_> {
+    fn id(&self) -> String {
+        "oracle-no-cross-view".into()
+    }
+
+    fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String> {
+        let [a, mut b] = self.0.predict(images, i, j)?;
+        let t = self.0.t;
+        b.points = t.own[j].map(|p| if p.is_finite() && p.z > 0.0 { *p } else { Vec3::NAN });
+        Ok([a, b])
+    }
+}
+
+/// Median and largest rotation error (degrees) of the aligned cameras after the best
+/// similarity onto the true camera centres.
+fn rotation_errors(t: &Truth, a: &dens3r_align::Alignment) -> (f64, f64) {
+    let n = t.cams.len();
+    let mut errs = Vec::new();
+    for p in 0..n {
+        for q in p + 1..n {
+            let rel = |c: &[DMat3]| c[p].transpose() * c[q];
+            let truth: Vec<DMat3> = t.cams.iter().map(|c| DMat3::from_mat4(c.cam_to_world)).collect();
+            let est: Vec<DMat3> = a.views.iter().map(|v| DMat3::from_mat4(v.camera.cam_to_world)).collect();
+            errs.push(rotation_angle_deg(&(rel(&truth).transpose() * rel(&est))));
+        }
+    }
+    errs.sort_by(f64::total_cmp);
+    (errs[errs.len() / 2], errs[errs.len() - 1])
+}
+
+/// Pairs placed by their matches recover the cameras that the network's missing cross-view
+/// geometry loses: with the placement the relative rotations are those of the renderer's
+/// cameras; without it (the network's cross-view pointmaps only) they are far off.
+#[test]
+fn matches_place_the_pairs_a_network_cannot() {
+    let n = 5;
+    let t = truth(n);
+    let dir = tempfile::tempdir().unwrap();
+    photos(&t, dir.path());
+    let paths = list_images(&[dir.path().to_path_buf()]).unwrap();
+    let images = load_images(&paths, W as u32, false).unwrap();
+    let blind = NoCrossView(Oracle::new(&t));
+    let cache = PairCache::new(None);
+    // The walk's neighbours overlap (a capture's sequential graph).
+    let graph = dens3r_align::PairGraph::SlidingWindow { k: 1, cyclic: false };
+    // Reciprocal matches are few at 160x112 (20 between the walk's widest neighbours).
+    let match_pose = Some(dens3r_align::match_pose::MatchPoseOptions { min_inliers: 12, ..Default::default() });
+    let opts = ReconOptions { graph, match_pose, ..Default::default() };
+    let with = reconstruct(&images, &blind, &cache, &opts, |_, _, _| {}).unwrap();
+    let (med, worst) = rotation_errors(&t, &with.alignment);
+    eprintln!(
+        "placed by matches: {} of {} pairs; relative rotation error median {med:.3} deg, worst {worst:.3} deg",
+        with.stats.posed_by_matches, with.stats.pairs
+    );
+    assert_eq!(with.stats.posed_by_matches, with.stats.pairs);
+    assert!(med < 1.0 && worst < 3.0, "{med} {worst}");
+    let opts = ReconOptions { match_pose: None, ..opts };
+    let without = reconstruct(&images, &blind, &cache, &opts, |_, _, _| {}).unwrap();
+    assert_eq!(without.stats.posed_by_matches, 0);
+    let (med0, _) = rotation_errors(&t, &without.alignment);
+    eprintln!("network cross-view pointmaps only: median relative rotation error {med0:.3} deg");
+    assert!(med0 > 5.0, "{med0}");
+}

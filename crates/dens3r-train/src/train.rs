@@ -62,6 +62,14 @@ pub struct TrainConfig {
     pub match_alpha: f32,
     /// Ground-truth correspondences sampled per pair.
     pub n_corres: usize,
+    /// The matching loss's InfoNCE blocks: correspondences beyond this many per pair are
+    /// scored in block-diagonal chunks (MASt3R's `blocksize`, 8192).
+    #[serde(default = "match_block")]
+    pub match_block: usize,
+    /// Loss weights `(pts_glb, pts_n, match, n)` replacing the stage's (e.g. a matching
+    /// warm-up: `0,0,1,0`); `None` = the paper's for the stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_weights: Option<[f32; 4]>,
     /// Pairs are drawn among ordered frame pairs of one scene whose co-visibility lies in
     /// this range.
     pub covis: (f64, f64),
@@ -103,6 +111,8 @@ impl Default for TrainConfig {
             match_temperature: 0.05,
             match_alpha: 10.0,
             n_corres: 256,
+            match_block: 8192,
+            loss_weights: None,
             covis: (0.1, 0.98),
             jitter: 0.2,
             crop: 1.0,
@@ -116,6 +126,11 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
+    /// Loss weights `(pts_glb, pts_n, match, n)`: the override, else the stage's.
+    pub fn weights(&self) -> [f32; 4] {
+        self.loss_weights.unwrap_or_else(|| self.stage.weights())
+    }
+
     /// Checks the settings against the network's patch size.
     pub fn check(&self, patch: usize) -> Result<(), String> {
         let (w, h) = self.size;
@@ -131,6 +146,17 @@ impl TrainConfig {
         if !(0.0..=1.0).contains(&self.self_pairs) {
             return Err(format!("--self-pairs {}: expected a fraction in [0, 1]", self.self_pairs));
         }
+        if self.match_block == 0 {
+            return Err("the matching block size must be positive".into());
+        }
+        if let Some(w) = self.loss_weights {
+            if w.iter().any(|x| !x.is_finite() || *x < 0.0) || w.iter().all(|x| *x == 0.0) {
+                return Err(format!("loss weights {w:?}: expected four finite, non-negative numbers, not all 0"));
+            }
+            if self.stage == Stage::One && w[3] > 0.0 {
+                return Err("stage 1 has no normal-head loss: its weight must be 0".into());
+            }
+        }
         if self.checkpoint_every == 0 {
             return Err("checkpoint interval must be positive".into());
         }
@@ -140,6 +166,10 @@ impl TrainConfig {
 
 fn one() -> f32 {
     1.0
+}
+
+fn match_block() -> usize {
+    8192
 }
 
 /// The loss terms of one step (unweighted) and their weighted total.
@@ -192,7 +222,7 @@ pub fn normalise(img: &image::RgbImage) -> Vec<f32> {
 pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(Tensor<1>, LossTerms), String> {
     let device = model.device().clone();
     let [img1, img2] = batch.images.clone();
-    let [_, _, w_match, w_normal] = cfg.stage.weights();
+    let [w_glb, w_n, w_match, w_normal] = cfg.weights();
     // Only the outputs the stage's losses read (stage 1 skips the normal head's DPT).
     let want = HeadOutputs { normal: w_normal > 0.0, desc: w_match > 0.0 };
     let pred = model.heads_with(&model.encode(img1, img2), want);
@@ -216,8 +246,14 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
     };
     let pts_n =
         pointmap_normal_loss([p1.pts3d.clone(), p2.pts3d.clone()], [n_in1(0), n_in1(1)], [m1.clone(), m2.clone()]);
-    let [w_glb, w_n, ..] = cfg.stage.weights();
-    let mut total = pts_glb.clone().mul_scalar(w_glb) + pts_n.clone().mul_scalar(w_n);
+    // Terms weighted 0 stay out of the total (and of the gradient), so a NaN in a term that
+    // is not trained cannot poison the step.
+    let mut total = Tensor::<1>::zeros([1], &device);
+    for (x, w) in [(&pts_glb, w_glb), (&pts_n, w_n)] {
+        if w > 0.0 {
+            total = total + x.clone().mul_scalar(w);
+        }
+    }
     let value = |x: &Tensor<1>| x.clone().into_data().try_to_vec::<f32>().map(|v| v[0]).unwrap_or(f32::NAN);
     let mut terms = LossTerms { pts_glb: value(&pts_glb), pts_n: value(&pts_n), ..Default::default() };
     if w_match > 0.0 {
@@ -227,7 +263,9 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
             return Err("stage 1 trains matching: the network needs descriptors".into());
         };
         let matches: Vec<Matches> = t.iter().map(|s| s.matches.clone()).collect();
-        if let Some(m) = matching_loss([d1, d2], [c1, c2], &matches, cfg.match_temperature, cfg.match_alpha, 8192) {
+        if let Some(m) =
+            matching_loss([d1, d2], [c1, c2], &matches, cfg.match_temperature, cfg.match_alpha, cfg.match_block)
+        {
             terms.matching = Some(value(&m));
             total = total + m.mul_scalar(w_match);
         }

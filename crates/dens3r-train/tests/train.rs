@@ -507,6 +507,11 @@ fn freeze_selects_the_trained_parameters() {
     assert!(!trains(last, "patch_embed.proj.bias") && trains(last, "enc_norm.weight"));
     assert_eq!(Freeze::parse("encoder-but-3"), Some(Freeze::EncoderExceptLast(3)));
     assert_eq!(Freeze::parse("heads-only"), Some(Freeze::Backbone));
+    let desc = Freeze::parse("descriptors").unwrap();
+    assert!(trains(desc, "ptsmatch_local_head.head_local_features.fc1.weight"));
+    assert!(trains(desc, "ptsmatch_global_head.head_local_features.fc2.bias"));
+    assert!(!trains(desc, "ptsmatch_local_head.dpt.head.4.bias") && !trains(desc, "dec_blocks.0.attn.qkv.weight"));
+    assert!(!trains(desc, "normal_local_head.dpt.head.0.weight") && !trains(desc, "enc_norm.weight"));
     assert_eq!(Freeze::parse("decoder?"), None);
 }
 

@@ -1,0 +1,230 @@
+//! A pair's second view placed by its matches instead of the network's cross-view pointmap
+//! (MASt3R-SfM's idea, on dense outputs): the second view's **own-frame** pointmap (from the
+//! pair run the other way round, where it is the first view) is moved into the first view's
+//! frame by the similarity that best maps its matched points onto the first view's points at
+//! the matching pixels, found by RANSAC over three-match samples and refitted on the inliers.
+//!
+//! A network's single-view geometry (a view in its own frame) is learned long before its
+//! cross-view geometry; with matching descriptors, a pair's relative pose then needs only the
+//! former. The result is used only where enough matches agree; otherwise the network's own
+//! cross-view pointmap stays. (A 3-D/3-D fit, not PnP: the DLT behind PnP with an unknown
+//! focal is degenerate when the matches lie on one plane, as a wall's do.)
+
+use crate::matching::Match;
+use dens3r_geom::align::umeyama;
+use dens3r_geom::transform::Sim3;
+use dens3r_geom::{Raster, Vec3};
+use glam::DVec3;
+
+/// When a matched placement is trusted.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatchPoseOptions {
+    /// Fewest inlier matches.
+    pub min_inliers: usize,
+    /// Smallest inlier fraction of the usable matches.
+    pub min_inlier_ratio: f64,
+    /// Inlier distance, as a fraction of the first view's median distance from its points'
+    /// centroid (the scene's size in its units).
+    pub threshold: f64,
+    /// RANSAC samples tried.
+    pub iterations: usize,
+}
+
+impl Default for MatchPoseOptions {
+    fn default() -> Self {
+        Self { min_inliers: 30, min_inlier_ratio: 0.25, threshold: 0.03, iterations: 256 }
+    }
+}
+
+/// A second view placed in the first view's frame.
+#[derive(Debug, Clone)]
+pub struct MatchedPose {
+    /// The similarity taking the second view's own-frame points into the first view's frame.
+    pub transform: Sim3,
+    /// The second view's points in the first view's frame (NaN where invalid).
+    pub points: Raster<Vec3>,
+    /// Inlier matches.
+    pub inliers: usize,
+    /// Matches with a finite point in both views.
+    pub usable: usize,
+}
+
+/// SplitMix64, for reproducible samples.
+fn next(state: &mut u64, n: usize) -> usize {
+    *state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    ((z ^ (z >> 31)) % n as u64) as usize
+}
+
+/// Places view 2 from `matches` (`a` in view 1, `b` in view 2): `pts1` is view 1 in a frame of
+/// a pair run with it first and `own2` view 2 in a frame of a pair run with it first (each its
+/// camera frame up to a similarity, as [`crate::PairPrediction`]s are). The result is view 2's
+/// points in `pts1`'s frame. `None` when too few matches agree on one similarity.
+pub fn pose_from_matches(
+    pts1: &Raster<Vec3>,
+    own2: &Raster<Vec3>,
+    matches: &[Match],
+    opts: &MatchPoseOptions,
+) -> Option<MatchedPose> {
+    let (mut src, mut dst, mut wts) = (Vec::new(), Vec::new(), Vec::new());
+    for m in matches {
+        let ((xa, ya), (xb, yb)) = (m.a, m.b);
+        if xa >= pts1.width() || ya >= pts1.height() || xb >= own2.width() || yb >= own2.height() {
+            continue;
+        }
+        let (p, q) = (*own2.get(xb, yb), *pts1.get(xa, ya));
+        if p.is_finite() && q.is_finite() {
+            src.push(p.as_dvec3());
+            dst.push(q.as_dvec3());
+            wts.push(if m.conf.is_finite() && m.conf > 0.0 { m.conf as f64 } else { 1.0 });
+        }
+    }
+    let usable = src.len();
+    if usable < opts.min_inliers.max(3) {
+        return None;
+    }
+    // The inlier distance in view 1's units: a fraction of the scene's size there (all of view
+    // 1's points, so a tight cluster of matches does not shrink it).
+    let all: Vec<DVec3> = pts1.data().iter().step_by(7).filter(|p| p.is_finite()).map(|p| p.as_dvec3()).collect();
+    let centroid = all.iter().copied().sum::<DVec3>() / all.len().max(1) as f64;
+    let mut spread: Vec<f64> = all.iter().map(|q| (*q - centroid).length()).collect();
+    let thr = opts.threshold * dens3r_geom::focal::median(&mut spread)?;
+    if !(thr.is_finite() && thr > 0.0) {
+        return None;
+    }
+    let inliers_of =
+        |t: &Sim3| -> Vec<bool> { src.iter().zip(&dst).map(|(p, q)| (t.apply(*p) - *q).length() < thr).collect() };
+    let fit = |mask: &[bool]| -> Option<Sim3> {
+        let pick = |v: &[DVec3]| -> Vec<DVec3> { v.iter().zip(mask).filter(|(_, &m)| m).map(|(x, _)| *x).collect() };
+        let w: Vec<f64> = wts.iter().zip(mask).filter(|(_, &m)| m).map(|(x, _)| *x).collect();
+        umeyama(&pick(&src), &pick(&dst), Some(&w), true).ok().filter(|t| t.scale.is_finite() && t.scale > 0.0)
+    };
+    let mut state = 0x5eed_u64 ^ usable as u64;
+    let mut best: Option<(usize, Vec<bool>)> = None;
+    for _ in 0..opts.iterations {
+        let (i, j, k) = (next(&mut state, usable), next(&mut state, usable), next(&mut state, usable));
+        if i == j || j == k || i == k {
+            continue;
+        }
+        let mut mask = vec![false; usable];
+        for x in [i, j, k] {
+            mask[x] = true;
+        }
+        let Some(t) = fit(&mask) else { continue };
+        let m = inliers_of(&t);
+        let n = m.iter().filter(|&&x| x).count();
+        if best.as_ref().is_none_or(|b| n > b.0) {
+            best = Some((n, m));
+        }
+    }
+    // Refit on the inliers until they stop changing.
+    let (_, mut mask) = best?;
+    let mut transform = fit(&mask)?;
+    for _ in 0..5 {
+        let m = inliers_of(&transform);
+        if m == mask {
+            break;
+        }
+        mask = m;
+        transform = fit(&mask)?;
+    }
+    let inliers = mask.iter().filter(|&&m| m).count();
+    if inliers < opts.min_inliers || (inliers as f64) < opts.min_inlier_ratio * usable as f64 {
+        return None;
+    }
+    let points = own2.map(|q| if q.is_finite() { transform.apply(q.as_dvec3()).as_vec3() } else { Vec3::NAN });
+    Some(MatchedPose { transform, points, inliers, usable })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dens3r_geom::transform::axis_angle;
+    use glam::DMat3;
+
+    /// Two cameras (focal 200, 160x120) looking at a bumpy surface; view 2 turned 20 degrees
+    /// about y and moved; its own points are given at a third of the true scale.
+    fn scene() -> (Raster<Vec3>, Raster<Vec3>, DMat3, DVec3, Vec<Match>) {
+        let (w, h, f) = (160usize, 120usize, 200.0f64);
+        let depth = |x: f64, y: f64| 3.0 + 0.6 * (x * 9.0).sin() * (y * 7.0).cos();
+        // Surface points in camera 1: the ray through each pixel hits depth(x, y).
+        let ray = |u: f64, v: f64| DVec3::new((u - 80.0) / f, (v - 60.0) / f, 1.0);
+        let pts1 = Raster::from_fn(w, h, |x, y| {
+            let r = ray(x as f64, y as f64);
+            (r * depth(r.x, r.y)).as_vec3()
+        });
+        let rot = axis_angle(DVec3::Y, 20f64.to_radians());
+        let t = DVec3::new(-0.8, 0.1, 0.2);
+        // View 2's own points: march each of its rays to the surface (fixed-point on depth).
+        let own2 = Raster::from_fn(w, h, |x, y| {
+            let d2 = ray(x as f64, y as f64);
+            let mut s = 3.0;
+            for _ in 0..60 {
+                let p1 = rot.transpose() * (d2 * s - t);
+                s += (depth(p1.x / p1.z, p1.y / p1.z) - p1.z) * 0.5;
+            }
+            (d2 * s / 3.0).as_vec3()
+        });
+        // Matches: every 7th pixel of view 1 projected into view 2.
+        let mut m = Vec::new();
+        for y in (0..h).step_by(7) {
+            for x in (0..w).step_by(7) {
+                let c = rot * pts1.get(x, y).as_dvec3() + t;
+                let (u, v) = (f * c.x / c.z + 80.0, f * c.y / c.z + 60.0);
+                if u >= 0.0 && v >= 0.0 && u < w as f64 - 0.5 && v < h as f64 - 0.5 {
+                    m.push(Match { a: (x, y), b: (u.round() as usize, v.round() as usize), conf: 2.0 });
+                }
+            }
+        }
+        (pts1, own2, rot, t, m)
+    }
+
+    /// The pose and placed points of `own2` (view 2's points at a third of the truth,
+    /// mapped by `frame`) against the truth.
+    fn check(frame: &dens3r_geom::transform::Sim3) {
+        let (pts1, own2, rot, t, m) = scene();
+        let moved = own2.map(|q| frame.apply(q.as_dvec3()).as_vec3());
+        let p = pose_from_matches(&pts1, &moved, &m, &MatchPoseOptions::default()).expect("a pose");
+        // Camera 2's orientation in camera 1's frame: the fitted map composed with `frame`
+        // against the truth (rot^T).
+        let dr = p.transform.rotation * frame.rotation * rot;
+        let angle = ((dr.x_axis.x + dr.y_axis.y + dr.z_axis.z - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees();
+        assert!(angle < 0.5, "rotation error {angle} deg");
+        assert!((p.transform.scale * frame.scale - 3.0).abs() < 0.03, "scale {}", p.transform.scale * frame.scale);
+        assert!(p.inliers as f64 > 0.9 * p.usable as f64, "{} of {}", p.inliers, p.usable);
+        // Every placed point is view 2's true point in camera 1's frame.
+        let mut worst = 0f64;
+        for (y, x) in [(60, 80), (10, 10), (100, 150), (30, 120)] {
+            let truth = rot.transpose() * (own2.get(x, y).as_dvec3() * 3.0 - t);
+            worst = worst.max((p.points.get(x, y).as_dvec3() - truth).length());
+        }
+        assert!(worst < 0.05, "placed points off by {worst}");
+    }
+
+    #[test]
+    fn recovers_the_relative_pose_focal_and_placed_points() {
+        use dens3r_geom::transform::Sim3;
+        // View 2's points in its camera frame (as Dens3R gives a pair's first view) ...
+        check(&Sim3::IDENTITY);
+        // ... or in any similarity of it.
+        check(&Sim3 {
+            scale: 0.4,
+            rotation: axis_angle(DVec3::new(0.3, -1.0, 0.5).normalize(), 0.7),
+            translation: DVec3::new(0.5, -2.0, 1.0),
+        });
+    }
+
+    #[test]
+    fn random_matches_are_refused() {
+        let (pts1, own2, _, _, m) = scene();
+        assert!(pose_from_matches(&pts1, &own2, &m, &MatchPoseOptions::default()).is_some());
+        // Shuffle the view-2 pixels: no camera explains them.
+        let n = m.len();
+        let shuffled: Vec<Match> =
+            m.iter().enumerate().map(|(i, x)| Match { b: m[(i * 7919 + 13) % n].b, ..*x }).collect();
+        assert!(pose_from_matches(&pts1, &own2, &shuffled, &MatchPoseOptions::default()).is_none());
+        assert!(pose_from_matches(&pts1, &own2, &m[..10], &MatchPoseOptions::default()).is_none());
+    }
+}
