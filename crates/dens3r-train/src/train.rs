@@ -218,6 +218,13 @@ pub fn normalise(img: &image::RgbImage) -> Vec<f32> {
     out
 }
 
+/// Whether any term with a positive weight entered the batch's loss (the matching term needs
+/// correspondences, so a batch without any has none).
+fn trained_term(cfg: &TrainConfig, t: &LossTerms) -> bool {
+    let [w_glb, w_n, w_match, w_normal] = cfg.weights();
+    w_glb > 0.0 || w_n > 0.0 || (w_match > 0.0 && t.matching.is_some()) || (w_normal > 0.0 && t.n.is_some())
+}
+
 /// The weighted loss of a batch under `stage` (and each term), from the network's outputs.
 pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(Tensor<1>, LossTerms), String> {
     let device = model.device().clone();
@@ -577,6 +584,14 @@ impl Trainer {
         if !terms.loss.is_finite() {
             return Err(format!("step {}: the loss is not finite ({:?}); lower --lr", self.step, terms));
         }
+        let lr = self.lr_at(self.step);
+        // A batch none of whose weighted terms applies (e.g. only matching trains and no pair
+        // has a correspondence) moves nothing.
+        if !trained_term(&self.config, &terms) {
+            let line = LogLine { step: self.step, lr, terms, grad_norm: 0.0, val: None };
+            self.step += 1;
+            return Ok(line);
+        }
         let grads = loss.backward();
         let g: Vec<Option<Vec<f32>>> = tensors
             .iter()
@@ -588,7 +603,6 @@ impl Trainer {
             g.par_iter().map(|v| v.as_ref().map_or(0.0, |v| v.iter().map(|x| (*x as f64).powi(2)).sum())).collect();
         let norm = sums.iter().sum::<f64>().sqrt() as f32;
         let scale = if self.config.clip > 0.0 && norm > self.config.clip { self.config.clip / norm } else { 1.0 };
-        let lr = self.lr_at(self.step);
         let opt = AdamW { weight_decay: self.config.weight_decay, ..Default::default() };
         let step = self.step;
         (&mut self.params.values, &mut self.m, &mut self.v, &g, &self.params.shapes).into_par_iter().for_each(

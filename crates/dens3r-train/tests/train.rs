@@ -587,6 +587,48 @@ fn overfitting_one_batch_drives_the_losses_down() {
     }
 }
 
+/// A matching stage (`--freeze descriptors --loss-weights 0,0,1,0`): a step moves the
+/// descriptor MLPs and nothing else, lowers the matching loss of its batch, and a batch
+/// without correspondences is a step that moves nothing (it used to panic in backward).
+#[test]
+fn a_matching_stage_moves_only_the_descriptors() {
+    let arch = tiny();
+    let data = Dataset::load(&[samples().join("orbit")], (64, 48), (0.1, 0.98)).unwrap();
+    let cfg = TrainConfig {
+        size: (64, 48),
+        steps: 20,
+        batch: 1,
+        lr: 3e-3,
+        jitter: 0.0,
+        n_corres: 64,
+        freeze: Freeze::Descriptors,
+        loss_weights: Some([0.0, 0.0, 1.0, 0.0]),
+        ..Default::default()
+    };
+    let start = Params::init(&arch.config(), 1);
+    let mut t = Trainer::new(start.clone(), cfg.clone(), ad()).unwrap();
+    let mut batch = data.batch(&cfg, arch.config().patch, 0, &ad()).unwrap();
+    let first = t.train_step(&batch).unwrap();
+    let mut last = first.clone();
+    for _ in 1..cfg.steps {
+        last = t.train_step(&batch).unwrap();
+    }
+    assert!(last.terms.matching.unwrap() < 0.5 * first.terms.matching.unwrap(), "{first:?} -> {last:?}");
+    for ((name, a), b) in start.names.iter().zip(&start.values).zip(&t.params.values) {
+        let desc = name.contains(".head_local_features.");
+        assert_eq!(a != b, desc, "{name}: changed {}", a != b);
+    }
+    // No correspondence in the batch: nothing to train, nothing moves.
+    for s in batch.targets.iter_mut() {
+        s.matches = Default::default();
+    }
+    let before = t.params.values.clone();
+    let line = t.train_step(&batch).unwrap();
+    assert_eq!((line.terms.matching, line.grad_norm), (None, 0.0));
+    assert_eq!(t.params.values, before);
+    assert_eq!(t.step, cfg.steps + 1);
+}
+
 /// A run killed after its checkpoint and rerun ends with the same weights, bit for bit, as an
 /// uninterrupted run; the JSONL log holds each step once.
 #[test]
