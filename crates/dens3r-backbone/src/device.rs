@@ -18,7 +18,7 @@ pub const GPU_BUILT: bool = cfg!(any(feature = "wgpu", feature = "cuda"));
 
 /// How to get a build with GPU support, for error messages.
 pub const GPU_BUILD_HINT: &str =
-    "rebuild with `cargo build --release --features gpu-network` (wgpu: Vulkan / Metal / DX12) or `--features cuda`";
+    "rebuild with the default features (`gpu-network`: wgpu, for Vulkan / Metal / DX12) or `--features cuda`";
 
 /// The inference device: the CPU, or with `gpu` the first GPU that answers (CUDA when built
 /// with `cuda`, then wgpu's default adapter, which `CUBECL_WGPU_DEFAULT_DEVICE` can pick).
@@ -70,6 +70,9 @@ fn gpu_candidates() -> Vec<(&'static str, Maker)> {
 /// Builds the device and round-trips four numbers through it; backend initialisation panics
 /// (no adapter, no driver) become an error without the panic's message on stderr.
 fn probe(make: Maker) -> Result<Device, String> {
+    // The panic hook is process-wide: one probe at a time swaps it.
+    static PROBE: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one = PROBE.lock().unwrap_or_else(|e| e.into_inner());
     let hook = std::panic::take_hook();
     std::panic::set_hook(Box::new(|_| {}));
     let out = std::panic::catch_unwind(|| {

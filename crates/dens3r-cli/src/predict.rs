@@ -58,7 +58,7 @@ pub struct PredictArgs {
     /// swapped in at the end, so images read from it stay intact until then).
     #[arg(long)]
     overwrite: bool,
-    /// Run the network on the GPU (a build with `--features gpu-network` or `cuda`).
+    /// Run the network on the GPU (the default build's `gpu-network` feature, or `cuda`).
     #[arg(long)]
     gpu: bool,
 }

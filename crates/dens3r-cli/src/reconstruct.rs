@@ -61,7 +61,7 @@ pub struct ReconstructArgs {
     /// Stop before the voxel grid exceeds this many MB.
     #[arg(long, default_value_t = 4096.0)]
     budget_mb: f64,
-    /// Run the network on the GPU (a build with `--features gpu-network` or `cuda`) and fuse
+    /// Run the network on the GPU (the default build's `gpu-network` feature, or `cuda`) and fuse
     /// on it (wgpu).
     #[arg(long)]
     gpu: bool,

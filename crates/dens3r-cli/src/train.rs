@@ -97,7 +97,7 @@ pub struct TrainArgs {
     /// Start over, discarding the run folder's checkpoint.
     #[arg(long)]
     restart: bool,
-    /// Train on the GPU (a build with `--features gpu-network` or `cuda`); a frozen DINOv2
+    /// Train on the GPU (the default build's `gpu-network` feature, or `cuda`); a frozen DINOv2
     /// encoder and validation stay on the CPU.
     #[arg(long)]
     gpu: bool,

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 pub struct VerifyArgs {
     /// Folder with weights.safetensors, config.json, img1.npy [img2.npy] and reference arrays.
     dir: PathBuf,
-    /// Run the network on the GPU (a build with `--features gpu-network` or `cuda`).
+    /// Run the network on the GPU (the default build's `gpu-network` feature, or `cuda`).
     #[arg(long)]
     gpu: bool,
 }
