@@ -207,6 +207,28 @@ fn predict_writes_a_valid_scene_and_rejects_bad_input() {
             assert_eq!(dp.get(x, y), d0.get(y, 47 - x), "({x},{y})");
         }
     }
+    // --gpu: the network on the GPU (wgpu; lavapipe in CI) gives the CPU's depth and normals.
+    let gpu = dir.path().join("gpu");
+    let mut args = vec!["predict", "--weights", w, "--config", c, "--size", "64", "--gpu"];
+    args.extend([img.to_str().unwrap(), portrait.to_str().unwrap(), "-o", gpu.to_str().unwrap()]);
+    let o = dens3r(&args);
+    if o.status.success() {
+        let gs = dens3r_scene::Scene::open(&gpu).unwrap();
+        for (f, g) in scene.frames().iter().zip(gs.frames()) {
+            let (a, b) = (scene.depth(f).unwrap().unwrap(), gs.depth(g).unwrap().unwrap());
+            let err =
+                a.data().iter().zip(b.data()).map(|(p, q)| (p - q).abs() / p.abs().max(1e-3)).fold(0f32, f32::max);
+            assert!(err < 1e-3, "{}: GPU depth off the CPU's by {err} (relative)", f.name);
+            let (a, b) = (scene.normals(f).unwrap().unwrap(), gs.normals(g).unwrap().unwrap());
+            let worst = a.data().iter().zip(b.data()).map(|(p, q)| p.dot(*q)).fold(1f32, f32::min);
+            assert!(worst > 0.9999, "{}: GPU normals off the CPU's (cos {worst})", f.name);
+        }
+    } else {
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains("--gpu:"), "{e}");
+        assert!(std::env::var("DENS3R_REQUIRE_GPU").as_deref() != Ok("1"), "DENS3R_REQUIRE_GPU=1 but {e}");
+        eprintln!("SKIPPED predict --gpu: {e}");
+    }
     // --original-size: maps at the photo's size, equal to the network-size maps sampled by
     // nearest neighbour (160 x 120 -> 64 x 48 is a plain 2.5x resize, the crop is empty).
     let full = dir.path().join("full");
