@@ -11,6 +11,7 @@
 //! focal is degenerate when the matches lie on one plane, as a wall's do.)
 
 use crate::matching::Match;
+use crate::resection::SplitMix;
 use dens3r_geom::align::umeyama;
 use dens3r_geom::transform::Sim3;
 use dens3r_geom::{Raster, Vec3};
@@ -47,15 +48,6 @@ pub struct MatchedPose {
     pub inliers: usize,
     /// Matches with a finite point in both views.
     pub usable: usize,
-}
-
-/// SplitMix64, for reproducible samples.
-fn next(state: &mut u64, n: usize) -> usize {
-    *state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    let mut z = *state;
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    ((z ^ (z >> 31)) % n as u64) as usize
 }
 
 /// Places view 2 from `matches` (`a` in view 1, `b` in view 2): `pts1` is view 1 in a frame of
@@ -101,10 +93,10 @@ pub fn pose_from_matches(
         let w: Vec<f64> = wts.iter().zip(mask).filter(|(_, &m)| m).map(|(x, _)| *x).collect();
         umeyama(&pick(&src), &pick(&dst), Some(&w), true).ok().filter(|t| t.scale.is_finite() && t.scale > 0.0)
     };
-    let mut state = 0x5eed_u64 ^ usable as u64;
+    let mut rng = SplitMix(0x5eed_u64 ^ usable as u64);
     let mut best: Option<(usize, Vec<bool>)> = None;
     for _ in 0..opts.iterations {
-        let (i, j, k) = (next(&mut state, usable), next(&mut state, usable), next(&mut state, usable));
+        let (i, j, k) = (rng.below(usable), rng.below(usable), rng.below(usable));
         if i == j || j == k || i == k {
             continue;
         }

@@ -223,10 +223,11 @@ pub fn inliers(samples: &[((f64, f64), DVec3, f64)], r: &Resection, threshold: f
 }
 
 /// SplitMix64: a small reproducible generator for sampling.
-struct SplitMix(u64);
+pub(crate) struct SplitMix(pub(crate) u64);
 
 impl SplitMix {
-    fn below(&mut self, n: usize) -> usize {
+    /// A draw in `0..n`.
+    pub(crate) fn below(&mut self, n: usize) -> usize {
         self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);

@@ -13,9 +13,6 @@ pub fn cpu() -> Device {
     Device::flex()
 }
 
-/// Whether this build can run the network on a GPU (feature `wgpu` or `cuda`).
-pub const GPU_BUILT: bool = cfg!(any(feature = "wgpu", feature = "cuda"));
-
 /// How to get a build with GPU support, for error messages.
 pub const GPU_BUILD_HINT: &str =
     "rebuild with the default features (`gpu-network`: wgpu, for Vulkan / Metal / DX12) or `--features cuda`";
