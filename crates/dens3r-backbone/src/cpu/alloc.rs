@@ -95,6 +95,19 @@ unsafe impl GlobalAlloc for BlockCache {
                 return p;
             }
         }
+        if l.size() >= MIN_BLOCK {
+            // Zero by writing: the system's zeroed block maps its pages to the shared zero page
+            // until first written, and a block that is only read (a copy's source) comes back
+            // through the cache with every later write taking a fault and a TLB shootdown.
+            // SAFETY: forwarded with the caller's layout; on success p holds l.size() bytes.
+            unsafe {
+                let p = System.alloc(l);
+                if !p.is_null() {
+                    std::ptr::write_bytes(p, 0, l.size());
+                }
+                return p;
+            }
+        }
         // SAFETY: forwarded with the caller's layout.
         unsafe { System.alloc_zeroed(l) }
     }
@@ -129,6 +142,22 @@ mod tests {
             let r = a.alloc(l2);
             assert_ne!(r, q);
             a.dealloc(r, l2);
+        }
+    }
+
+    #[test]
+    fn fresh_zeroed_blocks_are_zero_and_writable() {
+        let a = BlockCache;
+        // An odd size no other test frees, so the block is fresh from the system.
+        let l = Layout::from_size_align((5 << 20) + 4096 * 3, 64).unwrap();
+        unsafe {
+            let p = a.alloc_zeroed(l);
+            assert!(!p.is_null());
+            let s = std::slice::from_raw_parts_mut(p, l.size());
+            assert!(s.iter().all(|&b| b == 0));
+            s[l.size() - 1] = 9;
+            assert_eq!(s[l.size() - 1], 9);
+            a.dealloc(p, l);
         }
     }
 }
