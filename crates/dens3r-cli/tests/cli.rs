@@ -984,6 +984,24 @@ fn unbounded_options_are_refused_up_front() {
         "nan",
     ]);
     assert!(line.contains("--min-conf NaN"), "{line}");
+    // A truncation band of a million voxels honours --budget-mb: refused at once, before its
+    // blocks are counted in full (it used to pass 4 GB; defect 3).
+    let started = std::time::Instant::now();
+    let line = fails(&[
+        "fuse",
+        room.to_str().unwrap(),
+        "-o",
+        mesh.to_str().unwrap(),
+        "--voxel",
+        "0.03",
+        "--trunc",
+        "1000000",
+        "--budget-mb",
+        "1000",
+    ]);
+    assert!(line.contains("over the 1000 MB budget") && line.contains("--trunc"), "{line}");
+    assert!(!mesh.exists());
+    eprintln!("fuse --trunc 1000000 refused in {:.2} s", started.elapsed().as_secs_f64());
 }
 
 /// `eval depth` takes a folder of `NAME.npy` maps (as `predict --head` writes) for the frames it

@@ -54,7 +54,8 @@ pub enum FusionError {
     Param(String),
     /// The next frame would take the grid past its memory budget.
     #[error(
-        "the voxel grid would need {needed_mb:.0} MB ({blocks} blocks), over the {budget_mb:.0} MB budget: use a larger --voxel, a smaller --max-depth, or raise --budget-mb"
+        "the voxel grid would need {}{needed_mb:.0} MB ({blocks} blocks), over the {budget_mb:.0} MB budget: use a larger --voxel, a smaller --max-depth or --trunc, or raise --budget-mb",
+        if *.at_least { "more than " } else { "" }
     )]
     Budget {
         /// Blocks the grid would hold.
@@ -63,6 +64,8 @@ pub enum FusionError {
         needed_mb: f64,
         /// The budget.
         budget_mb: f64,
+        /// Counting stopped once past the budget: the grid would need more.
+        at_least: bool,
     },
     /// The GPU path could not run (no adapter, buffer limits, device lost).
     #[error("GPU fusion: {0}")]
@@ -403,11 +406,19 @@ impl SparseTsdf {
         let step = p.trunc.min(0.25 * block_len);
         let n_steps = (2.0 * p.trunc / step).ceil() as i32;
         let inv_block = 1.0 / block_len;
+        // With a budget, counting stops as soon as one worker has touched more blocks than the
+        // whole grid may hold (the union, old blocks included, can only be larger), so a huge
+        // truncation band or depth range costs neither the memory nor the time of its full set.
+        let max_blocks = p.budget_bytes.map_or(usize::MAX, |b| b / p.block_bytes().max(1));
+        let over = std::sync::atomic::AtomicBool::new(false);
         type IntSet = HashSet<IVec3, std::hash::BuildHasherDefault<IntHasher>>;
         let touched: IntSet = (0..h)
             .into_par_iter()
             .step_by(stride)
             .fold(IntSet::default, |mut set, y| {
+                if over.load(std::sync::atomic::Ordering::Relaxed) {
+                    return set;
+                }
                 for x in (0..w).step_by(stride) {
                     let d = *f.depth.get(x, y);
                     if !valid(d) || f.weight.is_some_and(|wt| *wt.get(x, y) <= 0.0) {
@@ -420,7 +431,10 @@ impl SparseTsdf {
                             continue;
                         }
                         let pw = c2w.transform_point3(ray * z);
-                        set.insert((pw * inv_block).floor().as_ivec3());
+                        if set.insert((pw * inv_block).floor().as_ivec3()) && set.len() > max_blocks {
+                            over.store(true, std::sync::atomic::Ordering::Relaxed);
+                            return set;
+                        }
                     }
                 }
                 set
@@ -439,11 +453,12 @@ impl SparseTsdf {
         if let Some(budget) = p.budget_bytes {
             let blocks = self.blocks.len() + new.len();
             let needed = blocks * p.block_bytes();
-            if needed > budget {
+            if needed > budget || over.load(std::sync::atomic::Ordering::Relaxed) {
                 return Err(FusionError::Budget {
                     blocks,
                     needed_mb: needed as f64 / 1e6,
                     budget_mb: budget as f64 / 1e6,
+                    at_least: over.load(std::sync::atomic::Ordering::Relaxed),
                 });
             }
         }
