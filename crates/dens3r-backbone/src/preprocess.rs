@@ -72,6 +72,9 @@ pub fn crop_box(w: u32, h: u32) -> (u32, u32, u32, u32) {
     (cx - hw, cy - hh, cx + hw, cy + hh)
 }
 
+/// Most pixels of an image read by [`open_oriented`] (8192 x 8192).
+pub const MAX_PIXELS: u64 = 8192 * 8192;
+
 /// Reads an image file applying its EXIF orientation.
 pub fn open_oriented(path: &Path) -> Result<DynamicImage, String> {
     let err = |e: image::ImageError| format!("{}: unreadable image ({e}); use PNG or JPEG", path.display());
@@ -81,6 +84,16 @@ pub fn open_oriented(path: &Path) -> Result<DynamicImage, String> {
         .map_err(|e| format!("{}: cannot read ({e})", path.display()))?
         .into_decoder()
         .map_err(err)?;
+    // A damaged header can claim any size: refuse before the pixels are allocated.
+    let (w, h) = image::ImageDecoder::dimensions(&decoder);
+    if u64::from(w) * u64::from(h) > MAX_PIXELS || image::ImageDecoder::total_bytes(&decoder) > 256 << 20 {
+        return Err(format!(
+            "{}: the image claims {w}x{h} pixels, more than the {} Mpixels (256 MB decoded) read; \
+             resize it, or check that the file is not damaged",
+            path.display(),
+            MAX_PIXELS / 1_000_000
+        ));
+    }
     let orientation = decoder.orientation().map_err(err)?;
     let mut img = DynamicImage::from_decoder(decoder).map_err(err)?;
     img.apply_orientation(orientation);

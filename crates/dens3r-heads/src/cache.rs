@@ -104,10 +104,10 @@ fn read_entry(path: &Path, backbone: &str) -> Option<FeatureMaps> {
         return None;
     }
     let start = (nl + 1).div_ceil(64) * 64;
-    let n = header.grid.0 * header.grid.1;
+    let n = header.grid.0.checked_mul(header.grid.1)?;
     let size = if header.f16 { 2 } else { 4 };
-    let total: usize = header.dims.iter().map(|d| d * n).sum();
-    if map.len() != start + total * size {
+    let total = header.dims.iter().try_fold(0usize, |t, d| t.checked_add(d.checked_mul(n)?))?;
+    if Some(map.len()) != total.checked_mul(size).and_then(|b| b.checked_add(start)) {
         return None;
     }
     let mut at = start;

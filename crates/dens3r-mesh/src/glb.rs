@@ -73,6 +73,14 @@ pub fn to_glb(m: &TriMesh) -> Result<Vec<u8>, String> {
 /// Reads the triangles of every primitive of every mesh of a GLB / glTF-with-embedded-buffer
 /// file (node transforms are not applied).
 pub fn from_glb(bytes: &[u8]) -> Result<TriMesh, String> {
+    // The gltf crate (1.4) panics on some damaged files (an accessor index past the list, a
+    // GLB length under its header's, an out-of-range component type): such a panic is a
+    // refusal of the file, not a crash.
+    crate::panics::catch_quietly(|| read_glb(bytes))
+        .unwrap_or_else(|| Err("the file is damaged (the glTF reader could not make sense of it)".into()))
+}
+
+fn read_glb(bytes: &[u8]) -> Result<TriMesh, String> {
     let g = gltf::Gltf::from_slice(bytes).map_err(|e| format!("not a readable glTF file ({e})"))?;
     let blob = g.blob.as_deref();
     let mut out = TriMesh::new(Vec::new(), Vec::new());

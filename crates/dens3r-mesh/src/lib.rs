@@ -6,6 +6,7 @@ pub mod cleanup;
 pub mod glb;
 pub mod io;
 pub mod metrics;
+pub mod panics;
 pub mod primitives;
 pub mod sample;
 

@@ -12,14 +12,27 @@ const MAX_ELEMENTS: u64 = 1 << 31;
 pub fn read_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>), SceneError> {
     let bytes = std::fs::read(path).map_err(|e| SceneError::new(path, format!("cannot read: {e}")))?;
     let bad = |m: String| SceneError::new(path, m);
+    if header_len(&bytes).is_some_and(|(at, len)| at.saturating_add(len) > bytes.len()) {
+        return Err(bad("the .npy header is longer than the file (truncated or damaged)".into()));
+    }
+    if header_shape_overflows(&bytes) {
+        return Err(bad("array shape is too large (its element count overflows)".into()));
+    }
     let npy = npyz::NpyFile::new(&bytes[..])
         .map_err(|e| bad(format!("not a valid .npy file ({e}); save it with numpy.save")))?;
     if npy.order() == npyz::Order::Fortran {
         return Err(bad("array is in Fortran order; save it with numpy.save(np.ascontiguousarray(a))".into()));
     }
     let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
-    if npy.shape().iter().product::<u64>() > MAX_ELEMENTS {
+    let elements = npy.shape().iter().try_fold(1u64, |n, &d| n.checked_mul(d)).filter(|&n| n <= MAX_ELEMENTS);
+    let Some(elements) = elements else {
         return Err(bad(format!("array shape {shape:?} is too large")));
+    };
+    // The header's shape must fit in the bytes that follow it (no allocation for data the
+    // file does not hold).
+    let item = npy.dtype().num_bytes().unwrap_or(1) as u64;
+    if elements.saturating_mul(item) > bytes.len() as u64 {
+        return Err(bad(format!("array data is truncated: shape {shape:?} needs more bytes than the file holds")));
     }
     let truncated = |e: std::io::Error| bad(format!("array data is truncated or unreadable ({e})"));
     let data = match npy.try_data::<f32>() {
@@ -32,6 +45,32 @@ pub fn read_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>), SceneError> {
         },
     };
     Ok((shape, data))
+}
+
+/// Where the header text starts and its declared length (format versions 1 to 3).
+fn header_len(bytes: &[u8]) -> Option<(usize, usize)> {
+    match bytes.get(6) {
+        Some(1) => bytes.get(8..10).map(|l| (10, u16::from_le_bytes([l[0], l[1]]) as usize)),
+        Some(2 | 3) => bytes.get(8..12).map(|l| (12, u32::from_le_bytes([l[0], l[1], l[2], l[3]]) as usize)),
+        _ => None,
+    }
+}
+
+/// Whether the header's `'shape': (...)` multiplies out past `u64` (npyz's own products of
+/// it would overflow). Unparsable headers are left to npyz, which refuses them.
+fn header_shape_overflows(bytes: &[u8]) -> bool {
+    let text = header_len(bytes).and_then(|(at, len)| bytes.get(at..at.saturating_add(len).min(bytes.len())));
+    let Some(text) = text.map(String::from_utf8_lossy) else { return false };
+    let Some(tuple) = text.split("'shape'").nth(1).and_then(|t| t.split(')').next()) else { return false };
+    let mut n = 1u64;
+    for d in tuple.split(|c: char| !c.is_ascii_digit()).filter(|d| !d.is_empty()) {
+        // Zero dimensions count as one: npyz also multiplies the strides, which skip none.
+        match d.parse::<u64>().ok().and_then(|d| n.checked_mul(d.max(1))) {
+            Some(m) => n = m,
+            None => return true,
+        }
+    }
+    false
 }
 
 /// Writes a float32 array of the given shape atomically.
@@ -50,6 +89,33 @@ pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), Scene
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Damaged headers found by the mutation test (`dens3r-cli/tests/fuzz_readers.rs`): each
+    /// panicked (overflow) or allocated hundreds of MB before.
+    #[test]
+    fn damaged_headers_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.npy");
+        let header = |shape: &str| {
+            let text = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({shape}), }}");
+            let mut b = b"\x93NUMPY\x01\x00".to_vec();
+            b.extend((text.len() as u16).to_le_bytes());
+            b.extend(text.as_bytes());
+            b.extend([0u8; 16]);
+            b
+        };
+        for shape in ["4294967296, 4294967296, 2", "0, 18446744073709551615, 2", "100000, 100000"] {
+            std::fs::write(&p, header(shape)).unwrap();
+            let e = read_f32(&p).unwrap_err().to_string();
+            assert!(e.contains("a.npy") && (e.contains("too large") || e.contains("truncated")), "{shape}: {e}");
+        }
+        // A version-2 header whose declared length runs past the file.
+        let mut b = b"\x93NUMPY\x02\x00".to_vec();
+        b.extend(0x2000_0000u32.to_le_bytes());
+        b.extend(b"{'descr': '<f4'");
+        std::fs::write(&p, b).unwrap();
+        assert!(read_f32(&p).unwrap_err().to_string().contains("longer than the file"));
+    }
 
     #[test]
     fn round_trip_and_header_is_numpy_compatible() {
