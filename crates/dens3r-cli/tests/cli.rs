@@ -488,6 +488,22 @@ fn nsdf_meshes_a_scene_resumes_and_rejects_bad_input() {
     let metrics = dens3r_mesh::mesh_metrics(&m, &gt, &opts).unwrap();
     assert!(metrics.accuracy < 0.05, "accuracy {}", metrics.accuracy);
     assert_no_temp_files(dir.path());
+    // The checkpoint is the orbit's: another scene with the same -o is not resumed from it
+    // (defect 7), and a damaged iteration count is refused, not wrapped.
+    let room = samples.join("room");
+    let mut args = vec!["nsdf", room.to_str().unwrap(), "-o", o, "--iters", "60"];
+    args.extend(small);
+    let e = fails(&args);
+    assert!(e.contains("nsdf.safetensors") && e.contains("other input") && e.contains("--restart"), "{e}");
+    let meta = dir.path().join("nsdf.ply.nsdf/nsdf.json");
+    let text = std::fs::read_to_string(&meta).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let iter = v["iter"].to_string();
+    std::fs::write(&meta, text.replace(&format!("\"iter\": {iter}"), "\"iter\": 1000000000000")).unwrap();
+    let mut args = vec!["nsdf", orbit_s, "-o", o, "--iters", "60"];
+    args.extend(small);
+    let e = fails(&args);
+    assert!(e.contains("1000000000000 iterations") && e.contains("delete both"), "{e}");
 
     // Bad input: one line naming the problem, no mesh.
     let bad = dir.path().join("bad.ply");

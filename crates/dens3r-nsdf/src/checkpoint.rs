@@ -23,6 +23,9 @@ pub struct Checkpoint {
     pub bounds: Bounds,
     /// Iterations done.
     pub iter: usize,
+    /// [`crate::data::TrainData::fingerprint`] of the data it was trained on (absent in
+    /// checkpoints written before it was recorded).
+    pub data: Option<u64>,
     /// Parameter values and shapes, in [`param_names`] order.
     pub values: Vec<(Vec<f32>, [usize; 2])>,
     /// Adam first and second moments per parameter (absent in exported fields).
@@ -36,8 +39,13 @@ struct Meta {
     options: TrainOptions,
     bounds: Bounds,
     iter: usize,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    data: Option<String>,
     tensors_bytes: u64,
 }
+
+/// Most iterations a checkpoint may say it has done (a damaged count is refused).
+pub const MAX_ITERS: usize = 100_000_000;
 
 const FORMAT: &str = "dens3r-nsdf/1";
 
@@ -80,6 +88,7 @@ pub fn save(path: &Path, ck: &Checkpoint) -> Result<(), NsdfError> {
         options: ck.options.clone(),
         bounds: ck.bounds,
         iter: ck.iter,
+        data: ck.data.map(|h| format!("{h:016x}")),
         tensors_bytes: data.len() as u64,
     };
     let json = serde_json::to_vec_pretty(&meta).map_err(|e| NsdfError::Checkpoint(e.to_string()))?;
@@ -97,6 +106,19 @@ pub fn load(path: &Path) -> Result<Checkpoint, NsdfError> {
         return Err(err(format!("format '{}', expected '{FORMAT}'", meta.format)));
     }
     meta.config.check().map_err(|e| err(format!("bad field config: {e}")))?;
+    if meta.iter > MAX_ITERS {
+        return Err(err(format!(
+            "{} says {} iterations, more than {MAX_ITERS}: damaged; delete both to start over",
+            mp.display(),
+            meta.iter
+        )));
+    }
+    let data_hash = match &meta.data {
+        Some(h) => Some(u64::from_str_radix(h, 16).map_err(|_| {
+            err(format!("{}: data fingerprint '{h}' is not hexadecimal: damaged; delete both", mp.display()))
+        })?),
+        None => None,
+    };
     let data = std::fs::read(path).map_err(|e| err(format!("cannot read: {e}")))?;
     if data.len() as u64 != meta.tensors_bytes {
         return Err(err(format!(
@@ -138,6 +160,7 @@ pub fn load(path: &Path) -> Result<Checkpoint, NsdfError> {
         options: meta.options,
         bounds: meta.bounds,
         iter: meta.iter,
+        data: data_hash,
         values,
         moments: has_moments.then_some(moments),
     })

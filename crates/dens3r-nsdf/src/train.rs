@@ -251,6 +251,7 @@ impl Trainer {
             options: self.options.clone(),
             bounds: data.bounds,
             iter: self.iter,
+            data: Some(data.fingerprint()),
             values: self.values(),
             moments: Some(moments),
         };
@@ -267,6 +268,12 @@ impl Trainer {
         device: Device,
     ) -> Result<Self, NsdfError> {
         let ck = checkpoint::load(path)?;
+        if ck.data.is_some_and(|h| h != data.fingerprint()) {
+            return Err(NsdfError::Checkpoint(format!(
+                "{}: written for other input (another scene, or its frames changed); rerun with --restart to start over from this input, or give another -o",
+                path.display()
+            )));
+        }
         if ck.config != *config {
             return Err(NsdfError::Checkpoint(format!(
                 "{}: written for another field configuration; delete it or rerun with the same options",
