@@ -326,6 +326,45 @@ fn npy_depths(dir: &Path, gs: &Scene) -> Result<Vec<(Raster<f32>, Frame)>> {
     Ok(out)
 }
 
+/// The frames that could be scored. One that cannot (no pixel valid in both maps: NaN,
+/// infinite or zero values, or an empty mask) is skipped with a warning naming it and both
+/// folders; only a run where no frame can be scored fails.
+fn keep_scored<M, E: std::fmt::Display>(
+    scored: Vec<(String, Result<M, E>)>,
+    what: &str,
+    c: &Common,
+) -> Result<Vec<(String, M)>> {
+    let total = scored.len();
+    let mut rows = Vec::new();
+    let mut skipped = Vec::new();
+    for (name, m) in scored {
+        match m {
+            Ok(m) => rows.push((name, m)),
+            Err(e) => skipped.push(format!(
+                "warning: frame '{name}' skipped ({what} of {} against {}): {e}",
+                c.pred.display(),
+                c.gt.display()
+            )),
+        }
+    }
+    if rows.is_empty() {
+        bail!(
+            "{} against {}: none of the {total} frames has a pixel valid in both {what} maps (NaN, infinite or zero values, or empty masks)",
+            c.pred.display(),
+            c.gt.display()
+        );
+    }
+    if rows.len() < total {
+        skipped.iter().for_each(|w| eprintln!("{w}"));
+        eprintln!(
+            "warning: {} of {total} frames skipped; the means are over the other {}",
+            total - rows.len(),
+            rows.len()
+        );
+    }
+    Ok(rows)
+}
+
 fn depth(a: DepthArgs) -> Result<()> {
     let align = depth_align(a.align);
     // A scene folder, or a folder of depth .npy files named by frame.
@@ -337,12 +376,12 @@ fn depth(a: DepthArgs) -> Result<()> {
         let gt = Scene::open(&a.common.gt)?;
         (npy_depths(&a.common.pred, &gt)?, gt)
     };
-    let mut rows = Vec::new();
+    let mut scored = Vec::new();
     for (pd, gf) in &pairs {
         let gd = need(gs.depth(gf)?, &gs, gf, "depth")?;
-        let m = depth_metrics(pd, &gd, gs.mask(gf)?.as_ref(), align).with_context(|| format!("frame '{}'", gf.name))?;
-        rows.push((gf.name.clone(), m));
+        scored.push((gf.name.clone(), depth_metrics(pd, &gd, gs.mask(gf)?.as_ref(), align)));
     }
+    let rows = keep_scored(scored, "depth", &a.common)?;
     let mean = |f: &dyn Fn(&DepthMetrics) -> f64| rows.iter().map(|r| f(&r.1)).sum::<f64>() / rows.len() as f64;
     let summary =
         [mean(&|m| m.abs_rel), mean(&|m| m.rmse), mean(&|m| m.delta[0]), mean(&|m| m.delta[1]), mean(&|m| m.delta[2])];
@@ -386,9 +425,9 @@ fn normals(a: NormalArgs) -> Result<()> {
             need(ps.normals(pf)?, &ps, pf, "normals")?.map(|n| conv.to_opencv(*n))
         };
         let gt = need(gs.normals(gf)?, &gs, gf, "normals")?;
-        let m = normal_metrics(&pred, &gt, gs.mask(gf)?.as_ref()).with_context(|| format!("frame '{}'", gf.name))?;
-        rows.push((gf.name.clone(), m));
+        rows.push((gf.name.clone(), normal_metrics(&pred, &gt, gs.mask(gf)?.as_ref())));
     }
+    let rows = keep_scored(rows, "normals", &a.common)?;
     let mean = |f: &dyn Fn(&NormalMetrics) -> f64| rows.iter().map(|r| f(&r.1)).sum::<f64>() / rows.len() as f64;
     let s = [
         mean(&|m| m.mean),

@@ -44,9 +44,9 @@ pub struct FuseArgs {
     /// Drop connected pieces with fewer triangles than this.
     #[arg(long, default_value_t = 100)]
     min_component: usize,
-    /// Keep only the box xmin,ymin,zmin,xmax,ymax,zmax.
-    #[arg(long, value_delimiter = ',', num_args = 6)]
-    crop: Option<Vec<f32>>,
+    /// Keep only the box xmin,ymin,zmin,xmax,ymax,zmax (negative values too: `--crop -2,-2,-2,2,2,2`).
+    #[arg(long, allow_hyphen_values = true)]
+    crop: Option<String>,
     /// Integrate on the GPU (wgpu: Vulkan, Metal or DX12); extraction stays on the CPU.
     #[arg(long)]
     gpu: bool,
@@ -62,6 +62,15 @@ pub fn inside_existing(out: &std::path::Path, scene: &std::path::Path) -> bool {
         (Ok(o), Ok(s)) => o.is_file() && o.starts_with(s),
         _ => false,
     }
+}
+
+/// `xmin,ymin,zmin,xmax,ymax,zmax` with each min below its max.
+fn parse_crop(s: &str) -> Result<(glam::Vec3, glam::Vec3)> {
+    let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>()).collect::<Result<_, _>>().unwrap_or_default();
+    if v.len() != 6 || v.iter().any(|x| !x.is_finite()) || !(v[0] < v[3] && v[1] < v[4] && v[2] < v[5]) {
+        bail!("--crop {s}: expected six numbers xmin,ymin,zmin,xmax,ymax,zmax with each min below its max");
+    }
+    Ok((glam::Vec3::new(v[0], v[1], v[2]), glam::Vec3::new(v[3], v[4], v[5])))
 }
 
 pub fn run(a: FuseArgs) -> Result<()> {
@@ -85,13 +94,7 @@ pub fn run(a: FuseArgs) -> Result<()> {
     if !a.min_conf.is_finite() {
         bail!("--min-conf {}: expected a finite confidence (e.g. 1.5; confidences are 1 + exp(x))", a.min_conf);
     }
-    let crop = match &a.crop {
-        Some(c) if c.len() == 6 && c[0] < c[3] && c[1] < c[4] && c[2] < c[5] => {
-            Some((glam::Vec3::new(c[0], c[1], c[2]), glam::Vec3::new(c[3], c[4], c[5])))
-        }
-        Some(_) => bail!("--crop needs xmin,ymin,zmin,xmax,ymax,zmax with min < max"),
-        None => None,
-    };
+    let crop = a.crop.as_deref().map(parse_crop).transpose()?;
     let scene = dens3r_scene::Scene::open(&a.scene)?;
     let mut params = TsdfParams::new(a.voxel);
     params.trunc = a.trunc * a.voxel;
@@ -112,12 +115,28 @@ pub fn run(a: FuseArgs) -> Result<()> {
     let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: a.min_component, crop });
     let extract_s = t.elapsed().as_secs_f64();
     if mesh.indices.is_empty() {
-        bail!(
-            "{}: the fused volume has no surface (too few views, or depth outside [{}, {}])",
-            a.scene.display(),
-            a.min_depth,
-            a.max_depth
-        );
+        // Say which filter emptied it: the volume's surface, the crop, or the piece size.
+        let whole = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: 0, crop: None });
+        let cropped = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: 0, crop });
+        let why = if whole.indices.is_empty() {
+            format!(
+                "the fused volume has no surface ({} of {} frames had no valid depth; too few views, depth outside [{}, {}], or confidences below --min-conf)",
+                summary.empty_frames, summary.frames, a.min_depth, a.max_depth
+            )
+        } else if cropped.indices.is_empty() {
+            format!(
+                "the surface ({} triangles) lies outside --crop {}",
+                whole.indices.len(),
+                a.crop.as_deref().unwrap_or_default()
+            )
+        } else {
+            format!(
+                "every piece of the surface ({} triangles) is smaller than --min-component {}; lower it",
+                cropped.indices.len(),
+                a.min_component
+            )
+        };
+        bail!("{}: {why}", a.scene.display());
     }
     dens3r_mesh::write_mesh(&a.output, &mesh)?;
     println!(

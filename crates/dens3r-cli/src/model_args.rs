@@ -28,6 +28,15 @@ pub struct ModelArgs {
     pub keep_portrait: bool,
 }
 
+/// `--size` in the range the network takes (checked before any image is read, so the error
+/// names the flag, not an image).
+pub fn check_size(size: u32) -> Result<()> {
+    if !(16..=8192).contains(&size) {
+        bail!("--size {size}: the network input's long side must be in 16..=8192 (512, or 1024 for more detail)");
+    }
+    Ok(())
+}
+
 /// The checkpoint and its config: `weights` / `config` as given, or the bundled default model
 /// (dens3r-s), saying so in one line on stderr.
 pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(PathBuf, Option<PathBuf>)> {

@@ -82,6 +82,7 @@ struct NamedHead {
 }
 
 pub fn run(a: PredictArgs) -> Result<()> {
+    crate::model_args::check_size(a.size)?;
     for p in &a.images {
         if !p.is_file() {
             bail!("{}: image not found", p.display());

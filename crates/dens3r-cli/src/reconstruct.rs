@@ -93,6 +93,7 @@ fn bar(prefix: &str, len: usize, unit: &str) -> ProgressBar {
 }
 
 pub fn run(a: ReconstructArgs) -> Result<()> {
+    crate::model_args::check_size(a.model.size)?;
     let graph = match a.graph {
         Graph::Complete => PairGraph::Complete,
         Graph::Swin => PairGraph::SlidingWindow { k: a.window.max(1), cyclic: a.cyclic },

@@ -1168,3 +1168,61 @@ fn a_signal_leaves_no_partial_output() {
     assert_no_temp_files(dir.path());
     ok(&["render", "--procedural", "room", "--views", "2", "--width", "32", "--height", "24", "-o", o, "--overwrite"]);
 }
+
+/// Errors name their cause (issue 22 defect 9): the flag rather than an image, the filter
+/// that emptied a fused mesh; and `--crop` takes negative coordinates.
+#[test]
+fn errors_name_their_cause() {
+    let dir = tempfile::tempdir().unwrap();
+    let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples");
+    let photo = samples.join("photos/chelsea.png");
+    let out = dir.path().join("p");
+    let line = fails(&["predict", photo.to_str().unwrap(), "--size", "7", "-o", out.to_str().unwrap()]);
+    assert!(line.starts_with("error: --size 7") && !line.contains("chelsea"), "{line}");
+    let room = samples.join("room");
+    let r = room.to_str().unwrap();
+    let mesh = dir.path().join("m.ply");
+    let m = mesh.to_str().unwrap();
+    let line = fails(&["fuse", r, "-o", m, "--voxel", "0.05", "--crop", "20,20,20,21,21,21"]);
+    assert!(line.contains("outside --crop 20,20,20,21,21,21"), "{line}");
+    let line = fails(&["fuse", r, "-o", m, "--voxel", "0.05", "--min-component", "100000000"]);
+    assert!(line.contains("smaller than --min-component 100000000"), "{line}");
+    let line = fails(&["fuse", r, "-o", m, "--crop", "1,2,3"]);
+    assert!(line.contains("--crop 1,2,3") && line.contains("six numbers"), "{line}");
+    assert!(!mesh.exists());
+    // Negative coordinates are values, not flags; the room lies within 4 units of its origin.
+    let text = ok(&["fuse", r, "-o", m, "--voxel", "0.05", "--crop", "-4,-4,-4,4,4,4"]);
+    assert!(text.contains("triangles"), "{text}");
+    let cropped = dens3r_mesh::read_mesh(&mesh).unwrap();
+    assert!(cropped.positions.iter().all(|p| p.abs().max_element() <= 4.0 + 1e-4));
+}
+
+/// `eval depth` / `eval normals`: a frame that cannot be scored (NaN, infinite or zero maps)
+/// is skipped with a warning naming it, the others are scored; only all-bad fails, naming both
+/// folders (it used to abort on the first, naming no file).
+#[test]
+fn eval_skips_frames_that_cannot_be_scored() {
+    let dir = tempfile::tempdir().unwrap();
+    let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples");
+    let gt = samples.join("orbit");
+    let pred = dir.path().join("pred");
+    copy_tree(&gt, &pred);
+    let frames: Vec<_> = std::fs::read_dir(pred.join("depth")).unwrap().map(|e| e.unwrap().path()).collect();
+    let (shape, v) = dens3r_scene::npy::read_f32(&frames[0]).unwrap();
+    for (k, bad) in [f32::NAN, f32::INFINITY, 0.0].into_iter().enumerate() {
+        let path = &frames[k % frames.len()];
+        dens3r_scene::npy::write_f32(path, &shape, &vec![bad; v.len()]).unwrap();
+    }
+    let (p, g) = (pred.to_str().unwrap(), gt.to_str().unwrap());
+    let out = dens3r(&["eval", "depth", p, g, "--align", "median"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert_eq!(err.matches("skipped (depth of").count(), 3.min(frames.len()), "{err}");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains(&format!("mean of {}", frames.len() - 3)), "{text}");
+    for f in &frames {
+        dens3r_scene::npy::write_f32(f, &shape, &vec![f32::NAN; v.len()]).unwrap();
+    }
+    let line = fails(&["eval", "depth", p, g]);
+    assert!(line.contains(p) && line.contains(g) && line.contains("none of the"), "{line}");
+}
