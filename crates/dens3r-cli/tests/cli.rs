@@ -1226,3 +1226,34 @@ fn eval_skips_frames_that_cannot_be_scored() {
     let line = fails(&["eval", "depth", p, g]);
     assert!(line.contains(p) && line.contains(g) && line.contains("none of the"), "{line}");
 }
+
+/// `train-head` on labels that are all 255 (ignore) refuses to train a head on nothing (it
+/// trained "loss 0" and wrote one); a run without validation images says so instead of
+/// reporting mIoU 0 (issue 22 defect 8).
+#[test]
+fn heads_are_not_trained_on_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    std::fs::create_dir_all(data.join("images")).unwrap();
+    std::fs::create_dir_all(data.join("labels")).unwrap();
+    for (name, id) in [("a", 255u8), ("b", 255)] {
+        image::RgbImage::from_pixel(28, 28, image::Rgb([90, 120, 150]))
+            .save(data.join(format!("images/{name}.png")))
+            .unwrap();
+        image::GrayImage::from_pixel(28, 28, image::Luma([id])).save(data.join(format!("labels/{name}.png"))).unwrap();
+    }
+    let head = dir.path().join("head");
+    let line = failing_pixel_head(&data, "28", &head);
+    assert!(line.contains("supervised pixel") && line.contains(data.to_str().unwrap()), "{line}");
+    assert!(!head.with_extension("json").exists());
+    // One image labelled: trained on it, the other named as left out; no validation scores.
+    image::GrayImage::from_pixel(28, 28, image::Luma([1])).save(data.join("labels/a.png")).unwrap();
+    #[rustfmt::skip]
+    let out = dens3r(&["train-head", "--backbone", "pixels", "--kind", "seg", "--data", data.to_str().unwrap(),
+        "--size", "28", "--epochs", "1", "-o", head.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("b: no supervised pixel") && err.contains("no validation images"), "{err}");
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(summary["miou"].is_null(), "{summary}");
+}

@@ -19,6 +19,33 @@ pub enum Target {
     Depth(Vec<f32>),
 }
 
+impl Target {
+    /// Pixels that supervise a head: labels other than `IGNORE`, finite positive depths.
+    pub fn supervised(&self) -> usize {
+        match self {
+            Target::Labels(l) => l.iter().filter(|&&v| v != crate::loss::IGNORE).count(),
+            Target::Depth(d) => d.iter().filter(|v| v.is_finite() && **v > 0.0).count(),
+        }
+    }
+}
+
+/// Samples without a supervised pixel are dropped (named in the returned warnings); an error
+/// when none is left, naming `what` (the data folders).
+pub fn keep_supervised(samples: Vec<Sample>, what: &str) -> Result<(Vec<Sample>, Vec<String>), String> {
+    let total = samples.len();
+    let (keep, drop): (Vec<Sample>, Vec<Sample>) = samples.into_iter().partition(|s| s.target.supervised() > 0);
+    if keep.is_empty() && total > 0 {
+        return Err(format!(
+            "{what}: none of the {total} training images has a supervised pixel (every label is 255 = ignore, or every depth NaN, infinite or <= 0): check the label PNGs or depth maps"
+        ));
+    }
+    let warnings = drop
+        .iter()
+        .map(|s| format!("warning: {}: no supervised pixel (all ignore / invalid depth); left out of training", s.name))
+        .collect();
+    Ok((keep, warnings))
+}
+
 /// One image and its target.
 #[derive(Debug, Clone)]
 pub struct Sample {

@@ -184,8 +184,11 @@ pub struct TrainData {
     pub occupancy: Occupancy,
     /// Frames read.
     pub frames: usize,
-    /// Whether every frame had normals.
+    /// Whether every frame had usable normals.
     pub has_normals: bool,
+    /// Frames whose `normals/` file held no usable normal (NaN, infinite or zero wherever the
+    /// depth is valid): they count as without normals.
+    pub unusable_normals: Vec<String>,
 }
 
 impl TrainData {
@@ -233,6 +236,7 @@ pub fn load_scene(scene: &Scene) -> Result<TrainData, NsdfError> {
     }
     let mut raw: Vec<Raw> = Vec::new();
     let mut has_normals = true;
+    let mut unusable_normals = Vec::new();
     for (fi, f) in scene.frames().iter().enumerate() {
         let cam = f.camera();
         let bad = |e: dens3r_scene::SceneError| NsdfError::Scene(format!("{root}: frame '{}': {e}", f.name));
@@ -244,6 +248,8 @@ pub fn load_scene(scene: &Scene) -> Result<TrainData, NsdfError> {
         };
         let normals = scene.normals(f).map_err(bad)?;
         has_normals &= normals.is_some();
+        let before = raw.len();
+        let mut usable = 0usize;
         let mask = scene.mask(f).map_err(bad)?;
         let image = scene.image(f).map_err(bad)?;
         let rot = glam::DMat3::from_mat4(cam.cam_to_world);
@@ -261,6 +267,7 @@ pub fn load_scene(scene: &Scene) -> Result<TrainData, NsdfError> {
                     Some(n) => {
                         let n = n.get(x, y).as_dvec3();
                         if n.length_squared() > 0.25 {
+                            usable += 1;
                             (rot * n).normalize()
                         } else {
                             DVec3::ZERO
@@ -279,6 +286,10 @@ pub fn load_scene(scene: &Scene) -> Result<TrainData, NsdfError> {
                 });
                 world_pts.push(p_w);
             }
+        }
+        if normals.is_some() && usable == 0 && raw.len() > before {
+            has_normals = false;
+            unusable_normals.push(f.name.clone());
         }
     }
     if raw.len() < 100 {
@@ -312,5 +323,5 @@ pub fn load_scene(scene: &Scene) -> Result<TrainData, NsdfError> {
         rays.normal.push(r.normal.as_vec3());
         rays.color.push(r.color);
     }
-    Ok(TrainData { rays, bounds, occupancy, frames: scene.frames().len(), has_normals })
+    Ok(TrainData { rays, bounds, occupancy, frames: scene.frames().len(), has_normals, unusable_normals })
 }

@@ -393,3 +393,19 @@ fn a_tsdf_start_puts_the_surface_in_place_before_rendering() {
     let e = fit_error(&data, &opts);
     assert!(e.contains("TSDF"), "{e}");
 }
+
+/// A frame whose normals file holds only NaN counts as without normals and is named (its
+/// normals were dropped silently while the run said "normals on"; issue 22 defect 8).
+#[test]
+fn nan_normals_are_named_not_dropped_silently() {
+    let dir = tempfile::tempdir().unwrap();
+    let (scene_dir, _, _) = sphere_scene(dir.path(), false);
+    let data = dens3r_nsdf::load_scene(&dens3r_scene::Scene::open(&scene_dir).unwrap()).unwrap();
+    assert!(data.has_normals && data.unusable_normals.is_empty());
+    let path = scene_dir.join("normals/0003.npy");
+    let (shape, v) = dens3r_scene::npy::read_f32(&path).unwrap();
+    dens3r_scene::npy::write_f32(&path, &shape, &vec![f32::NAN; v.len()]).unwrap();
+    let data = dens3r_nsdf::load_scene(&dens3r_scene::Scene::open(&scene_dir).unwrap()).unwrap();
+    assert!(!data.has_normals);
+    assert_eq!(data.unusable_normals, vec!["0003".to_string()]);
+}

@@ -102,6 +102,11 @@ fn read_view(dir: &Path, v: usize, (w, h): (usize, usize)) -> Result<ViewOutput,
             return Ok(None);
         }
         let (shape, data) = npy::read_f32(&path).map_err(|e| e.to_string())?;
+        // A damaged entry (NaN or infinite values) is a miss, recomputed; it would otherwise
+        // make every rerun's alignment fail without naming the cache.
+        if data.iter().any(|v| !v.is_finite()) {
+            return Err(format!("{}: holds NaN or infinite values", path.display()));
+        }
         let ok = shape.len() >= 2 && shape[0] == h && shape[1] == w && c.is_none_or(|c| shape.get(2) == Some(&c));
         if !ok {
             return Err(format!("{}: shape {shape:?}", path.display()));
@@ -127,4 +132,35 @@ fn read_view(dir: &Path, v: usize, (w, h): (usize, usize)) -> Result<ViewOutput,
     let out = ViewOutput { points, conf, normals, desc, desc_conf };
     out.check((w, h))?;
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dens3r_geom::Raster;
+
+    fn view(w: usize, h: usize) -> ViewOutput {
+        let pts = (0..w * h).map(|i| Vec3::new(i as f32, 1.0, 2.0)).collect();
+        ViewOutput {
+            points: Raster::from_vec(w, h, pts).unwrap(),
+            conf: Raster::from_vec(w, h, vec![2.0; w * h]).unwrap(),
+            normals: None,
+            desc: None,
+            desc_conf: None,
+        }
+    }
+
+    #[test]
+    fn entries_round_trip_and_a_nan_entry_is_a_miss() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = PairCache::new(Some(dir.path().to_path_buf()));
+        cache.store("k", &[view(4, 3), view(4, 3)]).unwrap();
+        let back = cache.load("k", [(4, 3), (4, 3)]).expect("a stored entry is read back");
+        assert_eq!(back[1].points.data(), view(4, 3).points.data());
+        let path = dir.path().join("k/v1_conf.npy");
+        let mut conf = vec![2.0f32; 12];
+        conf[5] = f32::NAN;
+        npy::write_f32(&path, &[3, 4], &conf).unwrap();
+        assert!(cache.load("k", [(4, 3), (4, 3)]).is_none(), "a NaN entry is recomputed, not used");
+    }
 }
