@@ -41,6 +41,36 @@ pub(crate) fn keep_freed_memory() {
 #[global_allocator]
 static ALLOC: dens3r_backbone::cpu::alloc::BlockCache = dens3r_backbone::cpu::alloc::BlockCache;
 
+/// The command line; a usage error is one line (clap's message and tip, without the usage
+/// block), exit status 2, like every other error.
+fn parse_args() -> Cli {
+    use clap::error::ErrorKind;
+    match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion) => e.exit(),
+        Err(e) if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),
+        Err(e) => {
+            let text = e.render().to_string();
+            let parts: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.starts_with("Usage:"))
+                .filter(|l| !l.is_empty() && !l.starts_with("For more information"))
+                .collect();
+            let mut line = String::new();
+            for p in parts {
+                if !line.is_empty() {
+                    line.push_str(if line.ends_with(':') { " " } else { "; " });
+                }
+                line.push_str(p);
+            }
+            let line = line.strip_prefix("error: ").unwrap_or(&line);
+            eprintln!("error: {line} (see --help)");
+            std::process::exit(2);
+        }
+    }
+}
+
 #[derive(Parser)]
 #[command(
     name = "dens3r",
@@ -110,7 +140,7 @@ fn main() {
     if let Some(mb) = std::env::var("DENS3R_CACHE_MB").ok().and_then(|v| v.trim().parse::<usize>().ok()) {
         dens3r_backbone::cpu::alloc::BlockCache::set_capacity(mb << 20);
     }
-    let cli = Cli::parse();
+    let cli = parse_args();
     let result = match cli.command {
         Command::Render(a) => render::run(a),
         Command::Eval(c) => eval::run(c),

@@ -113,6 +113,21 @@ pub fn run(a: NsdfArgs) -> Result<()> {
         bail!("--voxel must be a positive length");
     }
     let device = device(a.gpu)?;
+    // Where the mesh and the checkpoints go must be writable before any training is spent.
+    let mut ck_dir = a.checkpoint_dir.clone().unwrap_or_else(|| {
+        let mut s = a.output.clone().into_os_string();
+        s.push(".nsdf");
+        PathBuf::from(s)
+    });
+    if ck_dir.as_os_str().is_empty() {
+        ck_dir = PathBuf::from(".");
+    }
+    // (Checked, not created: a run refused later leaves no folder behind.)
+    for dir in [a.output.parent().filter(|p| !p.as_os_str().is_empty()), Some(ck_dir.as_path())].into_iter().flatten() {
+        if let Some(blocker) = dir.ancestors().find(|p| p.exists()).filter(|p| !p.is_dir()) {
+            bail!("{}: cannot hold {} (it is a file, not a folder)", blocker.display(), dir.display());
+        }
+    }
     let t0 = Instant::now();
     let scene = dens3r_scene::Scene::open(&a.scene)?;
     let data = dens3r_nsdf::load_scene(&scene)?;
@@ -143,14 +158,6 @@ pub fn run(a: NsdfArgs) -> Result<()> {
     };
     let field =
         FieldConfig { levels: a.levels, max_res: a.max_res, color: a.color_weight > 0.0, ..FieldConfig::default() };
-    let mut ck_dir = a.checkpoint_dir.clone().unwrap_or_else(|| {
-        let mut s = a.output.clone().into_os_string();
-        s.push(".nsdf");
-        PathBuf::from(s)
-    });
-    if ck_dir.as_os_str().is_empty() {
-        ck_dir = PathBuf::from(".");
-    }
     let init = if train.init_tsdf_iters > 0 {
         let mut params = TsdfParams::new(data.default_voxel());
         params.color = false;

@@ -516,6 +516,9 @@ fn nsdf_meshes_a_scene_resumes_and_rejects_bad_input() {
         let e = fails(&["nsdf", orbit_s, "-o", b, "--gpu"]);
         assert!(e.contains("--features nsdf-wgpu"), "{e}");
     }
+    // An output under a file is refused before the scene is read or anything trained.
+    let e = fails(&["nsdf", orbit_s, "-o", dir.path().join("nsdf.ply/m.ply").to_str().unwrap()]);
+    assert!(e.contains("nsdf.ply: cannot hold") && e.contains("not a folder"), "{e}");
     let e = fails(&["nsdf", orbit_s, "-o", b, "--iters", "10", "--lr", "3"]);
     assert!(e.contains("learning rate"), "{e}");
     let nodepth = dir.path().join("nodepth");
@@ -1187,6 +1190,11 @@ fn errors_name_their_cause() {
     assert!(line.contains("outside --crop 20,20,20,21,21,21"), "{line}");
     let line = fails(&["fuse", r, "-o", m, "--voxel", "0.05", "--min-component", "100000000"]);
     assert!(line.contains("smaller than --min-component 100000000"), "{line}");
+    // Usage errors are one line too (clap's message and tip, not its usage block).
+    let line = fails(&["fuse", r, "-o", m, "--voxl", "3"]);
+    assert!(line.contains("'--voxl'") && line.contains("'--voxel'"), "{line}");
+    let line = fails(&["predict"]);
+    assert!(line.contains("--output") && line.contains("<IMAGES>"), "{line}");
     let line = fails(&["fuse", r, "-o", m, "--crop", "1,2,3"]);
     assert!(line.contains("--crop 1,2,3") && line.contains("six numbers"), "{line}");
     assert!(!mesh.exists());
