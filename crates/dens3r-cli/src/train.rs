@@ -3,6 +3,7 @@
 use anyhow::{anyhow, bail, Result};
 use clap::Args;
 use dens3r_backbone::{Freeze, ModelConfig, Params, Precision, Weights};
+use dens3r_train::run::Phase;
 use dens3r_train::{Arch, Dataset, Stage, TrainConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -101,6 +102,22 @@ pub struct TrainArgs {
     /// encoder and validation stay on the CPU.
     #[arg(long)]
     gpu: bool,
+    /// Coarse to fine in one run (Dens3R: 512 then 1024): after --steps at --size, STEPS more
+    /// at this size from the coarse weights, `WxH:STEPS` (e.g. 448x320:200). The coarse phase
+    /// trains into OUTPUT/coarse/, the fine one into OUTPUT/.
+    #[arg(long)]
+    fine: Option<String>,
+    /// Peak learning rate of the fine phase (default: --lr).
+    #[arg(long)]
+    fine_lr: Option<f32>,
+}
+
+/// `WxH:STEPS`.
+fn parse_fine(s: &str) -> Result<((usize, usize), usize)> {
+    let (size, steps) =
+        s.split_once(':').ok_or_else(|| anyhow!("--fine {s:?}: expected WxH:STEPS, e.g. 448x320:200"))?;
+    let steps = steps.trim().parse().map_err(|_| anyhow!("--fine {s:?}: bad step count"))?;
+    Ok((parse_size(size)?, steps))
 }
 
 pub fn parse_size(s: &str) -> Result<(usize, usize)> {
@@ -182,54 +199,83 @@ pub fn run(a: TrainArgs) -> Result<()> {
     } else {
         params
     };
-    config.check(params.config.patch).map_err(|e| anyhow!(e))?;
-    let data = Dataset::load(&a.data, config.size, config.covis).map_err(|e| anyhow!(e))?;
-    let val_data = if a.val_data.is_empty() {
-        None
-    } else {
-        Some(Dataset::load(&a.val_data, config.size, config.covis).map_err(|e| anyhow!(e))?)
+    // The phases: one at --size, or coarse (into OUTPUT/coarse) then fine (into OUTPUT).
+    let phases = match &a.fine {
+        None => vec![Phase { config: config.clone(), dir: a.output.clone() }],
+        Some(f) => {
+            let (size, steps) = parse_fine(f)?;
+            let fine = TrainConfig { size, steps, lr: a.fine_lr.unwrap_or(config.lr), ..config.clone() };
+            vec![
+                Phase { config: config.clone(), dir: a.output.join("coarse") },
+                Phase { config: fine, dir: a.output.clone() },
+            ]
+        }
     };
+    for p in &phases {
+        p.config.check(params.config.patch).map_err(|e| anyhow!(e))?;
+    }
+    // Checked before any training: the data (at the first size) and stage 2's normals.
+    let first = Dataset::load(&a.data, config.size, config.covis).map_err(|e| anyhow!(e))?;
     if stage == Stage::Two {
-        data.require_normals().map_err(|e| anyhow!(e))?;
+        first.require_normals().map_err(|e| anyhow!(e))?;
     }
-    let val = val_data.as_ref().map(|d| dens3r_train::run::Validation {
-        data: d,
-        every: a.val_every.max(1),
-        batches: a.val_batches.max(1),
-    });
-    if a.restart && a.output.join("ckpt").exists() {
-        std::fs::remove_dir_all(a.output.join("ckpt"))
-            .map_err(|e| anyhow!("{}: cannot remove ({e})", a.output.join("ckpt").display()))?;
-        let _ = std::fs::remove_file(a.output.join("log.jsonl"));
+    if a.restart {
+        for p in &phases {
+            if p.dir.join("ckpt").exists() {
+                std::fs::remove_dir_all(p.dir.join("ckpt"))
+                    .map_err(|e| anyhow!("{}: cannot remove ({e})", p.dir.join("ckpt").display()))?;
+            }
+            let _ = std::fs::remove_file(p.dir.join("log.jsonl"));
+        }
     }
+    let trained: usize = params
+        .names
+        .iter()
+        .zip(&params.values)
+        .filter(|(n, _)| freeze.trains(n, params.config.enc_depth))
+        .map(|(_, v)| v.len())
+        .sum();
+    let sizes: Vec<String> =
+        phases.iter().map(|p| format!("{}x{} ({} steps)", p.config.size.0, p.config.size.1, p.config.steps)).collect();
     println!(
-        "training {} parameters ({} trained) on {} pairs from {} scenes, stage {}, {}x{}",
+        "training {} parameters ({trained} trained) on {} pairs from {} scenes, stage {}, {}",
         params.count(),
-        params
-            .names
-            .iter()
-            .zip(&params.values)
-            .filter(|(n, _)| freeze.trains(n, params.config.enc_depth))
-            .map(|(_, v)| v.len())
-            .sum::<usize>(),
-        data.pairs.len(),
-        data.scenes.len(),
+        first.pairs.len(),
+        first.scenes.len(),
         a.stage,
-        config.size.0,
-        config.size.1
+        sizes.join(" then ")
     );
-    let bar = ProgressBar::new(config.steps as u64);
+    let mut first = Some(first);
+    let mut load = |size: (usize, usize)| -> Result<(Dataset, Option<Dataset>), String> {
+        let data = match first.take().filter(|_| size == config.size) {
+            Some(d) => d,
+            None => Dataset::load(&a.data, size, config.covis)?,
+        };
+        let val = (!a.val_data.is_empty()).then(|| Dataset::load(&a.val_data, size, config.covis)).transpose()?;
+        Ok((data, val))
+    };
+    let bar = ProgressBar::new(phases.iter().map(|p| p.config.steps as u64).sum());
     bar.set_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} steps, {elapsed} elapsed, ETA {eta} {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
+    let offsets: Vec<usize> = phases
+        .iter()
+        .scan(0, |acc, p| {
+            let o = *acc;
+            *acc += p.config.steps;
+            Some(o)
+        })
+        .collect();
     let device = dens3r_backbone::device::training_device(a.gpu).map_err(anyhow::Error::msg)?;
     let start = std::time::Instant::now();
-    let t = dens3r_train::run::run(&a.output, params, &data, &config, device, val.as_ref(), &mut |step, _, line| {
-        bar.set_position(step as u64);
-        bar.set_message(format!("loss {:.4}", line.terms.loss));
-    })
-    .map_err(|e| anyhow!(e))?;
+    let (every, batches) = (a.val_every.max(1), a.val_batches.max(1));
+    let t =
+        dens3r_train::run::run_phases(&phases, params, &mut load, every, batches, device, &mut |k, step, _, line| {
+            bar.set_position((offsets[k] + step) as u64);
+            bar.set_message(format!("loss {:.4}", line.terms.loss));
+        })
+        .map_err(|e| anyhow!(e))?;
     bar.finish_and_clear();
     if precision != Precision::F32 {
         t.params.save_as(&a.output.join("model.safetensors"), precision)?;

@@ -1265,3 +1265,33 @@ fn heads_are_not_trained_on_nothing() {
     let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert!(summary["miou"].is_null(), "{summary}");
 }
+
+/// `train --fine WxH:STEPS` is coarse to fine in one command: the same weights, bit for bit,
+/// as a coarse run followed by a fine run from its weights (`--init`); a rerun retrains nothing.
+#[test]
+fn coarse_to_fine_in_one_command_equals_two_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let (arch, orbit) = (s(&root.join("configs/tiny.toml")), s(&root.join("data-samples/orbit")));
+    let common = ["--data", &orbit, "--batch", "1", "--checkpoint-every", "2"];
+    let (coarse, fine, both) = (s(&dir.path().join("c")), s(&dir.path().join("f")), s(&dir.path().join("cf")));
+    ok(&[&["train", "--arch", &arch, "-o", &coarse, "--size", "32x32", "--steps", "2"][..], &common].concat());
+    let (w, c) = (s(&Path::new(&coarse).join("model.safetensors")), s(&Path::new(&coarse).join("model.json")));
+    ok(&[&["train", "--init", &w, "--config", &c, "-o", &fine, "--size", "64x48", "--steps", "2"][..], &common]
+        .concat());
+    let args =
+        [&["train", "--arch", &arch, "-o", &both, "--size", "32x32", "--steps", "2", "--fine", "64x48:2"][..], &common]
+            .concat();
+    let out = ok(&args);
+    assert!(out.contains("32x32 (2 steps) then 64x48 (2 steps)"), "{out}");
+    let read = |p: &str| std::fs::read(Path::new(p).join("model.safetensors")).unwrap();
+    assert_eq!(read(&coarse), std::fs::read(Path::new(&both).join("coarse/model.safetensors")).unwrap());
+    assert_eq!(read(&fine), read(&both), "the fine phase starts from the coarse weights");
+    let log = std::fs::read_to_string(Path::new(&both).join("log.jsonl")).unwrap();
+    assert_eq!(log.lines().count(), 2);
+    ok(&args);
+    assert_eq!(std::fs::read_to_string(Path::new(&both).join("log.jsonl")).unwrap(), log, "nothing retrained");
+    let e = fails(&[&["train", "--arch", &arch, "-o", &both, "--fine", "64x48"][..], &common].concat());
+    assert!(e.contains("--fine") && e.contains("WxH:STEPS"), "{e}");
+}

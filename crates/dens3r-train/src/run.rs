@@ -96,6 +96,47 @@ pub fn run(
     Ok(trainer)
 }
 
+/// Loads a phase's training data and held-out data (if any) at its size.
+pub type PhaseData<'a> = dyn FnMut((usize, usize)) -> Result<(Dataset, Option<Dataset>), String> + 'a;
+
+/// One resolution of a coarse-to-fine run: its settings (size, steps, learning rate) and the
+/// run folder it trains into.
+pub struct Phase {
+    /// The phase's settings.
+    pub config: TrainConfig,
+    /// Its run folder (see [`run`]).
+    pub dir: PathBuf,
+}
+
+/// Coarse to fine in one call (Dens3R trains at 512 then 1024): each phase trains from the
+/// previous one's final weights, at its own size, into its own folder. A rerun passes
+/// finished phases through (they resume at their last step) and resumes the unfinished one.
+/// `load(size)` gives a phase's training data and held-out data at its size;
+/// `progress(phase, step, total, line)` is called after each step.
+#[allow(clippy::too_many_arguments)]
+pub fn run_phases(
+    phases: &[Phase],
+    params: Params,
+    load: &mut PhaseData,
+    val_every: usize,
+    val_batches: usize,
+    device: Device,
+    progress: &mut dyn FnMut(usize, usize, usize, &LogLine),
+) -> Result<Trainer, String> {
+    let mut params = params;
+    let mut last = None;
+    for (k, phase) in phases.iter().enumerate() {
+        let (data, held_out) = load(phase.config.size)?;
+        let val = held_out.as_ref().map(|d| Validation { data: d, every: val_every, batches: val_batches });
+        let t = run(&phase.dir, params, &data, &phase.config, device.clone(), val.as_ref(), &mut |s, n, l| {
+            progress(k, s, n, l)
+        })?;
+        params = t.params.clone();
+        last = Some(t);
+    }
+    last.ok_or_else(|| "no training phase given".to_string())
+}
+
 /// The log's lines (none when absent).
 pub fn read_log(path: &Path) -> Result<Vec<LogLine>, String> {
     if !path.is_file() {
