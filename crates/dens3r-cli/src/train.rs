@@ -4,7 +4,7 @@ use anyhow::{anyhow, bail, Result};
 use clap::Args;
 use dens3r_backbone::{Freeze, ModelConfig, Params, Precision, Weights};
 use dens3r_train::run::Phase;
-use dens3r_train::{Arch, Dataset, Stage, TrainConfig};
+use dens3r_train::{Arch, Dataset, PointsFrame, Stage, TrainConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
@@ -107,6 +107,11 @@ pub struct TrainArgs {
     /// trains into OUTPUT/coarse/, the fine one into OUTPUT/.
     #[arg(long)]
     fine: Option<String>,
+    /// The frame view 2's ground-truth points are regressed in: `first` (view 1's, 'global':
+    /// the released Dens3R, which `reconstruct` expects) or `own` ('local', Regr3D's
+    /// `align_pts=False`: each view in its own camera frame).
+    #[arg(long, default_value = "first")]
+    points_in: String,
     /// Peak learning rate of the fine phase (default: --lr).
     #[arg(long)]
     fine_lr: Option<f32>,
@@ -170,6 +175,8 @@ pub fn run(a: TrainArgs) -> Result<()> {
         self_pairs: a.self_pairs,
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
+        frame: PointsFrame::parse(&a.points_in)
+            .ok_or_else(|| anyhow!("--points-in {:?}: expected first (view 1's frame) or own", a.points_in))?,
         ..Default::default()
     };
     let params = match (&a.arch, &a.init) {

@@ -15,4 +15,4 @@ pub mod synth;
 pub mod train;
 
 pub use arch::Arch;
-pub use train::{scene_dirs, Dataset, LossTerms, Stage, TrainConfig, Trainer};
+pub use train::{scene_dirs, Dataset, LossTerms, PointsFrame, Stage, TrainConfig, Trainer};

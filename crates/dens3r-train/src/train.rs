@@ -35,6 +35,34 @@ impl Stage {
     }
 }
 
+/// The camera frame view 2's ground truth is regressed in (spec section 5, Regr3D's
+/// `align_pts`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PointsFrame {
+    /// View 1's ('global': the released model; `reconstruct` reads view 2's points there).
+    #[default]
+    First,
+    /// Its own ('local', `align_pts=False`): each view's points in its own camera frame, view
+    /// 2's normal target its own too.
+    Own,
+}
+
+impl PointsFrame {
+    /// `first` or `own`.
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "first" => Some(Self::First),
+            "own" => Some(Self::Own),
+            _ => None,
+        }
+    }
+}
+
+fn is_first(f: &PointsFrame) -> bool {
+    *f == PointsFrame::First
+}
+
 /// Settings of a run; a resumed run must have the same.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainConfig {
@@ -94,6 +122,9 @@ pub struct TrainConfig {
     pub checkpoint_every: usize,
     /// Seed of the draws and augmentations.
     pub seed: u64,
+    /// The frame of view 2's regression target.
+    #[serde(default, skip_serializing_if = "is_first")]
+    pub frame: PointsFrame,
 }
 
 impl Default for TrainConfig {
@@ -121,6 +152,7 @@ impl Default for TrainConfig {
             freeze: Freeze::None,
             checkpoint_every: 50,
             seed: 0,
+            frame: PointsFrame::First,
         }
     }
 }
@@ -236,8 +268,11 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
     let [p1, p2] = &pred.views;
     let t = &batch.targets;
     let size = t[0].size;
+    // View 2's target: in view 1's frame, or in its own (`PointsFrame::Own`).
+    let own2 = cfg.frame == PointsFrame::Own;
     let view = |k: usize| {
-        let pts: Vec<&[Vec3]> = t.iter().map(|s| s.pts[k].as_slice()).collect();
+        let pts: Vec<&[Vec3]> =
+            t.iter().map(|s| if k == 1 && own2 { s.pts_own[1].as_slice() } else { s.pts[k].as_slice() }).collect();
         let valid: Vec<&[bool]> = t.iter().map(|s| s.valid[k].as_slice()).collect();
         (vec3_tensor(&pts, size, &device), mask_tensor(&valid, size, &device))
     };
@@ -248,7 +283,10 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
     };
     let pts_glb = conf_regr3d(regr(p1, g1, m1.clone())?, regr(p2, g2, m2.clone())?, cfg.alpha);
     let n_in1 = |k: usize| {
-        let n: Vec<&[Vec3]> = t.iter().map(|s| s.normals_in1[k].as_slice()).collect();
+        let n: Vec<&[Vec3]> = t
+            .iter()
+            .map(|s| if k == 1 && own2 { s.normals[1].as_slice() } else { s.normals_in1[k].as_slice() })
+            .collect();
         vec3_tensor(&n, size, &device)
     };
     let pts_n =

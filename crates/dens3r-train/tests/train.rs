@@ -9,7 +9,8 @@ use dens3r_geom::camera::Intrinsics;
 use dens3r_geom::{look_at, Raster};
 use dens3r_train::loss::{self, Matches, RegrView};
 use dens3r_train::pair::{correspondences, pair_target, View};
-use dens3r_train::{Arch, Dataset, Stage, TrainConfig, Trainer};
+use dens3r_train::train::{batch_loss, Batch};
+use dens3r_train::{Arch, Dataset, PointsFrame, Stage, TrainConfig, Trainer};
 use glam::{DVec3, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -799,4 +800,31 @@ fn correspondences_of_cropped_views_agree_in_colour() {
     let (matched, random) = (matched / n as f64, random / n as f64);
     eprintln!("mean |RGB difference|: matched {matched:.1}, random {random:.1} (of 255)");
     assert!(matched < 0.35 * random, "matched {matched:.1} vs random {random:.1}");
+}
+
+/// `PointsFrame::Own` ('local', `align_pts=False`) regresses view 2 in its own camera frame:
+/// its loss is the 'global' loss of the same batch with view 2's targets replaced by its
+/// own-frame points and normals, and it differs from the global loss when the views differ.
+#[test]
+fn own_frame_regresses_view_2_in_its_own_frame() {
+    let arch = tiny();
+    let data = Dataset::load(&[samples().join("orbit")], (64, 48), (0.1, 0.98)).unwrap();
+    let first = TrainConfig { size: (64, 48), batch: 2, jitter: 0.0, n_corres: 32, ..Default::default() };
+    let own = TrainConfig { frame: PointsFrame::Own, ..first.clone() };
+    let params = Params::init(&arch.config(), 5);
+    let device = Device::flex();
+    let model = params.model(&params.tensors(&device, &vec![false; params.values.len()]), &device);
+    let batch = data.batch(&first, arch.config().patch, 3, &device).unwrap();
+    let (_, global) = batch_loss(&model, &batch, &first).unwrap();
+    let (_, local) = batch_loss(&model, &batch, &own).unwrap();
+    let mut targets = batch.targets.clone();
+    for t in &mut targets {
+        t.pts[1] = t.pts_own[1].clone();
+        t.normals_in1[1] = t.normals[1].clone();
+    }
+    let swapped = Batch { images: batch.images.clone(), targets };
+    let (_, reference) = batch_loss(&model, &swapped, &first).unwrap();
+    assert_eq!(local.pts_glb, reference.pts_glb);
+    assert_eq!(local.pts_n, reference.pts_n);
+    assert!((local.pts_glb - global.pts_glb).abs() > 1e-4 * global.pts_glb.abs(), "{local:?} vs {global:?}");
 }
