@@ -7,6 +7,8 @@
 
 mod readers;
 
+use rand::{Rng as _, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::panic::AssertUnwindSafe;
@@ -65,19 +67,15 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static ALLOC: Counting = Counting;
 
-/// SplitMix64.
-struct Rng(u64);
+/// The seeded draws of the mutations.
+struct Rng(ChaCha8Rng);
 
 impl Rng {
     fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
+        self.0.gen()
     }
     fn below(&mut self, n: usize) -> usize {
-        (self.next() % n.max(1) as u64) as usize
+        self.0.gen_range(0..n.max(1))
     }
 }
 
@@ -166,7 +164,8 @@ fn fuzz(t: &readers::Target, cases: usize, seed: u64) -> Report {
     if let Err(e) = readers::run(t, &dir, &bytes) {
         panic!("{}: the unmutated seed is refused: {e}", t.name);
     }
-    let mut rng = Rng(seed ^ readers::targets().iter().position(|x| x.name == t.name).unwrap() as u64);
+    let mut rng =
+        Rng(ChaCha8Rng::seed_from_u64(seed ^ readers::targets().iter().position(|x| x.name == t.name).unwrap() as u64));
     let mut r = Report { cases, refused: 0, panics: Vec::new(), peak: 0 };
     for case in 0..cases {
         let m = mutate(&bytes, &mut rng);
