@@ -133,15 +133,13 @@ pub fn parse_size(s: &str) -> Result<(usize, usize)> {
     ))
 }
 
-pub fn run(a: TrainArgs) -> Result<()> {
-    crate::keep_freed_memory();
+/// The run's settings from the flags.
+fn train_config(a: &TrainArgs) -> Result<TrainConfig> {
     let stage = match a.stage {
         1 => Stage::One,
         2 => Stage::Two,
         s => bail!("--stage {s}: expected 1 or 2"),
     };
-    let precision = Precision::parse(&a.precision)
-        .ok_or_else(|| anyhow!("--precision {:?}: expected f32, f16 or bf16", a.precision))?;
     let freeze = Freeze::parse(&a.freeze).ok_or_else(|| {
         anyhow!("--freeze {:?}: expected none, encoder, encoder-but-N, heads-only or descriptors", a.freeze)
     })?;
@@ -179,6 +177,11 @@ pub fn run(a: TrainArgs) -> Result<()> {
             .ok_or_else(|| anyhow!("--points-in {:?}: expected first (view 1's frame) or own", a.points_in))?,
         ..Default::default()
     };
+    Ok(config)
+}
+
+/// The network: fresh from `--arch`, or `--init` (with `--config`), with its DINOv2 encoder.
+fn network(a: &TrainArgs) -> Result<Params> {
     let params = match (&a.arch, &a.init) {
         (Some(arch), None) => Params::init(&Arch::read(arch).map_err(|e| anyhow!(e))?.config(), a.seed),
         (None, Some(init)) => {
@@ -206,8 +209,12 @@ pub fn run(a: TrainArgs) -> Result<()> {
     } else {
         params
     };
-    // The phases: one at --size, or coarse (into OUTPUT/coarse) then fine (into OUTPUT).
-    let phases = match &a.fine {
+    Ok(params)
+}
+
+/// One phase at `--size` into OUTPUT, or coarse (into OUTPUT/coarse) then fine (into OUTPUT).
+fn phases(a: &TrainArgs, config: &TrainConfig) -> Result<Vec<Phase>> {
+    Ok(match &a.fine {
         None => vec![Phase { config: config.clone(), dir: a.output.clone() }],
         Some(f) => {
             let (size, steps) = parse_fine(f)?;
@@ -217,7 +224,17 @@ pub fn run(a: TrainArgs) -> Result<()> {
                 Phase { config: fine, dir: a.output.clone() },
             ]
         }
-    };
+    })
+}
+
+pub fn run(a: TrainArgs) -> Result<()> {
+    crate::keep_freed_memory();
+    let precision = Precision::parse(&a.precision)
+        .ok_or_else(|| anyhow!("--precision {:?}: expected f32, f16 or bf16", a.precision))?;
+    let config = train_config(&a)?;
+    let (stage, freeze) = (config.stage, config.freeze);
+    let params = network(&a)?;
+    let phases = phases(&a, &config)?;
     for p in &phases {
         p.config.check(params.config.patch).map_err(|e| anyhow!(e))?;
     }
@@ -287,7 +304,12 @@ pub fn run(a: TrainArgs) -> Result<()> {
     if precision != Precision::F32 {
         t.params.save_as(&a.output.join("model.safetensors"), precision)?;
     }
-    let last = dens3r_train::run::read_log(&a.output.join("log.jsonl")).map_err(|e| anyhow!(e))?;
+    print_summary(&a.output, t.step, start.elapsed().as_secs_f64())
+}
+
+/// The last step's losses (and held-out scores) and where the weights are.
+fn print_summary(output: &std::path::Path, steps: usize, seconds: f64) -> Result<()> {
+    let last = dens3r_train::run::read_log(&output.join("log.jsonl")).map_err(|e| anyhow!(e))?;
     let held_out = last
         .iter()
         .rev()
@@ -297,9 +319,9 @@ pub fn run(a: TrainArgs) -> Result<()> {
     let last = last.last().map(|l| serde_json::to_string(&l.terms).unwrap_or_default()).unwrap_or_default() + &held_out;
     println!(
         "{} steps in {:.1} s; last: {last}; weights: {}",
-        t.step,
-        start.elapsed().as_secs_f64(),
-        a.output.join("model.safetensors").display()
+        steps,
+        seconds,
+        output.join("model.safetensors").display()
     );
     Ok(())
 }
