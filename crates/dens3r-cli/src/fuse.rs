@@ -120,8 +120,8 @@ pub fn run(a: FuseArgs) -> Result<()> {
         let cropped = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: 0, crop });
         let why = if whole.indices.is_empty() {
             format!(
-                "the fused volume has no surface ({} of {} frames had no valid depth; too few views, depth outside [{}, {}], or confidences below --min-conf)",
-                summary.empty_frames, summary.frames, a.min_depth, a.max_depth
+                "the fused volume has no surface ({} of {} frames had no valid depth, {} no pixel weighted above zero: confidences NaN or under --min-conf, or grazing normals; too few views, or depth outside [{}, {}])",
+                summary.empty_frames, summary.frames, summary.unweighted_frames, a.min_depth, a.max_depth
             )
         } else if cropped.indices.is_empty() {
             format!(

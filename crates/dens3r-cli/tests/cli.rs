@@ -1198,6 +1198,18 @@ fn errors_name_their_cause() {
     let line = fails(&["fuse", r, "-o", m, "--crop", "1,2,3"]);
     assert!(line.contains("--crop 1,2,3") && line.contains("six numbers"), "{line}");
     assert!(!mesh.exists());
+    // Confidence maps of NaN weight nothing: said, not blamed on the depth.
+    let nanconf = dir.path().join("nanconf");
+    copy_tree(&room, &nanconf);
+    std::fs::create_dir_all(nanconf.join("conf")).unwrap();
+    for e in std::fs::read_dir(room.join("depth")).unwrap() {
+        let path = e.unwrap().path();
+        let (shape, v) = dens3r_scene::npy::read_f32(&path).unwrap();
+        let conf = nanconf.join("conf").join(path.file_name().unwrap());
+        dens3r_scene::npy::write_f32(&conf, &shape, &vec![f32::NAN; v.len()]).unwrap();
+    }
+    let line = fails(&["fuse", nanconf.to_str().unwrap(), "-o", m, "--voxel", "0.05", "--conf-weight"]);
+    assert!(line.contains("0 of 8 frames had no valid depth, 8 no pixel weighted"), "{line}");
     // Negative coordinates are values, not flags; the room lies within 4 units of its origin.
     let text = ok(&["fuse", r, "-o", m, "--voxel", "0.05", "--crop", "-4,-4,-4,4,4,4"]);
     assert!(text.contains("triangles"), "{text}");

@@ -36,6 +36,9 @@ pub struct FusionSummary {
     pub frames: usize,
     /// Frames that had no valid depth at all.
     pub empty_frames: usize,
+    /// Frames with valid depth but no pixel weighted above zero (confidences NaN or under the
+    /// threshold, or every normal grazing): they add nothing.
+    pub unweighted_frames: usize,
     /// Blocks allocated.
     pub blocks: usize,
     /// Grid memory, bytes.
@@ -153,6 +156,9 @@ pub fn fuse_scene(
         let valid = depth.data().iter().any(|&d| opts.params.depth_valid(d));
         if valid {
             any_depth = true;
+            if weight.as_ref().is_some_and(|w| !w.data().iter().any(|&v| v > 0.0)) {
+                summary.unweighted_frames += 1;
+            }
         } else {
             summary.empty_frames += 1;
         }

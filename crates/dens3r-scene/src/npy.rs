@@ -13,7 +13,7 @@ pub fn read_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>), SceneError> {
     let bytes = std::fs::read(path).map_err(|e| SceneError::new(path, format!("cannot read: {e}")))?;
     let bad = |m: String| SceneError::new(path, m);
     if header_len(&bytes).is_some_and(|(at, len)| at.saturating_add(len) > bytes.len()) {
-        return Err(bad("the .npy header is longer than the file (truncated or damaged)".into()));
+        return Err(bad("not a valid .npy file: its header is longer than the file (truncated or damaged)".into()));
     }
     if header_shape_overflows(&bytes) {
         return Err(bad("array shape is too large (its element count overflows)".into()));
