@@ -40,8 +40,7 @@ fn main() -> Result<(), String> {
         let dims = bb.dims();
         let kinds: &[&str] = if dims.len() > 1 { &["dpt", "linear"] } else { &["dpt"] };
         for kind in kinds {
-            let layers: Vec<usize> =
-                if *kind == "dpt" { (0..4).map(|i| i * dims.len() / 4).collect() } else { (0..dims.len()).collect() };
+            let layers = dens3r_heads::plan::default_layers(kind, dims.len());
             let config = HeadConfig {
                 kind: kind.to_string(),
                 task: Task::Seg { classes: classes.clone() },

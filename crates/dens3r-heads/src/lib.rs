@@ -18,6 +18,7 @@ pub mod infer;
 pub mod io;
 pub mod loss;
 pub mod metrics;
+pub mod plan;
 pub mod pointmap;
 pub mod train;
 
