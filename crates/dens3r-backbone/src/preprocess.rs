@@ -84,37 +84,45 @@ pub fn jpeg_truncated(bytes: &[u8]) -> bool {
     !bytes[sos..].windows(2).any(|w| w == [0xFF, 0xD9])
 }
 
-/// Most pixels of an image read by [`open_oriented`] (8192 x 8192).
-pub const MAX_PIXELS: u64 = 8192 * 8192;
+/// Most pixels of an image read by [`open_oriented`] (16384 x 16384: phone photos of 200
+/// Mpixels pass).
+pub const MAX_PIXELS: u64 = 16384 * 16384;
+
+/// Most bytes [`open_oriented`] decodes a file of `file_len` bytes into: 256 MB, or 2000 times
+/// the file (images compress, even uniform ones not past that), and never over 1 GB.
+pub fn max_decoded_bytes(file_len: u64) -> u64 {
+    (256u64 << 20).max(file_len.saturating_mul(2000)).min(1 << 30)
+}
 
 /// Reads an image file applying its EXIF orientation.
 pub fn open_oriented(path: &Path) -> Result<DynamicImage, String> {
     let err = |e: image::ImageError| format!("{}: unreadable image ({e}); use PNG or JPEG", path.display());
-    let mut decoder = image::ImageReader::open(path)
-        .map_err(|e| format!("{}: cannot open ({e})", path.display()))?
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
+    let mut decoder = image::ImageReader::new(std::io::Cursor::new(&bytes[..]))
         .with_guessed_format()
         .map_err(|e| format!("{}: cannot read ({e})", path.display()))?
         .into_decoder()
         .map_err(err)?;
     // A damaged header can claim any size: refuse before the pixels are allocated.
     let (w, h) = image::ImageDecoder::dimensions(&decoder);
-    if u64::from(w) * u64::from(h) > MAX_PIXELS || image::ImageDecoder::total_bytes(&decoder) > 256 << 20 {
+    let most = max_decoded_bytes(bytes.len() as u64);
+    if u64::from(w) * u64::from(h) > MAX_PIXELS || image::ImageDecoder::total_bytes(&decoder) > most {
         return Err(format!(
-            "{}: the image claims {w}x{h} pixels, more than the {} Mpixels (256 MB decoded) read; \
-             resize it, or check that the file is not damaged",
+            "{}: the image claims {w}x{h} pixels, more than this {}-byte file can hold ({} MB decoded at most, {} Mpixels); \
+             check that the file is not damaged, or resize it",
             path.display(),
+            bytes.len(),
+            most >> 20,
             MAX_PIXELS / 1_000_000
         ));
     }
     // JPEG decoders fill a cut-off file's missing rows with grey without a word.
-    let head = std::fs::read(path).map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
-    if jpeg_truncated(&head) {
+    if jpeg_truncated(&bytes) {
         return Err(format!(
             "{}: the JPEG is truncated (no end of image after its last scan); copy or export it again",
             path.display()
         ));
     }
-    drop(head);
     let orientation = decoder.orientation().map_err(err)?;
     let mut img = DynamicImage::from_decoder(decoder).map_err(err)?;
     img.apply_orientation(orientation);
@@ -204,6 +212,24 @@ pub fn unrotate_vector(v: [f32; 3]) -> [f32; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_header_claiming_more_pixels_than_the_file_can_hold_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("big.jpg");
+        image::RgbImage::from_pixel(20, 12, image::Rgb([90, 100, 110])).save(&path).unwrap();
+        let mut bytes = std::fs::read(&path).unwrap();
+        // The baseline frame header: FF C0, length, precision, then height and width.
+        let sof = bytes.windows(2).position(|w| w == [0xFF, 0xC0]).unwrap();
+        bytes[sof + 5..sof + 9].copy_from_slice(&[0xFF, 0xFF, 0xFF, 0xFF]);
+        std::fs::write(&path, &bytes).unwrap();
+        // It used to allocate 12.9 GB (65535 x 65535 x 3) for a file of a few hundred bytes.
+        let e = open_oriented(&path).unwrap_err();
+        assert!(e.contains("big.jpg") && e.contains("65535x65535"), "{e}");
+        // A 108-Mpixel phone photo (12000 x 9000, 324 MB decoded) of 25 MB passes the bound.
+        assert!(max_decoded_bytes(25 << 20) >= 12000 * 9000 * 3);
+        assert_eq!(max_decoded_bytes(700), 256 << 20);
+    }
 
     #[test]
     fn a_truncated_jpeg_is_refused_by_name() {
