@@ -67,27 +67,16 @@ fn gpu_candidates() -> Vec<(&'static str, Maker)> {
 /// Builds the device and round-trips four numbers through it; backend initialisation panics
 /// (no adapter, no driver) become an error without the panic's message on stderr.
 fn probe(make: Maker) -> Result<Device, String> {
-    // The panic hook is process-wide: one probe at a time swaps it.
-    static PROBE: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    let _one = PROBE.lock().unwrap_or_else(|e| e.into_inner());
-    let hook = std::panic::take_hook();
-    std::panic::set_hook(Box::new(|_| {}));
-    let out = std::panic::catch_unwind(|| {
+    let out = dens3r_mesh::panics::catch_quietly(|| {
         let d = make();
         let t = Tensor::<1>::from_data(TensorData::new(vec![1f32, 2.0, 3.0, 4.0], [4]), &d);
         let back = (t * 2.0).into_data().try_to_vec::<f32>().unwrap_or_default();
         (d, back)
     });
-    std::panic::set_hook(hook);
     match out {
         Ok((d, back)) if back == [2.0, 4.0, 6.0, 8.0] => Ok(d),
         Ok((_, back)) => Err(format!("a test computation gave {back:?}")),
-        Err(p) => Err(p
-            .downcast_ref::<String>()
-            .cloned()
-            .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-            .map(|s| s.lines().next().unwrap_or("").to_string())
-            .unwrap_or_else(|| "backend initialisation failed".into())),
+        Err(e) => Err(e),
     }
 }
 

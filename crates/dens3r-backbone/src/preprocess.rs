@@ -84,6 +84,9 @@ pub fn jpeg_truncated(bytes: &[u8]) -> bool {
     !bytes[sos..].windows(2).any(|w| w == [0xFF, 0xD9])
 }
 
+/// The network input's long sides [`preprocess`] takes.
+pub const SIZES: std::ops::RangeInclusive<u32> = 16..=8192;
+
 /// Most pixels of an image read by [`open_oriented`] (16384 x 16384: phone photos of 200
 /// Mpixels pass).
 pub const MAX_PIXELS: u64 = 16384 * 16384;
@@ -138,8 +141,8 @@ pub fn preprocess(img: &DynamicImage, size: u32, rotate_portrait: bool) -> Resul
     if w0 == 0 || h0 == 0 {
         return Err("image is empty".into());
     }
-    if !(16..=8192).contains(&size) {
-        return Err(format!("size {size} must be in 16..=8192"));
+    if !SIZES.contains(&size) {
+        return Err(format!("size {size} must be in {SIZES:?}"));
     }
     let rotated = rotate_portrait && w0 < h0;
     let rgb = img.to_rgb8();

@@ -31,8 +31,9 @@ pub struct ModelArgs {
 /// `--size` in the range the network takes (checked before any image is read, so the error
 /// names the flag, not an image).
 pub fn check_size(size: u32) -> Result<()> {
-    if !(16..=8192).contains(&size) {
-        bail!("--size {size}: the network input's long side must be in 16..=8192 (512, or 1024 for more detail)");
+    let sizes = dens3r_backbone::preprocess::SIZES;
+    if !sizes.contains(&size) {
+        bail!("--size {size}: the network input's long side must be in {sizes:?} (512, or 1024 for more detail)");
     }
     Ok(())
 }

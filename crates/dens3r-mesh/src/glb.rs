@@ -77,7 +77,7 @@ pub fn from_glb(bytes: &[u8]) -> Result<TriMesh, String> {
     // GLB length under its header's, an out-of-range component type): such a panic is a
     // refusal of the file, not a crash.
     crate::panics::catch_quietly(|| read_glb(bytes))
-        .unwrap_or_else(|| Err("the file is damaged (the glTF reader could not make sense of it)".into()))
+        .unwrap_or_else(|e| Err(format!("the file is damaged (the glTF reader failed: {e})")))
 }
 
 fn read_glb(bytes: &[u8]) -> Result<TriMesh, String> {

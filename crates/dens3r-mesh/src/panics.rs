@@ -7,9 +7,10 @@ thread_local! {
     static QUIET: Cell<bool> = const { Cell::new(false) };
 }
 
-/// Runs `f`; a panic inside it gives `None` and prints nothing (the process's panic hook is
-/// wrapped once so that it stays silent for a thread inside this call, and only for it).
-pub fn catch_quietly<T>(f: impl FnOnce() -> T) -> Option<T> {
+/// Runs `f`; a panic inside it gives `Err` with the first line of its message and prints
+/// nothing (the process's panic hook is wrapped once so that it stays silent for a thread
+/// inside this call, and only for it).
+pub fn catch_quietly<T>(f: impl FnOnce() -> T) -> Result<T, String> {
     static WRAP: std::sync::Once = std::sync::Once::new();
     WRAP.call_once(|| {
         let previous = std::panic::take_hook();
@@ -22,7 +23,13 @@ pub fn catch_quietly<T>(f: impl FnOnce() -> T) -> Option<T> {
     let was = QUIET.with(|q| q.replace(true));
     let out = catch_unwind(AssertUnwindSafe(f));
     QUIET.with(|q| q.set(was));
-    out.ok()
+    out.map_err(|p| {
+        p.downcast_ref::<String>()
+            .cloned()
+            .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+            .map(|s| s.lines().next().unwrap_or("").to_string())
+            .unwrap_or_else(|| "a panic without a message".into())
+    })
 }
 
 #[cfg(test)]
@@ -30,10 +37,11 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_panic_is_none_and_a_value_passes() {
-        assert_eq!(catch_quietly(|| 7), Some(7));
+    fn a_panic_is_its_message_and_a_value_passes() {
+        assert_eq!(catch_quietly(|| 7), Ok(7));
         let v: Vec<u8> = Vec::new();
-        assert_eq!(catch_quietly(|| v[3]), None);
+        let e = catch_quietly(|| v[3]).unwrap_err();
+        assert!(e.contains("index out of bounds"), "{e}");
         // The thread is loud again afterwards (the flag is restored).
         assert!(!QUIET.with(Cell::get));
     }

@@ -195,21 +195,18 @@ impl TrainData {
     /// A hash of everything trained on (rays, bounds, frame count), so a checkpoint is resumed
     /// only with the input it was written for.
     pub fn fingerprint(&self) -> u64 {
-        use dens3r_scene::hash::fnv1a_update;
+        use dens3r_scene::hash::{fnv1a, fnv1a_update};
         let r = &self.rays;
-        let mut h = dens3r_scene::hash::fnv1a(&(self.frames as u64).to_le_bytes(), r.len() as u64);
-        let floats = |h: u64, v: &mut dyn Iterator<Item = f32>| {
-            let bytes: Vec<u8> = v.flat_map(f32::to_le_bytes).collect();
-            fnv1a_update(h, &bytes)
-        };
-        h = floats(h, &mut r.origin.iter().flat_map(|p| p.to_array()));
-        h = floats(h, &mut r.dir.iter().flat_map(|p| p.to_array()));
-        h = floats(h, &mut r.dist.iter().copied());
-        h = floats(h, &mut r.normal.iter().flat_map(|p| p.to_array()));
-        h = floats(h, &mut r.color.iter().flatten().copied());
-        h = fnv1a_update(h, &r.frame.iter().flat_map(|f| f.to_le_bytes()).collect::<Vec<u8>>());
-        let b = serde_json::to_vec(&self.bounds).unwrap_or_default();
-        fnv1a_update(h, &b)
+        let mut h = fnv1a(&(self.frames as u64).to_le_bytes(), r.len() as u64);
+        // Streamed value by value: no copy of the arrays.
+        for i in 0..r.len() {
+            let (o, d, n, c) = (r.origin[i], r.dir[i], r.normal[i], r.color[i]);
+            for v in [o.x, o.y, o.z, d.x, d.y, d.z, r.dist[i], n.x, n.y, n.z, c[0], c[1], c[2]] {
+                h = fnv1a_update(h, &v.to_le_bytes());
+            }
+            h = fnv1a_update(h, &r.frame[i].to_le_bytes());
+        }
+        fnv1a_update(h, &serde_json::to_vec(&self.bounds).unwrap_or_default())
     }
 
     /// The default mesh voxel (also the TSDF start's): a quarter of an occupancy cell, in world

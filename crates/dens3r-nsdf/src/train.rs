@@ -168,6 +168,8 @@ pub struct Trainer {
     moments: Vec<Moments>,
     /// Iterations done.
     pub iter: usize,
+    /// [`TrainData::fingerprint`] of the data, hashed once (checkpoints carry it).
+    data_hash: u64,
     device: Device,
     frame_ranges: Vec<(usize, usize)>,
     occupied: Vec<glam::IVec3>,
@@ -189,9 +191,10 @@ impl Trainer {
         config.check().map_err(NsdfError::Options)?;
         options.check().map_err(NsdfError::Options)?;
         let values = field::init_values(&config, options.seed);
-        Ok(Self::from_state(config, options, data, device, &values, None, 0))
+        Ok(Self::from_state(config, options, data, device, &values, None, 0, data.fingerprint()))
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn from_state(
         config: FieldConfig,
         options: TrainOptions,
@@ -200,6 +203,7 @@ impl Trainer {
         values: &[(Vec<f32>, [usize; 2])],
         moments: Option<&[(Vec<f32>, Vec<f32>)]>,
         iter: usize,
+        data_hash: u64,
     ) -> Self {
         let (table, params) = Params::from_values(values, &device, true);
         let inner = device.clone().inner();
@@ -235,6 +239,7 @@ impl Trainer {
             table_grad,
             moments,
             iter,
+            data_hash,
             device,
             frame_ranges,
             occupied,
@@ -251,7 +256,7 @@ impl Trainer {
             options: self.options.clone(),
             bounds: data.bounds,
             iter: self.iter,
-            data: Some(data.fingerprint()),
+            data: Some(self.data_hash),
             values: self.values(),
             moments: Some(moments),
         };
@@ -268,7 +273,8 @@ impl Trainer {
         device: Device,
     ) -> Result<Self, NsdfError> {
         let ck = checkpoint::load(path)?;
-        if ck.data.is_some_and(|h| h != data.fingerprint()) {
+        let data_hash = data.fingerprint();
+        if ck.data.is_some_and(|h| h != data_hash) {
             return Err(NsdfError::Checkpoint(format!(
                 "{}: written for other input (another scene, or its frames changed); rerun with --restart to start over from this input, or give another -o",
                 path.display()
@@ -290,7 +296,7 @@ impl Trainer {
         let moments = ck.moments.ok_or_else(|| {
             NsdfError::Checkpoint(format!("{}: holds no optimiser state (an exported field?)", path.display()))
         })?;
-        Ok(Self::from_state(ck.config, options, data, device, &ck.values, Some(&moments), ck.iter))
+        Ok(Self::from_state(ck.config, options, data, device, &ck.values, Some(&moments), ck.iter, data_hash))
     }
 
     /// All parameter values with shapes, table first (the checkpoint layout).
