@@ -287,7 +287,7 @@ fn fuse_writes_meshes_that_reopen_and_rejects_bad_input() {
     assert!(counts.iter().all(|&c| c == counts[0] && c > 1000), "{counts:?}");
     assert_no_temp_files(dir.path());
 
-    // --gpu gives the same mesh (when the machine has a wgpu adapter; see tests/gpu.rs in
+    // --gpu gives the same mesh (when the machine has a wgpu adapter; see tests/it/gpu.rs in
     // dens3r-fusion for the voxel-level comparison).
     let out = dir.path().join("gpu.ply");
     let o = dens3r(&["fuse", orbit.to_str().unwrap(), "-o", out.to_str().unwrap(), "--voxel", "0.02", "--gpu"]);

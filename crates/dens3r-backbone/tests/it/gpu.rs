@@ -9,9 +9,7 @@ use dens3r_backbone::device::{cpu, is_gpu, network_device};
 use dens3r_backbone::verify::verify_dir;
 use dens3r_backbone::{Device, ModelConfig, Params, Tensor, TensorData, Weights};
 
-#[path = "../../../tests/support/fixtures.rs"]
-mod fixtures;
-use fixtures::{parity, A};
+use crate::fixtures::{parity, A};
 
 fn gpu_or_skip() -> Option<Device> {
     match network_device(true) {

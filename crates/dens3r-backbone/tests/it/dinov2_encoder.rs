@@ -7,9 +7,7 @@ use dens3r_backbone::verify::{load_dinov2, load_model};
 use dens3r_backbone::{Device, ModelConfig, Params, Tensor, TensorData};
 use std::sync::Arc;
 
-#[path = "../../../tests/support/fetched.rs"]
-mod fetched;
-use fetched::fetched;
+use crate::fetched::fetched;
 
 /// A small decoder and heads on DINOv2-S's 384-wide tokens.
 fn config() -> ModelConfig {

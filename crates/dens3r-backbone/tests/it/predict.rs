@@ -6,9 +6,7 @@ use dens3r_backbone::preprocess::preprocess;
 use dens3r_backbone::verify::load_model;
 use std::path::PathBuf;
 
-#[path = "../../../tests/support/fixtures.rs"]
-mod fixtures;
-use fixtures::{parity, shared_parity, A};
+use crate::fixtures::{parity, shared_parity, A};
 
 #[test]
 fn pair_and_mono_agree_and_keep_orientations() {

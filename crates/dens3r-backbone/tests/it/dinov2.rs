@@ -8,9 +8,7 @@ use dens3r_backbone::dinov2::{resize_bicubic, Dinov2};
 use dens3r_backbone::{Device, Tensor, TensorData};
 use std::path::PathBuf;
 
-#[path = "../../../tests/support/fetched.rs"]
-mod fetched;
-use fetched::fetched;
+use crate::fetched::fetched;
 
 #[test]
 fn dinov2_tokens_match_onnxruntime() {

@@ -8,9 +8,7 @@ use dens3r_backbone::ops::Rope;
 use dens3r_backbone::verify::verify_dir;
 use dens3r_backbone::{Tensor, TensorData};
 
-#[path = "../../../tests/support/fixtures.rs"]
-mod fixtures;
-use fixtures::{parity, shared, shared_parity, A};
+use crate::fixtures::{parity, shared, shared_parity, A};
 
 #[test]
 fn rope_matches_reference_tables() {

@@ -11,9 +11,7 @@ use dens3r_mesh::{mesh_metrics, read_mesh, MeshMetricsOptions};
 use dens3r_render::procedural::single_object;
 use dens3r_render::{path, World};
 
-#[path = "../../../tests/support/fetched.rs"]
-mod fetched;
-use fetched::fetched;
+use crate::fetched::fetched;
 
 #[test]
 fn scanned_meshes_render_consistently() {
