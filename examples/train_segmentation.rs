@@ -11,7 +11,7 @@ use dens3r_heads::data::{self, Want};
 use dens3r_heads::{Backbone, Dinov2Backbone, Example, Head, HeadConfig, PixelBackbone, Task, TrainOptions, Trainer};
 use std::path::Path;
 
-fn main() -> Result<(), String> {
+fn main() -> Result<(), dens3r_heads::HeadsError> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut backbones: Vec<(&str, Box<dyn Backbone>)> = vec![("raw pixels", Box::new(PixelBackbone { patch: 14 }))];
     let onnx = root.join(".cache/data/dinov2/vit_s_focus.onnx");

@@ -17,7 +17,7 @@
 use crate::resection;
 use crate::union_find::UnionFind;
 use dens3r_geom::align::umeyama;
-use dens3r_geom::focal::{focal_from_pointmap, FocalMode};
+use dens3r_geom::focal::{focal_or_fallback, FALLBACK_HFOV_DEG};
 use dens3r_geom::transform::{axis_angle, nearest_rotation, Sim3};
 use dens3r_geom::{Intrinsics, PinholeCamera, Raster, Vec3};
 use glam::{DMat3, DMat4, DVec3};
@@ -333,7 +333,6 @@ pub fn global_align(
     for k in 0..n {
         let e = (0..pairs.len()).filter(|&e| pairs[e].i == k).max_by(|&a, &b| score[a].total_cmp(&score[b])).unwrap();
         let (wk, hk) = sizes[k];
-        let (cx, cy) = (wk as f64 / 2.0, hk as f64 / 2.0);
         let pts = &pairs[e].pts_i;
         let samples = resection::pointmap_samples(pts, |i| w[e][0][i], 20_000);
         if samples.len() < 6 {
@@ -354,16 +353,12 @@ pub fn global_align(
             }
         };
         let cam = pts.map(|&q| if valid(q) { (rot * dv(q) + tr).as_vec3() } else { Vec3::NAN });
-        focal[k] = match focal_from_pointmap(&cam, (cx, cy), FocalMode::Weiszfeld).filter(|f| f.is_finite() && *f > 0.0)
-        {
-            Some(f) => f,
-            None => {
-                warnings.push(format!(
-                    "image {k}: its pointmap gives no positive focal (untrained weights?); starting from a 60-degree field of view"
-                ));
-                Intrinsics::from_hfov(wk, hk, 60.0).fx
-            }
-        };
+        focal[k] = focal_or_fallback(&cam, wk, hk).unwrap_or_else(|f| {
+            warnings.push(format!(
+                "image {k}: its pointmap gives no positive focal (untrained weights?); starting from a {FALLBACK_HFOV_DEG}-degree field of view"
+            ));
+            f
+        });
         let t = procrustes(&cam, world[k].as_ref().unwrap(), &w[e][0])?;
         scale[k] = t.scale;
         poses.push(Pose::new(t.rotation, t.translation));

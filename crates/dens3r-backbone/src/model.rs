@@ -407,16 +407,20 @@ pub struct Predictions {
 
 /// Whether `dinov2` can be the encoder of a network of `config`: the network's encoder must be
 /// a DINOv2 ([`EncoderKind::Dinov2`]) of the width its decoder reads.
-pub fn dinov2_fits(config: &ModelConfig, dinov2: &Dinov2) -> Result<(), String> {
+pub fn dinov2_fits(config: &ModelConfig, dinov2: &Dinov2) -> Result<(), WeightsError> {
     if config.encoder != EncoderKind::Dinov2 {
-        return Err("the network has its own ViT encoder; a DINOv2 is only for a DINOv2-encoder network".into());
+        return Err(WeightsError::new(
+            &dinov2.path,
+            "the network has its own ViT encoder; a DINOv2 is only for a DINOv2-encoder network",
+        ));
     }
     if dinov2.config.dim != config.enc_dim {
-        return Err(format!(
-            "{}: a {}-wide DINOv2, but the decoder reads {}-wide tokens; use the encoder the network was trained with",
-            dinov2.path.display(),
-            dinov2.config.dim,
-            config.enc_dim
+        return Err(WeightsError::new(
+            &dinov2.path,
+            format!(
+                "a {}-wide DINOv2, but the decoder reads {}-wide tokens; use the encoder the network was trained with",
+                dinov2.config.dim, config.enc_dim
+            ),
         ));
     }
     Ok(())
@@ -528,7 +532,7 @@ impl Dens3r {
 
     /// Attaches the frozen DINOv2 of a network whose encoder is one
     /// ([`EncoderKind::Dinov2`]); an error when the widths differ or the network has its own.
-    pub fn attach_dinov2(&mut self, dinov2: Arc<Dinov2>) -> Result<(), String> {
+    pub fn attach_dinov2(&mut self, dinov2: Arc<Dinov2>) -> Result<(), WeightsError> {
         dinov2_fits(&self.config, &dinov2)?;
         if let Encoder::Dinov2(slot) = &mut self.encoder {
             *slot = Some(dinov2);

@@ -178,7 +178,7 @@ impl Params {
     }
 
     /// These parameters with the frozen DINOv2 encoder their configuration needs.
-    pub fn with_dinov2(mut self, dinov2: Arc<Dinov2>) -> Result<Self, String> {
+    pub fn with_dinov2(mut self, dinov2: Arc<Dinov2>) -> Result<Self, WeightsError> {
         crate::model::dinov2_fits(&self.config, &dinov2)?;
         self.dinov2 = Some(dinov2);
         Ok(self)

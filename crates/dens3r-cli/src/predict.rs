@@ -4,15 +4,15 @@
 use crate::model_args::{load_network, open_backbone, resolve_model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use dens3r_backbone::predict::{predict_mono, predict_mono_features, to_image_grid, MonoPrediction, Resolution};
+use dens3r_backbone::predict::{predict_mono, predict_mono_features, to_image_grid, Resolution};
 use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
-use dens3r_geom::{focal_from_pointmap, DMat4, FocalMode, Intrinsics, NormalConvention, PinholeCamera, Raster, Vec3};
+use dens3r_geom::FALLBACK_HFOV_DEG;
 use dens3r_heads::data::resize_nearest;
 use dens3r_heads::features::file_hash;
-use dens3r_heads::infer::{check_head, infer, overlay, write_label_png, HeadOutput};
+use dens3r_heads::infer::{check_head, infer, write_head_output, HeadOutput};
 use dens3r_heads::{Backbone, Dens3rBackbone, Head, Task};
-use dens3r_mesh::TriMesh;
-use dens3r_scene::{Frame, SceneWriter};
+use dens3r_recon::mono::write_mono_frame;
+use dens3r_scene::SceneWriter;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
@@ -81,6 +81,23 @@ struct NamedHead {
     head: Head,
 }
 
+/// What runs: the Dens3R network (wrapped as a feature backbone for heads on its pass), the
+/// heads, and the other backbone with the heads' input size when they were trained on one.
+struct Networks {
+    net: Option<Dens3rBackbone>,
+    heads: Vec<NamedHead>,
+    other: Option<(Box<dyn Backbone>, u32)>,
+}
+
+impl Networks {
+    fn heads_on_net(&self) -> bool {
+        !self.heads.is_empty() && self.other.is_none()
+    }
+}
+
+/// An input image: its unique name, the network input, and the photo where it is read again.
+type Input = (String, Prepared, Option<image::RgbImage>);
+
 pub fn run(a: PredictArgs) -> Result<()> {
     crate::model_args::check_size(a.size)?;
     for p in &a.images {
@@ -89,9 +106,54 @@ pub fn run(a: PredictArgs) -> Result<()> {
         }
     }
     refuse_existing_scene(&a.output, a.overwrite)?;
+    let nets = load_networks(&a)?;
+    let inputs = load_inputs(&a, nets.other.is_some())?;
+    let mut writer = match &nets.net {
+        Some(_) => {
+            let mut w = SceneWriter::create(&a.output)?;
+            w.set_extra("generator", serde_json::json!("dens3r predict"));
+            Some(w)
+        }
+        None => {
+            std::fs::create_dir_all(&a.output).with_context(|| format!("{}: cannot create", a.output.display()))?;
+            None
+        }
+    };
+    // Every file goes where the writer writes (a staging folder while a scene is replaced).
+    let root = writer.as_ref().map_or_else(|| a.output.clone(), |w| w.root().to_path_buf());
+    create_head_folders(&root, &nets.heads)?;
+    let bar = indicatif::ProgressBar::new(inputs.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template("predict {bar:30} {pos}/{len} images [{elapsed} < {eta}]")
+            .expect("valid template"),
+    );
+    for input in &inputs {
+        predict_one(&a, &nets, writer.as_mut(), &root, input)?;
+        bar.inc(1);
+    }
+    if let Some(w) = writer {
+        w.finish()?;
+    }
+    bar.finish_and_clear();
+    let what = match (&nets.net, nets.heads.len()) {
+        (Some(_), 0) => "depth, normals, confidence, intrinsics and pointmaps".to_string(),
+        (Some(_), n) => format!("depth, normals, confidence, intrinsics, pointmaps and {n} head(s)"),
+        (None, n) => format!("{n} head(s)"),
+    };
+    println!(
+        "predicted {what} for {} images into {} (maps at {} size{})",
+        inputs.len(),
+        a.output.display(),
+        if a.original_size { "original" } else { "network" },
+        if nets.net.is_some() { ", normals in the OpenCV camera frame" } else { "" }
+    );
+    Ok(())
+}
+
+/// The heads, the network (unless only heads on another backbone are asked for; without
+/// --weights it is the bundled default model) and the heads' other backbone, each head checked
+/// against the backbone it will run on.
+fn load_networks(a: &PredictArgs) -> Result<Networks> {
     let heads = load_heads(&a.heads)?;
-    // The network runs unless only heads on another backbone are asked for; without
-    // --weights it is the bundled default model.
     let run_net = a.weights.is_some() || a.heads.is_empty() || a.backbone.is_none();
     // A head trained on another backbone needs that backbone named, not the default network.
     if let Some((h, path)) = heads.iter().zip(&a.heads).find(|(h, _)| !h.head.config.backbone.starts_with("dens3r")) {
@@ -111,7 +173,6 @@ pub fn run(a: PredictArgs) -> Result<()> {
         }
         None => None,
     };
-    // Heads on the network's own pass: it is wrapped as a feature backbone.
     let heads_on_net = !heads.is_empty() && other.is_none();
     let net = if run_net {
         let (weights, config) = resolve_model(a.weights.as_deref(), a.config.as_deref())?;
@@ -121,46 +182,45 @@ pub fn run(a: PredictArgs) -> Result<()> {
         } else {
             0
         };
-        Some(Dens3rBackbone::new(model, None, hash).map_err(anyhow::Error::msg)?)
+        Some(Dens3rBackbone::new(model, None, hash)?)
     } else {
         None
     };
-    let head_backbone: Option<&dyn Backbone> = match (&other, &net) {
+    let nets = Networks { net, heads, other };
+    let head_backbone: Option<&dyn Backbone> = match (&nets.other, &nets.net) {
         (Some((b, _)), _) => Some(b.as_ref()),
         (None, n) => n.as_ref().map(|n| n as &dyn Backbone),
     };
     if let Some(b) = head_backbone {
         let (id, dims) = (b.id(), b.dims());
-        for (h, path) in heads.iter().zip(&a.heads) {
-            check_head(path, &h.head, &id, &dims).map_err(anyhow::Error::msg)?;
+        for (h, path) in nets.heads.iter().zip(&a.heads) {
+            check_head(path, &h.head, &id, &dims)?;
         }
     }
+    Ok(nets)
+}
 
-    // Decode and preprocess everything first: a bad image fails before anything is written.
-    // The photo itself is kept only where it is read again (original size, another backbone).
-    let keep_source = a.original_size || other.is_some();
-    let mut inputs = Vec::new();
+/// Decodes and preprocesses every image before anything is written, so a bad image fails
+/// first. The photo itself is kept only where it is read again (original size, another
+/// backbone).
+fn load_inputs(a: &PredictArgs, other_backbone: bool) -> Result<Vec<Input>> {
+    let keep_source = a.original_size || other_backbone;
     let mut names = HashSet::new();
-    for p in &a.images {
-        let img = open_oriented(p).map_err(anyhow::Error::msg)?;
-        let prep = preprocess(&img, a.size, !a.keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-        let name = dens3r_recon::input::unique_name(p, &mut names);
-        inputs.push((name, prep, keep_source.then(|| img.to_rgb8())));
-    }
-    let mut writer = match &net {
-        Some(_) => {
-            let mut w = SceneWriter::create(&a.output)?;
-            w.set_extra("generator", serde_json::json!("dens3r predict"));
-            Some(w)
-        }
-        None => {
-            std::fs::create_dir_all(&a.output).with_context(|| format!("{}: cannot create", a.output.display()))?;
-            None
-        }
-    };
-    // Every file goes where the writer writes (a staging folder while a scene is replaced).
-    let root = writer.as_ref().map_or_else(|| a.output.clone(), |w| w.root().to_path_buf());
-    for h in &heads {
+    a.images
+        .iter()
+        .map(|p| {
+            let img = open_oriented(p).map_err(anyhow::Error::msg)?;
+            let prep =
+                preprocess(&img, a.size, !a.keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            let name = dens3r_recon::input::unique_name(p, &mut names);
+            Ok((name, prep, keep_source.then(|| img.to_rgb8())))
+        })
+        .collect()
+}
+
+/// `heads/HEAD/` for every head, with its `classes.json` for segmentation heads.
+fn create_head_folders(root: &Path, heads: &[NamedHead]) -> Result<()> {
+    for h in heads {
         let dir = root.join("heads").join(&h.stem);
         std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
         if let Task::Seg { classes } = &h.head.config.task {
@@ -168,72 +228,65 @@ pub fn run(a: PredictArgs) -> Result<()> {
             dens3r_scene::write_classes(&dir.join("classes.json"), &map)?;
         }
     }
-    let bar = indicatif::ProgressBar::new(inputs.len() as u64).with_style(
-        indicatif::ProgressStyle::with_template("predict {bar:30} {pos}/{len} images [{elapsed} < {eta}]")
-            .expect("valid template"),
-    );
+    Ok(())
+}
+
+/// Every output of one image: the network's maps as a scene frame with the heads on the same
+/// pass, or the heads on the other backbone.
+fn predict_one(
+    a: &PredictArgs,
+    nets: &Networks,
+    writer: Option<&mut SceneWriter>,
+    root: &Path,
+    (name, prep, source): &Input,
+) -> Result<()> {
     let res = if a.original_size { Resolution::Original } else { Resolution::Network };
     let device = burn::tensor::Device::flex();
-    for (name, prep, source) in &inputs {
-        // The picture every map of this image is written at (overlays are drawn on it).
-        let mut picture = None;
-        if let (Some(net), Some(writer)) = (&net, writer.as_mut()) {
-            let (mut pred, features) = if heads_on_net {
-                let (p, v) = predict_mono_features(net.model(), prep, res);
-                (p, Some(net.maps(&v)))
-            } else {
-                (predict_mono(net.model(), prep, res), None)
-            };
-            if let Some(src) = source.as_ref().filter(|_| a.original_size) {
-                pred.rgb = src.clone();
-            }
-            write_network_outputs(writer, &root, name, prep, &pred)?;
-            if let Some(f) = features {
-                for h in &heads {
-                    // The network frame back to the image's orientation and map size.
-                    let size = (f.grid.0 * h.head.config.patch, f.grid.1 * h.head.config.patch);
-                    let out = match infer(&h.head, &f, &device) {
-                        HeadOutput::Labels(l) => HeadOutput::Labels(to_image_grid(l, 1, size, &prep.info, res).0),
-                        HeadOutput::Depth(d) => HeadOutput::Depth(to_image_grid(d, 1, size, &prep.info, res).0),
-                    };
-                    write_head_output(&root, h, name, out, &pred.rgb)?;
-                }
-            }
-            picture = Some(pred.rgb);
+    // The picture every map of this image is written at (overlays are drawn on it).
+    let mut picture = None;
+    if let (Some(net), Some(writer)) = (&nets.net, writer) {
+        let (mut pred, features) = if nets.heads_on_net() {
+            let (p, v) = predict_mono_features(net.model(), prep, res);
+            (p, Some(net.maps(&v)))
+        } else {
+            (predict_mono(net.model(), prep, res), None)
+        };
+        if let Some(src) = source.as_ref().filter(|_| a.original_size) {
+            pred.rgb = src.clone();
         }
-        if let (Some((b, long)), Some(src)) = (&other, source) {
-            let img = dens3r_heads::data::resize_to_patches(src.clone(), *long, b.patch() as u32);
-            let f = b.extract(&img);
-            // Heads only: at their input size, or the photo's with --original-size.
-            let (iw, ih) = (img.width() as usize, img.height() as usize);
-            let picture = picture.unwrap_or_else(|| if a.original_size { src.clone() } else { img });
-            let (ow, oh) = (picture.width() as usize, picture.height() as usize);
-            for h in &heads {
-                let out = match infer(&h.head, &f, &device) {
-                    HeadOutput::Labels(l) => HeadOutput::Labels(resize_nearest(&l, iw, ih, ow, oh)),
-                    HeadOutput::Depth(d) => HeadOutput::Depth(resize_nearest(&d, iw, ih, ow, oh)),
+        if !write_mono_frame(writer, name, &pred)? {
+            eprintln!(
+                "warning: {name}: the pointmap gives no positive focal (untrained weights?); using a {FALLBACK_HFOV_DEG}-degree field of view"
+            );
+        }
+        if let Some(f) = &features {
+            for h in &nets.heads {
+                // The network frame back to the image's orientation and map size.
+                let size = (f.grid.0 * h.head.config.patch, f.grid.1 * h.head.config.patch);
+                let out = match infer(&h.head, f, &device) {
+                    HeadOutput::Labels(l) => HeadOutput::Labels(to_image_grid(l, 1, size, &prep.info, res).0),
+                    HeadOutput::Depth(d) => HeadOutput::Depth(to_image_grid(d, 1, size, &prep.info, res).0),
                 };
-                write_head_output(&root, h, name, out, &picture)?;
+                write_head(root, h, name, &out, &pred.rgb)?;
             }
         }
-        bar.inc(1);
+        picture = Some(pred.rgb);
     }
-    if let Some(w) = writer {
-        w.finish()?;
+    if let (Some((b, long)), Some(src)) = (&nets.other, source) {
+        let img = dens3r_heads::data::resize_to_patches(src.clone(), *long, b.patch() as u32);
+        let f = b.extract(&img);
+        // Heads only: at their input size, or the photo's with --original-size.
+        let (iw, ih) = (img.width() as usize, img.height() as usize);
+        let picture = picture.unwrap_or_else(|| if a.original_size { src.clone() } else { img });
+        let (ow, oh) = (picture.width() as usize, picture.height() as usize);
+        for h in &nets.heads {
+            let out = match infer(&h.head, &f, &device) {
+                HeadOutput::Labels(l) => HeadOutput::Labels(resize_nearest(&l, iw, ih, ow, oh)),
+                HeadOutput::Depth(d) => HeadOutput::Depth(resize_nearest(&d, iw, ih, ow, oh)),
+            };
+            write_head(root, h, name, &out, &picture)?;
+        }
     }
-    bar.finish_and_clear();
-    let what = match (&net, heads.len()) {
-        (Some(_), 0) => "depth, normals, confidence, intrinsics and pointmaps".to_string(),
-        (Some(_), n) => format!("depth, normals, confidence, intrinsics, pointmaps and {n} head(s)"),
-        (None, n) => format!("{n} head(s)"),
-    };
-    println!(
-        "predicted {what} for {} images into {} (maps at {} size{})",
-        inputs.len(),
-        a.output.display(),
-        if a.original_size { "original" } else { "network" },
-        if net.is_some() { ", normals in the OpenCV camera frame" } else { "" }
-    );
     Ok(())
 }
 
@@ -243,7 +296,7 @@ fn load_heads(paths: &[PathBuf]) -> Result<Vec<NamedHead>> {
     paths
         .iter()
         .map(|p| {
-            let head = Head::load(p).map_err(anyhow::Error::msg)?;
+            let head = Head::load(p)?;
             let stem = dens3r_recon::input::unique_name(p, &mut stems);
             Ok(NamedHead { stem, head })
         })
@@ -251,90 +304,7 @@ fn load_heads(paths: &[PathBuf]) -> Result<Vec<NamedHead>> {
 }
 
 /// `heads/HEAD/NAME.png` (labels) or `.npy` (depth), and `viz/NAME_HEAD.png`.
-fn write_head_output(root: &Path, h: &NamedHead, name: &str, out: HeadOutput, rgb: &image::RgbImage) -> Result<()> {
-    let dir = root.join("heads").join(&h.stem);
+fn write_head(root: &Path, h: &NamedHead, name: &str, out: &HeadOutput, rgb: &image::RgbImage) -> Result<()> {
     let viz = root.join("viz").join(format!("{name}_{}.png", h.stem));
-    let (w, hh) = (rgb.width(), rgb.height());
-    match out {
-        HeadOutput::Labels(l) => {
-            write_label_png(&dir.join(format!("{name}.png")), &l, w, hh).map_err(anyhow::Error::msg)?;
-            dens3r_scene::write_rgb_png(&viz, &overlay(rgb, &l))?;
-        }
-        HeadOutput::Depth(d) => {
-            dens3r_scene::npy::write_f32(&dir.join(format!("{name}.npy")), &[hh as usize, w as usize], &d)?;
-            let r = Raster::from_vec(w as usize, hh as usize, d).expect("sizes follow the image");
-            dens3r_scene::write_rgb_png(&viz, &depth_viz(&r))?;
-        }
-    }
-    Ok(())
-}
-
-/// The Dens3R maps of one image into the scene folder.
-fn write_network_outputs(
-    writer: &mut SceneWriter,
-    root: &Path,
-    name: &str,
-    prep: &Prepared,
-    pred: &MonoPrediction,
-) -> Result<()> {
-    let (w, h) = (pred.depth.width(), pred.depth.height());
-    let pp = (w as f64 / 2.0, h as f64 / 2.0);
-    let estimated = focal_from_pointmap(&pred.points, pp, FocalMode::Weiszfeld).filter(|f| f.is_finite() && *f > 0.0);
-    let intrinsics = match estimated {
-        Some(f) => Intrinsics { fx: f, fy: f, cx: pp.0, cy: pp.1 },
-        None => {
-            eprintln!("warning: {name}: the pointmap gives no positive focal (untrained weights?); using a 60-degree field of view");
-            Intrinsics::from_hfov(w, h, 60.0)
-        }
-    };
-    let cam = PinholeCamera { intrinsics, width: w, height: h, cam_to_world: DMat4::IDENTITY };
-    let mut frame = Frame::new(name, &cam);
-    frame.extra.insert("focal_estimated".into(), serde_json::json!(estimated.is_some()));
-    frame.extra.insert("source".into(), serde_json::json!(prep.info.original));
-    frame.extra.insert("rotated".into(), serde_json::json!(prep.info.rotated));
-    writer.add_frame(frame, &pred.rgb)?;
-    writer.write_depth(name, &pred.depth)?;
-    if let Some(n) = &pred.normals {
-        writer.write_normals(name, n)?;
-        dens3r_scene::write_rgb_png(&root.join("viz").join(format!("{name}_normal.png")), &normal_viz(n))?;
-    }
-    if let Some(c) = &pred.conf {
-        writer.write_conf(name, c)?;
-    }
-    dens3r_scene::write_rgb_png(&root.join("viz").join(format!("{name}_depth.png")), &depth_viz(&pred.depth))?;
-    let mut cloud = TriMesh::new(pred.points.data().iter().copied().filter(|p| p.is_finite()).collect(), Vec::new());
-    let colors: Vec<[u8; 3]> =
-        pred.points.data().iter().zip(pred.rgb.pixels()).filter(|(p, _)| p.is_finite()).map(|(_, c)| c.0).collect();
-    cloud.colors = Some(colors);
-    dens3r_mesh::write_mesh(&root.join("pointmaps").join(format!("{name}.ply")), &cloud)?;
-    Ok(())
-}
-
-/// The official normal visualisation (spec 3.3) of the Dens3R saved convention:
-/// R = (nx+1)/2, G = (ny+1)/2, B = -nz*127+128; a camera-facing wall is (128, 128, 255).
-fn normal_viz(n: &Raster<Vec3>) -> image::RgbImage {
-    image::RgbImage::from_fn(n.width() as u32, n.height() as u32, |x, y| {
-        let s = NormalConvention::Dens3rSaved.from_opencv(*n.get(x as usize, y as usize));
-        let c = |v: f32| v.clamp(0.0, 255.0) as u8;
-        image::Rgb([c((s.x + 1.0) / 2.0 * 255.0), c((s.y + 1.0) / 2.0 * 255.0), c(-s.z * 127.0 + 128.0)])
-    })
-}
-
-/// Depth coloured with a Spectral-like ramp between the 2nd and 85th percentiles (spec 3.3).
-fn depth_viz(d: &Raster<f32>) -> image::RgbImage {
-    let mut v: Vec<f32> = d.data().iter().copied().filter(|x| *x > 0.0 && x.is_finite()).collect();
-    v.sort_by(f32::total_cmp);
-    let q = |p: f32| v.get(((v.len().max(1) - 1) as f32 * p) as usize).copied().unwrap_or(0.0);
-    let (lo, hi) = (q(0.02), q(0.85).max(q(0.02) + 1e-6));
-    const RAMP: [[f32; 3]; 5] =
-        [[158.0, 1.0, 66.0], [244.0, 109.0, 67.0], [255.0, 255.0, 191.0], [102.0, 194.0, 165.0], [94.0, 79.0, 162.0]];
-    image::RgbImage::from_fn(d.width() as u32, d.height() as u32, |x, y| {
-        let z = *d.get(x as usize, y as usize);
-        if z.is_nan() || z <= 0.0 {
-            return image::Rgb([0, 0, 0]);
-        }
-        let t = ((z - lo) / (hi - lo)).clamp(0.0, 1.0) * 4.0;
-        let (i, f) = ((t.floor() as usize).min(3), t - t.floor().min(3.0));
-        image::Rgb(std::array::from_fn(|k| (RAMP[i][k] + (RAMP[i + 1][k] - RAMP[i][k]) * f) as u8))
-    })
+    Ok(write_head_output(&root.join("heads").join(&h.stem), &viz, name, out, rgb)?)
 }

@@ -64,6 +64,21 @@ pub fn focal_from_pointmap(points: &Raster<Vec3>, pp: (f64, f64), mode: FocalMod
     }
 }
 
+/// The field of view a camera starts from when its pointmap gives no focal (untrained weights).
+pub const FALLBACK_HFOV_DEG: f64 = 60.0;
+
+/// The focal (pixels) of a `width` x `height` image whose camera-frame pointmap is `points`,
+/// principal point at the image centre: the pointmap's Weiszfeld focal when it gives a positive
+/// finite one (`Ok`), else (`Err`) the focal of a [`FALLBACK_HFOV_DEG`] horizontal field of
+/// view, which callers report as a warning.
+pub fn focal_or_fallback(points: &Raster<Vec3>, width: usize, height: usize) -> Result<f64, f64> {
+    let pp = (width as f64 / 2.0, height as f64 / 2.0);
+    match focal_from_pointmap(points, pp, FocalMode::Weiszfeld).filter(|f| f.is_finite() && *f > 0.0) {
+        Some(f) => Ok(f),
+        None => Err(crate::Intrinsics::from_hfov(width, height, FALLBACK_HFOV_DEG).fx),
+    }
+}
+
 /// Median of finite values (mean of the two middle ones for even counts); `None` if empty.
 pub fn median(values: &mut [f64]) -> Option<f64> {
     if values.is_empty() {

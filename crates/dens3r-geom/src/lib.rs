@@ -23,7 +23,7 @@ pub mod transform;
 pub use align::{umeyama, AlignError};
 pub use camera::{look_at, Intrinsics, PinholeCamera};
 pub use convention::NormalConvention;
-pub use focal::{focal_from_pointmap, FocalMode};
+pub use focal::{focal_from_pointmap, focal_or_fallback, FocalMode, FALLBACK_HFOV_DEG};
 pub use raster::{Raster, RasterError};
 pub use transform::Sim3;
 

@@ -2,7 +2,7 @@
 //! front of a tilted plane (no renderer involved).
 
 use dens3r_geom::normals::{normals_dens3r, normals_from_pointmap, normals_from_pointmap_robust};
-use dens3r_geom::{focal_from_pointmap, FocalMode, Intrinsics, NormalConvention, Raster};
+use dens3r_geom::{focal_from_pointmap, focal_or_fallback, FocalMode, Intrinsics, NormalConvention, Raster};
 use glam::{DVec3, Vec3};
 
 const W: usize = 320;
@@ -113,4 +113,21 @@ fn focal_recovered_within_half_percent() {
     assert!((f / k.fx - 1.0).abs() < 0.005, "{f} vs {}", k.fx);
     let empty = Raster::filled(4, 4, Vec3::NAN);
     assert_eq!(focal_from_pointmap(&empty, (2.0, 2.0), FocalMode::Weiszfeld), None);
+}
+
+/// A pointmap that explains a focal gives it; one that gives none (empty, or mirrored so the
+/// least-squares focal is negative, as untrained weights do) falls back to a 60-degree field of
+/// view: w / 2 / tan(30 deg).
+#[test]
+fn focal_or_fallback_takes_the_pointmap_or_sixty_degrees() {
+    let k = Intrinsics::from_hfov(200, 150, 45.0);
+    let pts = Raster::from_fn(200, 150, |x, y| trace(&k, x, y).0.as_vec3());
+    let f = focal_or_fallback(&pts, 200, 150).unwrap();
+    assert!((f / k.fx - 1.0).abs() < 0.005, "{f} vs {}", k.fx);
+    let sixty = 100.0 / 30f64.to_radians().tan();
+    let mirrored = Raster::from_fn(200, 150, |x, y| trace(&k, x, y).0.as_vec3() * Vec3::new(-1.0, -1.0, 1.0));
+    for bad in [Raster::filled(200, 150, Vec3::NAN), mirrored] {
+        let e = focal_or_fallback(&bad, 200, 150).unwrap_err();
+        assert!((e - sixty).abs() < 1e-9, "{e} vs {sixty}");
+    }
 }

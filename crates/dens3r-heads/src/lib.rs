@@ -12,6 +12,7 @@
 
 pub mod cache;
 pub mod data;
+mod error;
 pub mod features;
 pub mod head;
 pub mod infer;
@@ -22,6 +23,7 @@ pub mod plan;
 pub mod pointmap;
 pub mod train;
 
+pub use error::HeadsError;
 pub use features::{Backbone, Dens3rBackbone, Dinov2Backbone, FeatureMaps, PixelBackbone};
 pub use head::{Head, HeadConfig, Task};
 pub use train::{Example, TrainOptions, Trainer};

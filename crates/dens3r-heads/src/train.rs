@@ -14,6 +14,7 @@ use crate::features::{to_vec, Backbone, FeatureMaps};
 use crate::head::{Head, Task};
 use crate::loss::{affine_invariant, cross_entropy, silog, IGNORE};
 use crate::metrics::{Confusion, DepthStats};
+use crate::HeadsError;
 use burn::tensor::{Device, Tensor};
 use dens3r_geom::metrics::DepthAlign;
 use rand::seq::SliceRandom;
@@ -95,21 +96,21 @@ impl Default for TrainOptions {
 
 impl TrainOptions {
     /// Rejects settings that cannot train.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), HeadsError> {
         if self.epochs == 0 || self.batch == 0 {
-            return Err("epochs and batch must be at least 1".into());
+            return Err(HeadsError::invalid("epochs and batch must be at least 1"));
         }
         if !(self.lr.is_finite() && self.lr > 0.0 && self.lr < 1.0) {
-            return Err(format!("learning rate {} must be in (0, 1)", self.lr));
+            return Err(HeadsError::invalid(format!("learning rate {} must be in (0, 1)", self.lr)));
         }
         if !(0.0..1.0).contains(&self.warmup) || !(0.0..1.0).contains(&self.jitter) {
-            return Err("warm-up and jitter must be in [0, 1)".into());
+            return Err(HeadsError::invalid("warm-up and jitter must be in [0, 1)"));
         }
         if self.crop.is_some_and(|(r, c)| r == 0 || c == 0) {
-            return Err("crop sizes must be at least one token".into());
+            return Err(HeadsError::invalid("crop sizes must be at least one token"));
         }
         if self.crops_per_image == Some(0) {
-            return Err("crops per image must be at least 1".into());
+            return Err(HeadsError::invalid("crops per image must be at least 1"));
         }
         Ok(())
     }
@@ -201,7 +202,7 @@ fn ck_paths(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
 
 impl Trainer {
     /// A fresh trainer on `device` (an autodiff device, e.g. `Device::autodiff(Device::flex())`).
-    pub fn new(head: Head, options: TrainOptions, device: Device) -> Result<Self, String> {
+    pub fn new(head: Head, options: TrainOptions, device: Device) -> Result<Self, HeadsError> {
         options.check()?;
         let zeros: Vec<Vec<f32>> = head.values.iter().map(|v| vec![0.0; v.len()]).collect();
         Ok(Self { head, options, m: zeros.clone(), v: zeros, step: 0, history: Vec::new(), confusion: None, device })
@@ -209,25 +210,25 @@ impl Trainer {
 
     /// Resumes from a checkpoint folder written by [`Trainer::save`], if one is there and was
     /// made with the same head configuration and options; `Ok(None)` when the folder has none.
-    pub fn resume(dir: &Path, head: &Head, options: &TrainOptions, device: Device) -> Result<Option<Self>, String> {
+    pub fn resume(dir: &Path, head: &Head, options: &TrainOptions, device: Device) -> Result<Option<Self>, HeadsError> {
         let (hp, ap, sp) = ck_paths(dir);
         if !sp.is_file() {
             return Ok(None);
         }
-        let text = std::fs::read_to_string(&sp).map_err(|e| format!("{}: {e}", sp.display()))?;
+        let text = std::fs::read_to_string(&sp).map_err(|e| HeadsError::file(&sp, e.to_string()))?;
         let state: State = serde_json::from_str(&text)
-            .map_err(|e| format!("{}: damaged checkpoint ({e}); delete the folder to start over", sp.display()))?;
+            .map_err(|e| HeadsError::file(&sp, format!("damaged checkpoint ({e}); delete the folder to start over")))?;
         if state.format != STATE_FORMAT || &state.options != options {
-            return Err(format!(
-                "{}: the checkpoint was made with other training options; delete the folder to start over, or rerun with the same options",
-                sp.display()
+            return Err(HeadsError::file(
+                &sp,
+                "the checkpoint was made with other training options; delete the folder to start over, or rerun with the same options",
             ));
         }
         let saved = Head::load(&hp)?;
         if saved.config != head.config {
-            return Err(format!(
-                "{}: the checkpoint is for another head or backbone; delete the folder to start over",
-                hp.with_extension("json").display()
+            return Err(HeadsError::file(
+                &hp.with_extension("json"),
+                "the checkpoint is for another head or backbone; delete the folder to start over",
             ));
         }
         let shapes = saved.param_shapes();
@@ -241,8 +242,8 @@ impl Trainer {
     }
 
     /// Writes the checkpoint (head and moments first, the state last, each atomically).
-    pub fn save(&self, dir: &Path) -> Result<(), String> {
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: cannot create ({e})", dir.display()))?;
+    pub fn save(&self, dir: &Path) -> Result<(), HeadsError> {
+        std::fs::create_dir_all(dir).map_err(|e| HeadsError::file(dir, format!("cannot create ({e})")))?;
         let (hp, ap, sp) = ck_paths(dir);
         self.head.save(&hp)?;
         let shapes = self.head.param_shapes();
@@ -260,7 +261,7 @@ impl Trainer {
             step: self.step,
             history: self.history.clone(),
         };
-        crate::io::save_json(&sp, &serde_json::to_value(&state).map_err(|e| e.to_string())?)
+        crate::io::save_json(&sp, &serde_json::to_value(&state).map_err(|e| HeadsError::file(&sp, e.to_string()))?)
     }
 
     /// Crops drawn from an example per epoch (see [`TrainOptions::crops_per_image`]).
@@ -381,9 +382,9 @@ impl Trainer {
         checkpoint: Option<&Path>,
         stop_after: Option<usize>,
         progress: &mut dyn FnMut(Progress),
-    ) -> Result<(), String> {
+    ) -> Result<(), HeadsError> {
         if train.is_empty() {
-            return Err("no training examples".into());
+            return Err(HeadsError::invalid("no training examples"));
         }
         let per_epoch = self.steps_per_epoch(train);
         let total = per_epoch * self.options.epochs;

@@ -6,9 +6,12 @@
 //!    ([`cache`]); match descriptors into tracks; align globally (`dens3r-align`).
 //! 3. [`output`]: the scene folder (aligned depth, normals, confidence, cameras), COLMAP text
 //!    model and nerfstudio `transforms.json`, match pictures ([`viz`]), and the TSDF mesh.
+//!
+//! [`mono`] writes one image's self-pair prediction as a scene frame (`dens3r predict`).
 
 pub mod cache;
 pub mod input;
+pub mod mono;
 pub mod output;
 pub mod pipeline;
 pub mod predictor;

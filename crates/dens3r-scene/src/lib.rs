@@ -28,6 +28,7 @@ pub mod hash;
 pub mod npy;
 mod reader;
 pub mod visibility;
+pub mod viz;
 mod writer;
 
 pub use cameras::{CamerasFile, Frame, MAX_IMAGE_SIDE};

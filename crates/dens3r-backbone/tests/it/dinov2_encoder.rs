@@ -88,6 +88,9 @@ fn a_dinov2_checkpoint_without_its_onnx_says_how_to_get_it() {
     std::fs::write(dir.path().join("config.json"), r#"{"enc_num_heads": 6, "dec_num_heads": 2, "encoder": "dinov2"}"#)
         .unwrap();
     let Err(e) = load_model(dir.path(), None, &Device::flex()) else { panic!("loaded without an encoder") };
+    // The error names the weights it was asked to load and the two ways to provide the encoder.
+    assert!(e.path.ends_with("model.safetensors"), "{e}");
+    let e = e.to_string();
     assert!(e.contains("fetch-data.sh") && e.contains("DENS3R_DINOV2") && !e.contains('\n'), "{e}");
 }
 

@@ -1,0 +1,55 @@
+//! One image's self-pair prediction as a frame of a scene folder (`dens3r predict`): the camera
+//! from the pointmap's focal (or a 60-degree fallback), depth, normals and confidence layers,
+//! pictures of depth and normals under `viz/`, and the coloured pointmap under `pointmaps/`.
+
+use crate::ReconError;
+use dens3r_backbone::predict::MonoPrediction;
+use dens3r_geom::{focal_or_fallback, DMat4, Intrinsics, PinholeCamera};
+use dens3r_mesh::TriMesh;
+use dens3r_scene::viz::{depth_viz, normal_viz};
+use dens3r_scene::{Frame, SceneWriter};
+
+/// The camera of a single-image prediction: identity pose, principal point at the centre, the
+/// pointmap's focal. `Err` carries the fallback camera (60-degree horizontal field of view)
+/// when the pointmap gives no positive focal, as untrained weights do.
+pub fn mono_camera(pred: &MonoPrediction) -> Result<PinholeCamera, PinholeCamera> {
+    let (w, h) = (pred.depth.width(), pred.depth.height());
+    let cam = |f: f64| PinholeCamera {
+        intrinsics: Intrinsics { fx: f, fy: f, cx: w as f64 / 2.0, cy: h as f64 / 2.0 },
+        width: w,
+        height: h,
+        cam_to_world: DMat4::IDENTITY,
+    };
+    focal_or_fallback(&pred.points, w, h).map(cam).map_err(cam)
+}
+
+/// Writes `pred` as frame `name` of the scene `writer` builds (image, camera with
+/// `focal_estimated`, `source` and `rotated` recorded, depth, normals, confidence), plus
+/// `viz/NAME_depth.png`, `viz/NAME_normal.png` and `pointmaps/NAME.ply`. Returns whether the
+/// focal came from the pointmap (`false`: the 60-degree fallback was used).
+pub fn write_mono_frame(writer: &mut SceneWriter, name: &str, pred: &MonoPrediction) -> Result<bool, ReconError> {
+    let camera = mono_camera(pred);
+    let estimated = camera.is_ok();
+    let cam = camera.unwrap_or_else(|c| c);
+    let mut frame = Frame::new(name, &cam);
+    frame.extra.insert("focal_estimated".into(), serde_json::json!(estimated));
+    frame.extra.insert("source".into(), serde_json::json!(pred.info.original));
+    frame.extra.insert("rotated".into(), serde_json::json!(pred.info.rotated));
+    writer.add_frame(frame, &pred.rgb)?;
+    writer.write_depth(name, &pred.depth)?;
+    let root = writer.root().to_path_buf();
+    if let Some(n) = &pred.normals {
+        writer.write_normals(name, n)?;
+        dens3r_scene::write_rgb_png(&root.join("viz").join(format!("{name}_normal.png")), &normal_viz(n))?;
+    }
+    if let Some(c) = &pred.conf {
+        writer.write_conf(name, c)?;
+    }
+    dens3r_scene::write_rgb_png(&root.join("viz").join(format!("{name}_depth.png")), &depth_viz(&pred.depth))?;
+    let finite = || pred.points.data().iter().zip(pred.rgb.pixels()).filter(|(p, _)| p.is_finite());
+    let mut cloud = TriMesh::new(finite().map(|(p, _)| *p).collect(), Vec::new());
+    cloud.colors = Some(finite().map(|(_, c)| c.0).collect());
+    dens3r_mesh::write_mesh(&root.join("pointmaps").join(format!("{name}.ply")), &cloud)
+        .map_err(dens3r_scene::SceneError::from)?;
+    Ok(estimated)
+}
