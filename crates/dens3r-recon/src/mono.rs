@@ -10,9 +10,9 @@ use dens3r_scene::viz::{depth_viz, normal_viz};
 use dens3r_scene::{Frame, SceneWriter};
 
 /// The camera of a single-image prediction: identity pose, principal point at the centre, the
-/// pointmap's focal. `Err` carries the fallback camera (60-degree horizontal field of view)
-/// when the pointmap gives no positive focal, as untrained weights do.
-pub fn mono_camera(pred: &MonoPrediction) -> Result<PinholeCamera, PinholeCamera> {
+/// pointmap's focal, and `true`; or, when the pointmap gives no positive focal (as untrained
+/// weights do), a 60-degree horizontal field of view and `false`.
+pub fn mono_camera(pred: &MonoPrediction) -> (PinholeCamera, bool) {
     let (w, h) = (pred.depth.width(), pred.depth.height());
     let cam = |f: f64| PinholeCamera {
         intrinsics: Intrinsics { fx: f, fy: f, cx: w as f64 / 2.0, cy: h as f64 / 2.0 },
@@ -20,7 +20,10 @@ pub fn mono_camera(pred: &MonoPrediction) -> Result<PinholeCamera, PinholeCamera
         height: h,
         cam_to_world: DMat4::IDENTITY,
     };
-    focal_or_fallback(&pred.points, w, h).map(cam).map_err(cam)
+    match focal_or_fallback(&pred.points, w, h) {
+        Ok(f) => (cam(f), true),
+        Err(f) => (cam(f), false),
+    }
 }
 
 /// Writes `pred` as frame `name` of the scene `writer` builds (image, camera with
@@ -28,9 +31,7 @@ pub fn mono_camera(pred: &MonoPrediction) -> Result<PinholeCamera, PinholeCamera
 /// `viz/NAME_depth.png`, `viz/NAME_normal.png` and `pointmaps/NAME.ply`. Returns whether the
 /// focal came from the pointmap (`false`: the 60-degree fallback was used).
 pub fn write_mono_frame(writer: &mut SceneWriter, name: &str, pred: &MonoPrediction) -> Result<bool, ReconError> {
-    let camera = mono_camera(pred);
-    let estimated = camera.is_ok();
-    let cam = camera.unwrap_or_else(|c| c);
+    let (cam, estimated) = mono_camera(pred);
     let mut frame = Frame::new(name, &cam);
     frame.extra.insert("focal_estimated".into(), serde_json::json!(estimated));
     frame.extra.insert("source".into(), serde_json::json!(pred.info.original));
