@@ -239,10 +239,9 @@ pub(crate) fn child_json(cmd: &mut Command, what: &str) -> Result<Value> {
         .with_context(|| format!("{what} run printed no JSON: {text}"))
 }
 
-fn backbone(a: BackboneArgs) -> Result<()> {
-    let threads = a.peer.threads();
-    let sizes: Vec<(usize, usize)> = a
-        .sizes
+/// `WxH,WxH,...`, each side a positive multiple of 16.
+fn parse_sizes(sizes: &str) -> Result<Vec<(usize, usize)>> {
+    sizes
         .split(',')
         .map(|s| {
             let (w, h) = s.trim().split_once('x').with_context(|| format!("size '{s}' is not WIDTHxHEIGHT"))?;
@@ -252,19 +251,26 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             }
             Ok((w, h))
         })
-        .collect::<Result<_>>()?;
-    let tmp = tempfile::tempdir()?;
-    let dir = a.peer.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
-    std::fs::create_dir_all(&dir)?;
-    let exe = std::env::current_exe()?;
-    // The weights both sides read (f32), their head counts and a description; a frozen DINOv2
-    // encoder stays in its own file (the Rust side is pointed at it).
+        .collect()
+}
+
+/// The weights both sides read (f32, written under the work folder), their head counts, a
+/// description, and the frozen DINOv2 encoder's own file when the network has one (the Rust
+/// side is pointed at it).
+struct BenchWeights {
+    weights: PathBuf,
+    heads: (usize, usize),
+    what: String,
+    dinov2: Option<PathBuf>,
+}
+
+fn bench_weights(a: &BackboneArgs, dir: &Path, exe: &Path) -> Result<BenchWeights> {
     let mut dinov2: Option<PathBuf> = None;
     let (weights, heads, what) = match &a.weights {
         None => {
             let weights = dir.join("dens3r_full_random.safetensors");
             eprintln!("writing random full-size Dens3R weights to {} ...", weights.display());
-            let st = Command::new(&exe).args(["bench", "make-weights"]).arg(&weights).status()?;
+            let st = Command::new(exe).args(["bench", "make-weights"]).arg(&weights).status()?;
             if !st.success() {
                 bail!("could not make the benchmark weights");
             }
@@ -293,6 +299,17 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             (weights, (c.enc_heads, c.dec_heads), what)
         }
     };
+    Ok(BenchWeights { weights, heads, what, dinov2 })
+}
+
+fn backbone(a: BackboneArgs) -> Result<()> {
+    let threads = a.peer.threads();
+    let sizes = parse_sizes(&a.sizes)?;
+    let tmp = tempfile::tempdir()?;
+    let dir = a.peer.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
+    std::fs::create_dir_all(&dir)?;
+    let exe = std::env::current_exe()?;
+    let BenchWeights { weights, heads, what, dinov2 } = bench_weights(&a, &dir, &exe)?;
     let heads_json = dir.join("bench_heads.json");
     std::fs::write(&heads_json, serde_json::json!({"enc_num_heads": heads.0, "dec_num_heads": heads.1}).to_string())?;
     let python = bench_python(a.peer.python.clone());
@@ -336,27 +353,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         let rm = r["peak_rss_mb"].as_f64().unwrap_or(f64::NAN);
         let mono = r["mono_seconds"].as_f64().unwrap_or(f64::NAN);
         let (ts, tm, diff) = if torch_ok {
-            let t = child_json(
-                Command::new(&python)
-                    .arg("bench/torch_dens3r.py")
-                    .arg(&weights)
-                    .args(["--size", &format!("{w}x{h}"), "--threads", &threads.to_string()])
-                    .args(["--heads", &format!("{},{}", heads.0, heads.1)])
-                    .args(["--repeat", &a.repeat.to_string()])
-                    .arg("--image")
-                    .arg(dir.join("img1.npy"))
-                    .arg("--image2")
-                    .arg(dir.join("img2.npy"))
-                    .arg("--compare")
-                    .arg(dir.join("pts3d.npy"))
-                    .env("OMP_NUM_THREADS", threads.to_string()),
-                "PyTorch",
-            )?;
-            (
-                t["seconds"].as_f64().unwrap_or(f64::NAN),
-                t["peak_rss_mb"].as_f64().unwrap_or(f64::NAN),
-                t["max_abs_diff_pts3d"].as_f64().unwrap_or(f64::NAN),
-            )
+            torch_forward(&python, &weights, (w, h), threads, heads, a.repeat, &dir)?
         } else {
             (f64::NAN, f64::NAN, f64::NAN)
         };
@@ -374,4 +371,35 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// PyTorch's pair forward at `size` on `dir`'s images (`bench/torch_dens3r.py`): seconds, peak
+/// RSS in MB and the largest |difference| to our pointmap.
+fn torch_forward(
+    python: &Path,
+    weights: &Path,
+    (w, h): (usize, usize),
+    threads: usize,
+    heads: (usize, usize),
+    repeat: usize,
+    dir: &Path,
+) -> Result<(f64, f64, f64)> {
+    let t = child_json(
+        Command::new(python)
+            .arg("bench/torch_dens3r.py")
+            .arg(weights)
+            .args(["--size", &format!("{w}x{h}"), "--threads", &threads.to_string()])
+            .args(["--heads", &format!("{},{}", heads.0, heads.1)])
+            .args(["--repeat", &repeat.to_string()])
+            .arg("--image")
+            .arg(dir.join("img1.npy"))
+            .arg("--image2")
+            .arg(dir.join("img2.npy"))
+            .arg("--compare")
+            .arg(dir.join("pts3d.npy"))
+            .env("OMP_NUM_THREADS", threads.to_string()),
+        "PyTorch",
+    )?;
+    let f = |k: &str| t[k].as_f64().unwrap_or(f64::NAN);
+    Ok((f("seconds"), f("peak_rss_mb"), f("max_abs_diff_pts3d")))
 }

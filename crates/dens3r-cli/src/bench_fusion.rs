@@ -8,9 +8,9 @@ use crate::bench::{bench_python, child_json, peak_rss_mb, FusionArgs};
 use anyhow::{bail, Context, Result};
 use dens3r_fusion::scene::{fuse_scene, SceneFusion};
 use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
-use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetricsOptions};
+use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetrics, MeshMetricsOptions};
 use dens3r_render::noise::Noise;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
@@ -101,42 +101,9 @@ pub fn fusion(a: FusionArgs) -> Result<()> {
     if !o3d_ok {
         eprintln!("note: {} lacks open3d / pillow / numpy: run scripts/bench-setup.sh; Rust only", python.display());
     }
-    let mut scenes = Vec::new();
-    for (name, proc_) in [("room", "room"), ("object", "blob")] {
-        let out = dir.join(name);
-        render_procedural(proc_, a.views, (w, h), &out)?;
-        let noisy = dir.join(format!("{name}_noise1"));
-        noisy_copy(&out, &noisy, &Noise { depth_sigma: 0.01, normal_deg: 0.0, seed: 42 })?;
-        scenes.push((name.to_string(), out.clone(), out.clone()));
-        scenes.push((format!("{name}+1%"), noisy, out.clone()));
-    }
+    let scenes = bench_scenes(&dir, a.views, (w, h))?;
     let devices: Vec<bool> = if a.gpu { vec![false, true] } else { vec![false] };
-    println!(
-        "TSDF fusion, {} views {w}x{h}, truncation 4 voxels, CPU ({} threads){}",
-        a.views,
-        rayon_threads(),
-        if a.gpu { " and GPU rows (ours: wgpu; Open3D: CUDA:0)" } else { "" }
-    );
-    println!(
-        "{:<12} {:>6} {:>9} {:>9} {:>7} {:>8} {:>8} {:>7} {:>7} {:>9} {:>9} {:>7} {:>7} {:>7} {:>7}",
-        "scene",
-        "voxel",
-        "ms/frame",
-        "o3d ms/f",
-        "speed",
-        "extr s",
-        "o3d s",
-        "MB",
-        "o3d MB",
-        "chamfer",
-        "o3d ch",
-        "F@1cm",
-        "o3d F1",
-        "F@2cm",
-        "o3d F2"
-    );
-    println!("  chamfer / F: Chamfer-L1 (m) and F-score against the ground-truth mesh, completeness and recall over");
-    println!("  the part of it the cameras saw (clean rendered depth, 2 cm tolerance); same evaluation for both");
+    print_header(a.views, (w, h), a.gpu);
     for (name, scene, clean) in &scenes {
         let gt = dens3r_mesh::read_mesh(&clean.join("gt_mesh.ply"))?;
         let seen = dens3r_scene::visibility::Visibility::from_scene(&dens3r_scene::Scene::open(clean)?, 0.02)?;
@@ -158,27 +125,7 @@ pub fn fusion(a: FusionArgs) -> Result<()> {
                 }
                 Err(e) => return Err(e),
             };
-            let o = if o3d_ok {
-                let o = child_json(
-                    Command::new(&python)
-                        .arg("bench/open3d_fusion.py")
-                        .arg(scene)
-                        .arg(voxel.to_string())
-                        .arg(&o3d_path)
-                        .args(["--device", if gpu { "CUDA:0" } else { "CPU:0" }])
-                        .env("OMP_NUM_THREADS", rayon_threads().to_string()),
-                    "Open3D fusion",
-                )?;
-                match o.get("error") {
-                    Some(e) => {
-                        println!("  (Open3D {}: {e})", if gpu { "GPU" } else { "CPU" });
-                        None
-                    }
-                    None => Some(o),
-                }
-            } else {
-                None
-            };
+            let o = if o3d_ok { open3d_fusion(&python, scene, voxel, &o3d_path, gpu)? } else { None };
             if gpu {
                 println!("  GPU row: ours on {}", r["device"].as_str().unwrap_or("?"));
             }
@@ -192,31 +139,108 @@ pub fn fusion(a: FusionArgs) -> Result<()> {
                 ),
                 None => None,
             };
-            let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(f64::NAN);
-            let of = |k: &str| o.as_ref().map_or(f64::NAN, |o| f(o, k));
-            let (rt, ot) = (f(&r, "integrate_ms_per_frame"), of("integrate_ms_per_frame"));
-            let tm = |i: usize| theirs.as_ref().map_or(f64::NAN, |m| m.fscores[i].fscore);
-            println!(
-                "{:<12} {:>6} {:>9.1} {:>9.1} {:>6.2}x {:>8.2} {:>8.2} {:>7.0} {:>7.0} {:>9.5} {:>9.5} {:>7.3} {:>7.3} {:>7.3} {:>7.3}",
-                if gpu { format!("{name} gpu") } else { name.clone() },
-                voxel,
-                rt,
-                ot,
-                ot / rt,
-                f(&r, "extract_seconds"),
-                of("extract_seconds"),
-                f(&r, "peak_rss_mb"),
-                of("peak_rss_mb"),
-                ours.chamfer_l1,
-                theirs.as_ref().map_or(f64::NAN, |m| m.chamfer_l1),
-                ours.fscores[0].fscore,
-                tm(0),
-                ours.fscores[1].fscore,
-                tm(1),
-            );
+            let label = if gpu { format!("{name} gpu") } else { name.clone() };
+            print_row(&label, voxel, &r, o.as_ref(), &ours, theirs.as_ref());
         }
     }
     Ok(())
+}
+
+/// The room and the object, each clean and with 1% depth noise: (name, scene, clean scene).
+fn bench_scenes(dir: &Path, views: usize, size: (usize, usize)) -> Result<Vec<(String, PathBuf, PathBuf)>> {
+    let mut scenes = Vec::new();
+    for (name, proc_) in [("room", "room"), ("object", "blob")] {
+        let out = dir.join(name);
+        render_procedural(proc_, views, size, &out)?;
+        let noisy = dir.join(format!("{name}_noise1"));
+        noisy_copy(&out, &noisy, &Noise { depth_sigma: 0.01, normal_deg: 0.0, seed: 42 })?;
+        scenes.push((name.to_string(), out.clone(), out.clone()));
+        scenes.push((format!("{name}+1%"), noisy, out.clone()));
+    }
+    Ok(scenes)
+}
+
+/// Open3D's fusion of `scene` into `out` through `bench/open3d_fusion.py`; `None` (said) when
+/// it cannot run on the device.
+fn open3d_fusion(python: &Path, scene: &Path, voxel: f32, out: &Path, gpu: bool) -> Result<Option<serde_json::Value>> {
+    let o = child_json(
+        Command::new(python)
+            .arg("bench/open3d_fusion.py")
+            .arg(scene)
+            .arg(voxel.to_string())
+            .arg(out)
+            .args(["--device", if gpu { "CUDA:0" } else { "CPU:0" }])
+            .env("OMP_NUM_THREADS", rayon_threads().to_string()),
+        "Open3D fusion",
+    )?;
+    Ok(match o.get("error") {
+        Some(e) => {
+            println!("  (Open3D {}: {e})", if gpu { "GPU" } else { "CPU" });
+            None
+        }
+        None => Some(o),
+    })
+}
+
+fn print_header(views: usize, (w, h): (usize, usize), gpu: bool) {
+    println!(
+        "TSDF fusion, {views} views {w}x{h}, truncation 4 voxels, CPU ({} threads){}",
+        rayon_threads(),
+        if gpu { " and GPU rows (ours: wgpu; Open3D: CUDA:0)" } else { "" }
+    );
+    println!(
+        "{:<12} {:>6} {:>9} {:>9} {:>7} {:>8} {:>8} {:>7} {:>7} {:>9} {:>9} {:>7} {:>7} {:>7} {:>7}",
+        "scene",
+        "voxel",
+        "ms/frame",
+        "o3d ms/f",
+        "speed",
+        "extr s",
+        "o3d s",
+        "MB",
+        "o3d MB",
+        "chamfer",
+        "o3d ch",
+        "F@1cm",
+        "o3d F1",
+        "F@2cm",
+        "o3d F2"
+    );
+    println!("  chamfer / F: Chamfer-L1 (m) and F-score against the ground-truth mesh, completeness and recall over");
+    println!("  the part of it the cameras saw (clean rendered depth, 2 cm tolerance); same evaluation for both");
+}
+
+/// One row: ours (`r`, `ours`) against Open3D's (`o`, `theirs`, NaN where it did not run).
+fn print_row(
+    label: &str,
+    voxel: f32,
+    r: &serde_json::Value,
+    o: Option<&serde_json::Value>,
+    ours: &MeshMetrics,
+    theirs: Option<&MeshMetrics>,
+) {
+    let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(f64::NAN);
+    let of = |k: &str| o.map_or(f64::NAN, |o| f(o, k));
+    let (rt, ot) = (f(r, "integrate_ms_per_frame"), of("integrate_ms_per_frame"));
+    let tm = |i: usize| theirs.map_or(f64::NAN, |m| m.fscores[i].fscore);
+    println!(
+        "{:<12} {:>6} {:>9.1} {:>9.1} {:>6.2}x {:>8.2} {:>8.2} {:>7.0} {:>7.0} {:>9.5} {:>9.5} {:>7.3} {:>7.3} {:>7.3} {:>7.3}",
+        label,
+        voxel,
+        rt,
+        ot,
+        ot / rt,
+        f(r, "extract_seconds"),
+        of("extract_seconds"),
+        f(r, "peak_rss_mb"),
+        of("peak_rss_mb"),
+        ours.chamfer_l1,
+        theirs.map_or(f64::NAN, |m| m.chamfer_l1),
+        ours.fscores[0].fscore,
+        tm(0),
+        ours.fscores[1].fscore,
+        tm(1),
+    );
 }
 
 fn rayon_threads() -> usize {

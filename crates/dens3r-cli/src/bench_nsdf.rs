@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use dens3r_fusion::scene::{fuse_scene, SceneFusion};
 use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
-use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetricsOptions};
+use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetrics, MeshMetricsOptions};
 use dens3r_mesh::TriMesh;
 use dens3r_nsdf::{FitOptions, TrainOptions};
 use std::path::PathBuf;
@@ -79,18 +79,7 @@ pub fn run(a: NsdfBenchArgs) -> Result<()> {
     );
     let row = |name: &str, voxel: f32, secs: f64, mesh: &TriMesh| -> Result<f64> {
         let m = mesh_metrics_where(mesh, &gt, &mopts, &seen).map_err(anyhow::Error::msg)?;
-        println!(
-            "{:<26} {:>7.4} {:>8.1} {:>10.5} {:>10.5} {:>10.5} {:>7.3} {:>7.3} {:>7.3}",
-            name,
-            voxel,
-            secs,
-            m.chamfer_l1,
-            m.accuracy,
-            m.completeness,
-            m.fscores[0].fscore,
-            m.fscores[1].fscore,
-            m.normal_consistency
-        );
+        print_row(name, voxel, secs, &m);
         Ok(m.chamfer_l1)
     };
     let scene = dens3r_scene::Scene::open(&noisy)?;
@@ -128,4 +117,20 @@ pub fn run(a: NsdfBenchArgs) -> Result<()> {
         println!("{name}: Chamfer {:.2}x the best TSDF's ({c:.5} vs {best_tsdf:.5})", c / best_tsdf);
     }
     Ok(())
+}
+
+/// One row of the table.
+fn print_row(name: &str, voxel: f32, secs: f64, m: &MeshMetrics) {
+    println!(
+        "{:<26} {:>7.4} {:>8.1} {:>10.5} {:>10.5} {:>10.5} {:>7.3} {:>7.3} {:>7.3}",
+        name,
+        voxel,
+        secs,
+        m.chamfer_l1,
+        m.accuracy,
+        m.completeness,
+        m.fscores[0].fscore,
+        m.fscores[1].fscore,
+        m.normal_consistency
+    );
 }

@@ -2,8 +2,9 @@
 
 use anyhow::{bail, Result};
 use clap::Args;
-use dens3r_fusion::scene::{fuse_scene, SceneFusion};
-use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
+use dens3r_fusion::scene::{fuse_scene, FusionSummary, SceneFusion};
+use dens3r_fusion::{extract_mesh, ExtractOptions, SparseTsdf, TsdfParams};
+use dens3r_mesh::TriMesh;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -73,7 +74,8 @@ fn parse_crop(s: &str) -> Result<(glam::Vec3, glam::Vec3)> {
     Ok((glam::Vec3::new(v[0], v[1], v[2]), glam::Vec3::new(v[3], v[4], v[5])))
 }
 
-pub fn run(a: FuseArgs) -> Result<()> {
+/// The crop box, after refusing options that cannot work and an output inside the scene.
+fn checked_crop(a: &FuseArgs) -> Result<Option<(glam::Vec3, glam::Vec3)>> {
     let ext = a.output.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
     if !["ply", "obj", "glb"].contains(&ext.as_str()) {
         bail!("{}: unknown mesh format: use .ply, .obj or .glb", a.output.display());
@@ -94,7 +96,11 @@ pub fn run(a: FuseArgs) -> Result<()> {
     if !a.min_conf.is_finite() {
         bail!("--min-conf {}: expected a finite confidence (e.g. 1.5; confidences are 1 + exp(x))", a.min_conf);
     }
-    let crop = a.crop.as_deref().map(parse_crop).transpose()?;
+    a.crop.as_deref().map(parse_crop).transpose()
+}
+
+pub fn run(a: FuseArgs) -> Result<()> {
+    let crop = checked_crop(&a)?;
     let scene = dens3r_scene::Scene::open(&a.scene)?;
     let mut params = TsdfParams::new(a.voxel);
     params.trunc = a.trunc * a.voxel;
@@ -115,30 +121,45 @@ pub fn run(a: FuseArgs) -> Result<()> {
     let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: a.min_component, crop });
     let extract_s = t.elapsed().as_secs_f64();
     if mesh.indices.is_empty() {
-        // Say which filter emptied it: the volume's surface, the crop, or the piece size.
-        let whole = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: 0, crop: None });
-        let cropped = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: 0, crop });
-        let why = if whole.indices.is_empty() {
-            format!(
-                "the fused volume has no surface ({} of {} frames had no valid depth, {} no pixel weighted above zero: confidences NaN or under --min-conf, or grazing normals; too few views, or depth outside [{}, {}])",
-                summary.empty_frames, summary.frames, summary.unweighted_frames, a.min_depth, a.max_depth
-            )
-        } else if cropped.indices.is_empty() {
-            format!(
-                "the surface ({} triangles) lies outside --crop {}",
-                whole.indices.len(),
-                a.crop.as_deref().unwrap_or_default()
-            )
-        } else {
-            format!(
-                "every piece of the surface ({} triangles) is smaller than --min-component {}; lower it",
-                cropped.indices.len(),
-                a.min_component
-            )
-        };
+        let why = why_empty(&a, &tsdf, &summary, crop);
         bail!("{}: {why}", a.scene.display());
     }
     dens3r_mesh::write_mesh(&a.output, &mesh)?;
+    report(&a, &summary, &mesh, extract_s, t0);
+    Ok(())
+}
+
+/// Which filter left no triangle: the volume's surface, the crop, or the piece size.
+fn why_empty(
+    a: &FuseArgs,
+    tsdf: &SparseTsdf,
+    summary: &FusionSummary,
+    crop: Option<(glam::Vec3, glam::Vec3)>,
+) -> String {
+    let whole = extract_mesh(tsdf, &ExtractOptions { min_component_triangles: 0, crop: None });
+    let cropped = extract_mesh(tsdf, &ExtractOptions { min_component_triangles: 0, crop });
+    if whole.indices.is_empty() {
+        format!(
+            "the fused volume has no surface ({} of {} frames had no valid depth, {} no pixel weighted above zero: confidences NaN or under --min-conf, or grazing normals; too few views, or depth outside [{}, {}])",
+            summary.empty_frames, summary.frames, summary.unweighted_frames, a.min_depth, a.max_depth
+        )
+    } else if cropped.indices.is_empty() {
+        format!(
+            "the surface ({} triangles) lies outside --crop {}",
+            whole.indices.len(),
+            a.crop.as_deref().unwrap_or_default()
+        )
+    } else {
+        format!(
+            "every piece of the surface ({} triangles) is smaller than --min-component {}; lower it",
+            cropped.indices.len(),
+            a.min_component
+        )
+    }
+}
+
+/// Prints what was fused, meshed and how long each part took.
+fn report(a: &FuseArgs, summary: &FusionSummary, mesh: &TriMesh, extract_s: f64, t0: Instant) {
     println!(
         "fused {} frames ({} without valid depth) into {} blocks ({:.0} MB) at voxel {}: {} vertices, {} triangles -> {}",
         summary.frames,
@@ -159,5 +180,4 @@ pub fn run(a: FuseArgs) -> Result<()> {
         extract_s,
         t0.elapsed().as_secs_f64()
     );
-    Ok(())
 }

@@ -2,9 +2,9 @@
 
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
-use dens3r_fusion::scene::{fuse_scene, SceneFusion};
-use dens3r_fusion::{ExtractOptions, TsdfParams};
-use dens3r_nsdf::{DepthMode, FieldConfig, FitOptions, Progress, TrainOptions};
+use dens3r_fusion::ExtractOptions;
+use dens3r_mesh::TriMesh;
+use dens3r_nsdf::{DepthMode, FieldConfig, FitOptions, FitSummary, Progress, TrainData, TrainOptions};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -101,7 +101,9 @@ fn device(gpu: bool) -> Result<burn::tensor::Device> {
     bail!("this dens3r was built without GPU training: rebuild with `cargo build --release --features nsdf-wgpu`, or drop --gpu")
 }
 
-pub fn run(a: NsdfArgs) -> Result<()> {
+/// The checkpoint folder, after refusing options that cannot work and outputs that cannot be
+/// written (checked, not created: a run refused later leaves no folder behind).
+fn checked_checkpoint_dir(a: &NsdfArgs) -> Result<PathBuf> {
     let ext = a.output.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
     if !["ply", "obj", "glb"].contains(&ext.as_str()) {
         bail!("{}: unknown mesh format: use .ply, .obj or .glb", a.output.display());
@@ -112,7 +114,6 @@ pub fn run(a: NsdfArgs) -> Result<()> {
     if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         bail!("--voxel must be a positive length");
     }
-    let device = device(a.gpu)?;
     // Where the mesh and the checkpoints go must be writable before any training is spent.
     let mut ck_dir = a.checkpoint_dir.clone().unwrap_or_else(|| {
         let mut s = a.output.clone().into_os_string();
@@ -122,25 +123,17 @@ pub fn run(a: NsdfArgs) -> Result<()> {
     if ck_dir.as_os_str().is_empty() {
         ck_dir = PathBuf::from(".");
     }
-    // (Checked, not created: a run refused later leaves no folder behind.)
     for dir in [a.output.parent().filter(|p| !p.as_os_str().is_empty()), Some(ck_dir.as_path())].into_iter().flatten() {
         if let Some(blocker) = dir.ancestors().find(|p| p.exists()).filter(|p| !p.is_dir()) {
             bail!("{}: cannot hold {} (it is a file, not a folder)", blocker.display(), dir.display());
         }
     }
-    let t0 = Instant::now();
-    let scene = dens3r_scene::Scene::open(&a.scene)?;
-    let data = dens3r_nsdf::load_scene(&scene)?;
-    if !data.unusable_normals.is_empty() && !a.no_normals {
-        eprintln!(
-            "warning: {}: normals/ of frame(s) {} hold no usable normal (NaN, infinite or zero): training without the normal loss",
-            a.scene.display(),
-            data.unusable_normals.join(", ")
-        );
-    } else if !data.has_normals && !a.no_normals {
-        eprintln!("note: {} has no normals/ for every frame: training without the normal loss", a.scene.display());
-    }
-    let train = TrainOptions {
+    Ok(ck_dir)
+}
+
+/// Training options of `a`.
+fn train_options(a: &NsdfArgs) -> TrainOptions {
+    TrainOptions {
         iters: a.iters,
         rays: a.rays,
         samples: a.samples,
@@ -155,18 +148,28 @@ pub fn run(a: NsdfArgs) -> Result<()> {
         init_tsdf_iters: a.init_tsdf.unwrap_or(0),
         seed: a.seed,
         ..TrainOptions::default()
-    };
+    }
+}
+
+pub fn run(a: NsdfArgs) -> Result<()> {
+    let ck_dir = checked_checkpoint_dir(&a)?;
+    let device = device(a.gpu)?;
+    let t0 = Instant::now();
+    let scene = dens3r_scene::Scene::open(&a.scene)?;
+    let data = dens3r_nsdf::load_scene(&scene)?;
+    if !data.unusable_normals.is_empty() && !a.no_normals {
+        eprintln!(
+            "warning: {}: normals/ of frame(s) {} hold no usable normal (NaN, infinite or zero): training without the normal loss",
+            a.scene.display(),
+            data.unusable_normals.join(", ")
+        );
+    } else if !data.has_normals && !a.no_normals {
+        eprintln!("note: {} has no normals/ for every frame: training without the normal loss", a.scene.display());
+    }
+    let train = train_options(&a);
     let field =
         FieldConfig { levels: a.levels, max_res: a.max_res, color: a.color_weight > 0.0, ..FieldConfig::default() };
-    let init = if train.init_tsdf_iters > 0 {
-        let mut params = TsdfParams::new(data.default_voxel());
-        params.color = false;
-        params.depth_range = (0.0, f32::MAX);
-        let (tsdf, _) = fuse_scene(&scene, &SceneFusion::new(params), |_, _| {}).map_err(anyhow::Error::msg)?;
-        Some(tsdf)
-    } else {
-        None
-    };
+    let init = if train.init_tsdf_iters > 0 { Some(dens3r_nsdf::warm_start_tsdf(&scene, &data)?) } else { None };
     let opts = FitOptions {
         field,
         train,
@@ -202,6 +205,12 @@ pub fn run(a: NsdfArgs) -> Result<()> {
         bail!("{}: the field has no surface inside the observed space (too few iterations?)", a.scene.display());
     }
     dens3r_mesh::write_mesh(&a.output, &mesh)?;
+    report(&a, &data, &mesh, &s, t0);
+    Ok(())
+}
+
+/// Prints what was trained and meshed.
+fn report(a: &NsdfArgs, data: &TrainData, mesh: &TriMesh, s: &FitSummary, t0: Instant) {
     println!(
         "trained {} iterations ({} rays, {} frames, normals {}) in {:.1}s; last loss {:.4} (depth {:.4}, normal {:.3}, eikonal {:.3}), sharpness {:.0}",
         a.iters - s.start_iter,
@@ -224,5 +233,4 @@ pub fn run(a: NsdfArgs) -> Result<()> {
         s.extract_seconds,
         t0.elapsed().as_secs_f64()
     );
-    Ok(())
 }

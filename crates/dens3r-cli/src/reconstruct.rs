@@ -8,8 +8,8 @@ use dens3r_align::matching::MatchOptions;
 use dens3r_align::{AlignOptions, PairGraph};
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
-    list_images, load_images, reconstruct, write_outputs, NetworkPredictor, OutputOptions, PairCache, ReconOptions,
-    Stage,
+    list_images, load_images, reconstruct, write_outputs, NetworkPredictor, OutputOptions, OutputSummary, PairCache,
+    ReconOptions, Reconstruction, Stage,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -92,7 +92,8 @@ fn bar(prefix: &str, len: usize, unit: &str) -> ProgressBar {
     )
 }
 
-pub fn run(a: ReconstructArgs) -> Result<()> {
+/// The pair graph of `a`, after refusing options that cannot work.
+fn checked_graph(a: &ReconstructArgs) -> Result<PairGraph> {
     crate::model_args::check_size(a.model.size)?;
     let graph = match a.graph {
         Graph::Complete => PairGraph::Complete,
@@ -109,6 +110,11 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     if !a.min_conf.is_finite() {
         bail!("--min-conf {}: expected a finite confidence (e.g. 1.5; confidences are 1 + exp(x))", a.min_conf);
     }
+    Ok(graph)
+}
+
+pub fn run(a: ReconstructArgs) -> Result<()> {
+    let graph = checked_graph(&a)?;
     let (weights, config) = a.model.resolve()?;
     let t0 = Instant::now();
     // Every photo is decoded before the model loads: a bad photo fails in a second.
@@ -154,7 +160,12 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         fbar.set_position(done as u64);
     })?;
     fbar.finish_and_clear();
+    report(&a, &rec, &summary, predictor.encoded_images(), t0);
+    Ok(())
+}
 
+/// Prints what was reconstructed and where it went.
+fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, encoded: usize, t0: Instant) {
     let s = &rec.stats;
     for w in s.warnings.iter().chain(&summary.warnings) {
         eprintln!("warning: {w}");
@@ -163,10 +174,10 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let nmatch: usize = rec.matches.iter().map(|m| m.2.len()).sum();
     println!(
         "{} photos, {} network pairs ({} from the cache; {} images encoded) in {:.1}s; {} matches in {:.1}s -> {} tracks",
-        images.len(),
+        rec.names.len(),
         s.pairs - s.cache_hits,
         s.cache_hits,
-        predictor.encoded_images(),
+        encoded,
         s.predict_seconds,
         nmatch,
         s.match_seconds,
@@ -176,7 +187,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         "pairs placed by their matches: {} of {}{}",
         s.posed_by_matches,
         s.pairs,
-        if opts.match_pose.is_none() { " (--no-match-pose)" } else { "" }
+        if a.no_match_pose { " (--no-match-pose)" } else { "" }
     );
     println!(
         "alignment: residual {:.4} -> {:.4} (scene units) in {:.1}s; focals {}",
@@ -203,5 +214,4 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         summary.colmap.display(),
         t0.elapsed().as_secs_f64()
     );
-    Ok(())
 }

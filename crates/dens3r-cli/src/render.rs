@@ -71,7 +71,8 @@ pub struct RenderArgs {
 /// Most pixels per rendered view (8192 x 8192).
 const MAX_RENDER_PIXELS: usize = 8192 * 8192;
 
-pub fn run(a: RenderArgs) -> Result<()> {
+/// Refuses options that cannot work, and an output folder that holds a scene.
+fn check(a: &RenderArgs) -> Result<()> {
     crate::predict::refuse_existing_scene(&a.output, a.overwrite)?;
     if a.views == 0 || a.views > 10_000 {
         bail!("--views must be in 1..=10000, got {}", a.views);
@@ -100,6 +101,11 @@ pub fn run(a: RenderArgs) -> Result<()> {
     if !(a.distance > 0.0 && a.distance.is_finite()) {
         bail!("--distance must be positive, got {}", a.distance);
     }
+    Ok(())
+}
+
+pub fn run(a: RenderArgs) -> Result<()> {
+    check(&a)?;
     let t0 = Instant::now();
     let (objects, default_path) = match (&a.mesh, a.procedural) {
         (Some(p), _) => {

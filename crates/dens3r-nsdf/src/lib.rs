@@ -118,8 +118,7 @@ pub fn cpu_device() -> Device {
 }
 
 /// Trains a field on a loaded scene and extracts its mesh. With `train.init_tsdf_iters > 0`
-/// the field first fits `init` (a TSDF of the same scene in its world frame, e.g. from
-/// [`dens3r_fusion::scene::fuse_scene`]).
+/// the field first fits `init` (a TSDF of the same scene in its world frame: [`warm_start_tsdf`]).
 pub fn fit(
     data: &TrainData,
     opts: &FitOptions,
@@ -189,6 +188,19 @@ pub fn fit(
             bounds: data.bounds,
         },
     ))
+}
+
+/// The TSDF the field's start fits (`train.init_tsdf_iters`): `scene` fused at the field's
+/// default voxel (1/256 of the normalised cube, [`TrainData::default_voxel`]), geometry only,
+/// every depth kept. Pass it to [`fit`] as `init`.
+pub fn warm_start_tsdf(scene: &dens3r_scene::Scene, data: &TrainData) -> Result<SparseTsdf, NsdfError> {
+    let mut params = dens3r_fusion::TsdfParams::new(data.default_voxel());
+    params.color = false;
+    params.depth_range = (0.0, f32::MAX);
+    let fusion = dens3r_fusion::scene::SceneFusion::new(params);
+    let (tsdf, _) =
+        dens3r_fusion::scene::fuse_scene(scene, &fusion, |_, _| {}).map_err(|e| NsdfError::Scene(e.to_string()))?;
+    Ok(tsdf)
 }
 
 /// SDF targets for the TSDF start: observed voxels of `tsdf` inside its truncation band, as

@@ -357,22 +357,32 @@ fn a_tsdf_start_puts_the_surface_in_place_before_rendering() {
     let (scene_dir, c, r) = sphere_scene(dir.path(), false);
     let scene = dens3r_scene::Scene::open(&scene_dir).unwrap();
     let data = dens3r_nsdf::load_scene(&scene).unwrap();
-    let mut params = dens3r_fusion::TsdfParams::new(0.01);
-    params.color = false;
-    let fusion = dens3r_fusion::scene::SceneFusion::new(params);
-    let (tsdf, _) = dens3r_fusion::scene::fuse_scene(&scene, &fusion, |_, _| {}).unwrap();
+    let tsdf = dens3r_nsdf::warm_start_tsdf(&scene, &data).unwrap();
+    assert_eq!(tsdf.params().voxel, data.default_voxel());
     let (pts, vals) = dens3r_nsdf::tsdf_targets(&tsdf, &data.bounds).unwrap();
     // Projective distances overstate the true ones away from head-on views, but their sign
-    // (in front of / behind the surface) is right.
-    let (mut agree, mut total) = (0, 0);
+    // (in front of / behind the surface) is right, but for voxels near the silhouettes that are
+    // finer than a pixel's footprint there (the warm start's voxel is 2 mm here: 97.1% right
+    // beyond 5 mm, every wrong one within 6.1 voxels of the surface, measured).
+    let voxel = tsdf.params().voxel as f64;
+    let (mut agree, mut total, mut wrong_far) = (0, 0, Vec::new());
     for (p, v) in pts.iter().zip(&vals) {
         let d = (data.bounds.to_world(*p) - c).length() - r;
+        if d.abs() > 0.005 && (d > 0.0) != (*v > 0.0) {
+            wrong_far.push(d.abs() / voxel);
+        }
         if d.abs() > 0.005 {
             total += 1;
             agree += usize::from((d > 0.0) == (*v > 0.0));
         }
     }
-    assert!(total > 10_000 && agree as f64 > 0.99 * total as f64, "{agree} of {total} TSDF signs right");
+    wrong_far.sort_by(f64::total_cmp);
+    eprintln!(
+        "voxel {voxel}: {agree} of {total} TSDF signs right; wrong ones at {:?} voxels (median, max)",
+        (wrong_far.get(wrong_far.len() / 2), wrong_far.last())
+    );
+    assert!(total > 10_000 && agree as f64 > 0.95 * total as f64, "{agree} of {total} TSDF signs right");
+    assert!(wrong_far.last().is_none_or(|&v| v < 8.0), "a wrong sign far from the surface");
     // One rendering iteration after 150 TSDF iterations: the surface is already on the sphere.
     let mut opts = small_opts(1);
     opts.train.init_tsdf_iters = 150;
