@@ -449,7 +449,10 @@ impl SparseTsdf {
             });
 
         // 2. Allocate, within the budget.
-        let new: Vec<IVec3> = touched.iter().copied().filter(|k| !self.index.contains_key(k)).collect();
+        // In a fixed order (the set's own order follows how the threads split the work), so a
+        // grid's block order, which consumers sample by, does not depend on the machine's load.
+        let mut new: Vec<IVec3> = touched.iter().copied().filter(|k| !self.index.contains_key(k)).collect();
+        new.sort_unstable_by_key(|k| (k.z, k.y, k.x));
         if let Some(budget) = p.budget_bytes {
             let blocks = self.blocks.len() + new.len();
             let needed = blocks * p.block_bytes();

@@ -214,3 +214,24 @@ fn bad_parameters_and_frames_are_errors() {
     t.integrate(&FrameInput { name: "f", camera: &cam, depth: &invalid, color: None, weight: None }).unwrap();
     assert_eq!(t.block_count(), 0);
 }
+
+/// Fusion gives the same grid whatever the thread count: blocks in the same order (consumers
+/// such as the neural SDF's TSDF start sample them by index) and the same values, so a run
+/// repeats bit for bit on a loaded or an idle machine.
+#[test]
+fn fusion_is_deterministic_across_thread_counts() {
+    let (c, r) = (Vec3::new(0.013, -0.021, 0.007), 0.3f32);
+    let world = sphere_world(c, r);
+    let fuse = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| fuse_orbit(&world, c, 1.2, 6, TsdfParams::new(0.01)))
+    };
+    let grids: Vec<SparseTsdf> = [1, 3, 7].into_iter().map(fuse).collect();
+    let keys = |t: &SparseTsdf| t.blocks().map(|(k, _)| k).collect::<Vec<_>>();
+    let values = |t: &SparseTsdf| t.blocks().flat_map(|(_, b)| b.tsdf.clone()).map(f32::to_bits).collect::<Vec<_>>();
+    assert!(keys(&grids[0]).len() > 100);
+    for g in &grids[1..] {
+        assert!(keys(g) == keys(&grids[0]), "block order depends on the thread count");
+        assert!(values(g) == values(&grids[0]), "values depend on the thread count");
+    }
+}
