@@ -271,6 +271,18 @@ impl Dpt {
         }
     }
 
+    /// Every tensor a DPT of `c` reads, `(name under c.prefix, shape)` in load order: the one
+    /// description of its parameters (refinenet4's unused `resConfUnit1` is not among them).
+    pub fn parameter_layout(c: &DptConfig, in_dims: [usize; 4]) -> Vec<(String, Vec<usize>)> {
+        let device = Device::autodiff(Device::flex());
+        let l = Loader { src: Source::Layout(Default::default(), &device) };
+        drop(Self::load(&l, c, in_dims));
+        match l.src {
+            Source::Layout(names, _) => names.into_inner(),
+            _ => unreachable!("a layout loader"),
+        }
+    }
+
     /// A DPT from flat tensors named as in a checkpoint (`{c.prefix}.act_postprocess.0.0.weight`
     /// and so on; refinenet4's unused `resConfUnit1` is not read), on their device.
     pub fn from_flat(c: &DptConfig, in_dims: [usize; 4], get: &dyn Fn(&str) -> Tensor<1>) -> Self {

@@ -35,18 +35,32 @@ pub struct Prepared {
 }
 
 impl Prepared {
-    /// `(1, 3, H, W)` tensor normalised to `[-1, 1]`.
+    /// `(1, 3, H, W)` tensor normalised to `[-1, 1]` ([`normalised_planes`] with
+    /// [`DENS3R_MEAN`] / [`DENS3R_STD`]).
     pub fn tensor(&self, device: &Device) -> Tensor<4> {
         let (w, h) = self.rgb.dimensions();
-        let (w, h) = (w as usize, h as usize);
-        let mut v = vec![0f32; 3 * w * h];
-        for (x, y, p) in self.rgb.enumerate_pixels() {
-            for c in 0..3 {
-                v[c * w * h + y as usize * w + x as usize] = (p.0[c] as f32 / 255.0 - 0.5) / 0.5;
-            }
-        }
-        Tensor::from_data(TensorData::new(v, [1, 3, h, w]), device)
+        let v = normalised_planes(&self.rgb, DENS3R_MEAN, DENS3R_STD);
+        Tensor::from_data(TensorData::new(v, [1, 3, h as usize, w as usize]), device)
     }
+}
+
+/// Dens3R's input normalisation (torchvision `Normalize(0.5, 0.5)` after `ToTensor`): pixels
+/// to `[-1, 1]`.
+pub const DENS3R_MEAN: [f32; 3] = [0.5; 3];
+/// See [`DENS3R_MEAN`].
+pub const DENS3R_STD: [f32; 3] = [0.5; 3];
+
+/// The one input normalisation: `(x / 255 - mean) / std` per channel, as `(3, H, W)` planes
+/// row-major (Dens3R's [`DENS3R_MEAN`] / [`DENS3R_STD`], or DINOv2's ImageNet statistics).
+pub fn normalised_planes(image: &RgbImage, mean: [f32; 3], std: [f32; 3]) -> Vec<f32> {
+    let (w, h) = (image.width() as usize, image.height() as usize);
+    let mut out = vec![0.0; 3 * h * w];
+    for (i, p) in image.pixels().enumerate() {
+        for c in 0..3 {
+            out[c * h * w + i] = (p[c] as f32 / 255.0 - mean[c]) / std[c];
+        }
+    }
+    out
 }
 
 /// Python's `round` (half to even) of a non-negative float.

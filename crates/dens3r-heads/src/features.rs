@@ -7,6 +7,7 @@
 use crate::HeadsError;
 use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::dinov2::{Dinov2, IMAGENET_MEAN, IMAGENET_STD};
+use dens3r_backbone::preprocess::{normalised_planes, DENS3R_MEAN, DENS3R_STD};
 use dens3r_backbone::{Dens3r, ViewFeatures};
 pub use dens3r_scene::hash::fnv1a;
 use image::RgbImage;
@@ -69,18 +70,6 @@ pub trait Backbone: Send + Sync {
     /// Features of an RGB image whose sides are multiples of [`Backbone::patch`]. The
     /// backbone's weights are never changed.
     fn extract(&self, image: &RgbImage) -> FeatureMaps;
-}
-
-/// Planar `(3, H, W)` values of an RGB image, `(v / 255 - mean) / std` per channel.
-pub fn normalised_planes(image: &RgbImage, mean: [f32; 3], std: [f32; 3]) -> Vec<f32> {
-    let (w, h) = (image.width() as usize, image.height() as usize);
-    let mut out = vec![0.0; 3 * h * w];
-    for (i, p) in image.pixels().enumerate() {
-        for c in 0..3 {
-            out[c * h * w + i] = (p[c] as f32 / 255.0 - mean[c]) / std[c];
-        }
-    }
-    out
 }
 
 /// [`fnv1a`] of a file's bytes, read in chunks (checkpoints are gigabytes).
@@ -196,7 +185,8 @@ impl Dens3rBackbone {
     /// Wraps a loaded network; `weights_hash` identifies its checkpoint.
     pub fn new(model: Dens3r, layers: Option<Vec<usize>>, weights_hash: u64) -> Result<Self, HeadsError> {
         let depth = model.config.dec_depth;
-        let layers = layers.unwrap_or_else(|| vec![0, depth / 2, depth * 3 / 4, depth]);
+        // By default the layers the network's own DPT heads read.
+        let layers = layers.unwrap_or_else(|| model.config.hooks().to_vec());
         if layers.iter().any(|&l| l > depth) {
             return Err(HeadsError::invalid(format!("layers {layers:?} must be in 0..={depth} (0 = encoder)")));
         }
@@ -245,7 +235,7 @@ impl Backbone for Dens3rBackbone {
     fn extract(&self, image: &RgbImage) -> FeatureMaps {
         let (w, h) = (image.width() as usize, image.height() as usize);
         // Dens3R normalises to [-1, 1].
-        let planes = normalised_planes(image, [0.5; 3], [0.5; 3]);
+        let planes = normalised_planes(image, DENS3R_MEAN, DENS3R_STD);
         let x = Tensor::<4>::from_data(TensorData::new(planes, [1, 3, h, w]), self.model.device());
         let f = self.model.encode_self(x);
         self.maps(&f.views[0])

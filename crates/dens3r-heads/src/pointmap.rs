@@ -17,6 +17,7 @@ use dens3r_backbone::model::{exp_depth_mode, Dpt};
 use dens3r_backbone::{ModelConfig, Weights};
 use std::collections::HashMap;
 use std::path::Path;
+use std::sync::{Mutex, OnceLock};
 
 /// Upsampling factors of the transposed convs of layers 0 and 1.
 const UP: [usize; 2] = [4, 2];
@@ -45,6 +46,17 @@ fn dpt_config(c: &HeadConfig) -> DptConfig {
     }
 }
 
+/// The head's parameters: dens3r-backbone's DPT layout for its widths (names under `dpt.`),
+/// computed once per configuration (it builds the DPT on zeros) and remembered.
+fn layout(c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
+    static LAYOUTS: OnceLock<Mutex<HashMap<String, Vec<(String, Vec<usize>)>>>> = OnceLock::new();
+    let d = dpt_config(c);
+    let in_dims = [c.in_dims[0], c.in_dims[1], c.in_dims[2], c.in_dims[3]];
+    let key = format!("{d:?} {in_dims:?}");
+    let mut cache = LAYOUTS.get_or_init(Default::default).lock().unwrap_or_else(|e| e.into_inner());
+    cache.entry(key).or_insert_with(|| Dpt::parameter_layout(&d, in_dims)).clone()
+}
+
 impl HeadArch for PointmapDpt {
     fn name(&self) -> &'static str {
         "pointmap"
@@ -62,40 +74,7 @@ impl HeadArch for PointmapDpt {
         Ok(())
     }
     fn param_shapes(&self, c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
-        let d = dpt_config(c);
-        let (ld, f) = (d.layer_dims, d.feature_dim);
-        let mut s: Vec<(String, Vec<usize>)> = Vec::new();
-        let mut add = |n: String, shape: Vec<usize>, bias: bool| {
-            let out = shape[0];
-            s.push((format!("dpt.{n}.weight"), shape));
-            if bias {
-                s.push((format!("dpt.{n}.bias"), vec![out]));
-            }
-        };
-        for l in 0..4 {
-            add(format!("act_postprocess.{l}.0"), vec![ld[l], c.in_dims[l], 1, 1], true);
-            match l {
-                0 | 1 => add(format!("act_postprocess.{l}.1"), vec![ld[l], ld[l], UP[l], UP[l]], true),
-                3 => add("act_postprocess.3.1".into(), vec![ld[3], ld[3], 3, 3], true),
-                _ => {}
-            }
-        }
-        for (l, &w) in ld.iter().enumerate() {
-            add(format!("scratch.layer{}_rn", l + 1), vec![f, w, 3, 3], false);
-        }
-        for r in 1..=4 {
-            // refinenet4 has no skip input, so its first residual unit is never used.
-            for u in if r == 4 { 2..=2 } else { 1..=2 } {
-                for k in 1..=2 {
-                    add(format!("scratch.refinenet{r}.resConfUnit{u}.conv{k}"), vec![f, f, 3, 3], true);
-                }
-            }
-            add(format!("scratch.refinenet{r}.out_conv"), vec![f, f, 1, 1], true);
-        }
-        add("head.0".into(), vec![d.head_dim, f, 3, 3], true);
-        add("head.2".into(), vec![d.last_dim, d.head_dim, 3, 3], true);
-        add("head.4".into(), vec![d.out_channels, d.last_dim, 1, 1], true);
-        s
+        layout(c)
     }
     fn forward(&self, c: &HeadConfig, p: &[Tensor<1>], feats: &[Tensor<4>], out: (usize, usize)) -> Tensor<4> {
         let names = self.param_shapes(c);

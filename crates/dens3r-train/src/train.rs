@@ -238,16 +238,10 @@ fn mask_tensor(v: &[&[bool]], (h, w): (usize, usize), device: &Device) -> Tensor
     Tensor::from_data(TensorData::new(flat, [v.len(), h, w]), device)
 }
 
-/// `(x / 255 - 0.5) / 0.5` of RGB pixels as `(3, H, W)`.
+/// `(x / 255 - 0.5) / 0.5` of RGB pixels as `(3, H, W)`: the network's input normalisation.
 pub fn normalise(img: &image::RgbImage) -> Vec<f32> {
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    let mut out = vec![0f32; 3 * w * h];
-    for (i, p) in img.pixels().enumerate() {
-        for c in 0..3 {
-            out[c * w * h + i] = p[c] as f32 / 127.5 - 1.0;
-        }
-    }
-    out
+    use dens3r_backbone::preprocess::{normalised_planes, DENS3R_MEAN, DENS3R_STD};
+    normalised_planes(img, DENS3R_MEAN, DENS3R_STD)
 }
 
 /// Whether any term with a positive weight entered the batch's loss (the matching term needs
