@@ -46,10 +46,13 @@ fn dpt_config(c: &HeadConfig) -> DptConfig {
     }
 }
 
+/// Parameter names and shapes in storage order.
+type Layout = Vec<(String, Vec<usize>)>;
+
 /// The head's parameters: dens3r-backbone's DPT layout for its widths (names under `dpt.`),
 /// computed once per configuration (it builds the DPT on zeros) and remembered.
-fn layout(c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
-    static LAYOUTS: OnceLock<Mutex<HashMap<String, Vec<(String, Vec<usize>)>>>> = OnceLock::new();
+fn layout(c: &HeadConfig) -> Layout {
+    static LAYOUTS: OnceLock<Mutex<HashMap<String, Layout>>> = OnceLock::new();
     let d = dpt_config(c);
     let in_dims = [c.in_dims[0], c.in_dims[1], c.in_dims[2], c.in_dims[3]];
     let key = format!("{d:?} {in_dims:?}");
