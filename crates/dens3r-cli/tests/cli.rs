@@ -49,25 +49,25 @@ fn render_info_and_eval_round_trip() {
     let n = json(&["eval", "normals", "--from-depth", room_s, room_s, "--json"]);
     assert!(n["median"].as_f64().unwrap() < 1.0, "{n}");
 
-    // The ground-truth mesh against itself: 0; against a re-render of the mesh file: also 0.
+    // The ground-truth mesh against itself: 0.
     let gt = room.join("gt_mesh.ply");
-    let m = json(&["eval", "mesh", gt.to_str().unwrap(), gt.to_str().unwrap(), "--samples", "5000", "--json"]);
+    let gt_s = gt.to_str().unwrap();
+    let m = json(&["eval", "mesh", gt_s, gt_s, "--samples", "5000", "--json"]);
     assert!(m["chamfer_l1"].as_f64().unwrap() < 1e-6, "{m}");
+    // A re-render of the mesh file: its ground truth is that mesh (Chamfer 0), and its depth
+    // lies on it: the surface fused from the re-rendered views is within 0.4 voxel of the mesh
+    // on average (measured 0.009 at voxel 0.05).
     let orbit = dir.path().join("orbit");
-    ok(&[
-        "render",
-        "--mesh",
-        gt.to_str().unwrap(),
-        "--views",
-        "2",
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "-o",
-        orbit.to_str().unwrap(),
-    ]);
-    assert!(orbit.join("cameras.json").is_file());
+    let orbit_s = orbit.to_str().unwrap();
+    ok(&["render", "--mesh", gt_s, "--views", "4", "--width", "64", "--height", "48", "-o", orbit_s]);
+    let orbit_gt = orbit.join("gt_mesh.ply");
+    let m = json(&["eval", "mesh", orbit_gt.to_str().unwrap(), gt_s, "--samples", "5000", "--json"]);
+    assert!(m["chamfer_l1"].as_f64().unwrap() < 1e-6, "{m}");
+    let fused = dir.path().join("orbit.ply");
+    let fused_s = fused.to_str().unwrap();
+    ok(&["fuse", orbit_s, "--voxel", "0.05", "--min-component", "0", "-o", fused_s]);
+    let m = json(&["eval", "mesh", fused_s, gt_s, "--samples", "5000", "--json"]);
+    assert!(m["accuracy"].as_f64().unwrap() < 0.02, "{m}");
 }
 
 #[test]

@@ -84,23 +84,19 @@ fn ref_conf_regr3d(pred: [&[f32]; 2], conf: [&[f32]; 2], gt: [&[f32]; 2], v: [&[
     total
 }
 
+/// Dens3R's `pcd2normal` by dens3r-geom's host implementation of the rule
+/// (`normals_dens3r`, tested against analytic spheres and planes), per batch element.
 fn ref_pcd2normal(p: &[f32], b: usize, h: usize, w: usize) -> Vec<f64> {
-    let mut out = vec![0.0; b * h * w * 3];
-    let at = |s: usize, y: usize, x: usize, c: usize| p[((s * h + y) * w + x) * 3 + c] as f64;
-    for s in 0..b {
-        for y in 1..h - 1 {
-            for x in 1..w - 1 {
-                let a: Vec<f64> = (0..3).map(|c| at(s, y, x + 1, c) - at(s, y, x - 1, c)).collect();
-                let bb: Vec<f64> = (0..3).map(|c| at(s, y - 1, x, c) - at(s, y + 1, x, c)).collect();
-                let n = [a[1] * bb[2] - a[2] * bb[1], -(a[2] * bb[0] - a[0] * bb[2]), a[0] * bb[1] - a[1] * bb[0]];
-                let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt().max(1e-12);
-                for c in 0..3 {
-                    out[((s * h + y) * w + x) * 3 + c] = n[c] / len;
-                }
-            }
-        }
-    }
-    out
+    (0..b)
+        .flat_map(|s| {
+            let pts = dens3r_geom::Raster::from_fn(w, h, |x, y| {
+                let i = ((s * h + y) * w + x) * 3;
+                Vec3::new(p[i], p[i + 1], p[i + 2])
+            });
+            dens3r_geom::normals::normals_dens3r(&pts).data().to_vec()
+        })
+        .flat_map(|n| [n.x as f64, n.y as f64, n.z as f64])
+        .collect()
 }
 
 fn ref_normal_l1(pred: &[f64], gt: &[f32], v: &[f32]) -> f64 {
