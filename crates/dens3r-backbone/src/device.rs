@@ -67,7 +67,7 @@ fn gpu_candidates() -> Vec<(&'static str, Maker)> {
 /// Builds the device and round-trips four numbers through it; backend initialisation panics
 /// (no adapter, no driver) become an error without the panic's message on stderr.
 fn probe(make: Maker) -> Result<Device, String> {
-    let out = dens3r_mesh::panics::catch_quietly(|| {
+    let out = dens3r_io::panics::catch_quietly(|| {
         let d = make();
         let t = Tensor::<1>::from_data(TensorData::new(vec![1f32, 2.0, 3.0, 4.0], [4]), &d);
         let back = (t * 2.0).into_data().try_to_vec::<f32>().unwrap_or_default();

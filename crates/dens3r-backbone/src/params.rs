@@ -207,8 +207,8 @@ impl Params {
             .zip(&self.values)
             .map(|((n, s), v)| (n.clone(), s.clone(), v.as_slice()))
             .collect();
-        let data = crate::weights::safetensors_as(&named, dtype).map_err(|e| err(e.to_string()))?;
-        dens3r_mesh::io::write_atomic(path, |w| std::io::Write::write_all(w, &data)).map_err(|e| err(e.to_string()))
+        let data = dens3r_io::tensors::serialize(&named, dtype).map_err(|e| err(e.to_string()))?;
+        dens3r_io::write_atomic(path, |w| std::io::Write::write_all(w, &data)).map_err(|e| err(e.to_string()))
     }
 }
 

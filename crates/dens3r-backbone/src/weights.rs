@@ -3,7 +3,6 @@
 //! wrong or partial checkpoint is reported with its missing, unexpected and mis-shaped keys.
 
 use burn::tensor::{Device, Tensor, TensorData};
-use safetensors::tensor::{Dtype, SafeTensorError, TensorView};
 use std::cell::RefCell;
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -195,8 +194,8 @@ impl Weights {
         all.extend(generated.iter().cloned());
         let named: Vec<(String, Vec<usize>, &[f32])> =
             all.iter().map(|(k, (s, v))| (k.clone(), s.clone(), v.as_slice())).collect();
-        let data = f32_safetensors(&named).map_err(|e| err(e.to_string()))?;
-        dens3r_mesh::io::write_atomic(path, |w| std::io::Write::write_all(w, &data)).map_err(|e| err(e.to_string()))
+        dens3r_io::tensors::save(path, &named).map_err(|e| err(e.message))?;
+        Ok(())
     }
 
     fn generate(&self, name: &str, shape: &[usize]) -> Option<Vec<f32>> {
@@ -381,28 +380,4 @@ fn preview(v: &[String]) -> String {
         s += &format!(", ... ({} more)", v.len() - 8);
     }
     s
-}
-
-/// Serialises named f32 tensors `(name, shape, values)` as safetensors bytes.
-pub fn f32_safetensors(tensors: &[(String, Vec<usize>, &[f32])]) -> Result<Vec<u8>, SafeTensorError> {
-    safetensors_as(tensors, Dtype::F32)
-}
-
-/// [`f32_safetensors`] stored as `dtype` (F32, F16 or BF16; values rounded to nearest).
-pub fn safetensors_as(tensors: &[(String, Vec<usize>, &[f32])], dtype: Dtype) -> Result<Vec<u8>, SafeTensorError> {
-    let bytes: Vec<Vec<u8>> = tensors
-        .iter()
-        .map(|(_, _, v)| match dtype {
-            Dtype::F16 => v.iter().flat_map(|x| half::f16::from_f32(*x).to_le_bytes()).collect(),
-            Dtype::BF16 => v.iter().flat_map(|x| half::bf16::from_f32(*x).to_le_bytes()).collect(),
-            _ => v.iter().flat_map(|x| x.to_le_bytes()).collect(),
-        })
-        .collect();
-    let dtype = if matches!(dtype, Dtype::F16 | Dtype::BF16) { dtype } else { Dtype::F32 };
-    let views = tensors
-        .iter()
-        .zip(&bytes)
-        .map(|((n, s, _), b)| Ok((n.clone(), TensorView::new(dtype, s.clone(), b)?)))
-        .collect::<Result<Vec<_>, SafeTensorError>>()?;
-    safetensors::serialize(views, None)
 }

@@ -131,7 +131,7 @@ fn main() {
     // SIGINT / SIGTERM: remove what is half-written (temporary files, staging folders, output
     // folders not yet complete), then stop with the shell's status for a signal.
     let _ = ctrlc::set_handler(|| {
-        dens3r_mesh::cleanup::stop();
+        dens3r_io::cleanup::stop();
         eprintln!("interrupted: unfinished outputs removed");
         std::process::exit(130);
     });
@@ -157,7 +157,7 @@ fn main() {
         Command::Bench(c) => bench::run(c),
     };
     // Stopped by a signal: the handler cleans up and exits (the failed write was its doing).
-    while dens3r_mesh::cleanup::stopping() {
+    while dens3r_io::cleanup::stopping() {
         std::thread::park();
     }
     if let Err(e) = result {

@@ -90,7 +90,7 @@ fn write_entry(path: &Path, backbone: &str, f: &FeatureMaps, p: Precision) -> Re
             Precision::F16 => l.iter().for_each(|x| bytes.extend_from_slice(&half::f16::from_f32(*x).to_le_bytes())),
         }
     }
-    crate::io::write_atomic(path, &bytes)
+    Ok(dens3r_io::write_atomic(path, |w| std::io::Write::write_all(w, &bytes))?)
 }
 
 /// Reads an entry; `None` when absent, damaged or of another backbone.

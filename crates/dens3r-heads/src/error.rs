@@ -44,5 +44,6 @@ from_file_error!(
     dens3r_scene::SceneError,
     dens3r_mesh::MeshError,
     dens3r_backbone::weights::WeightsError,
-    dens3r_backbone::onnx::OnnxError
+    dens3r_backbone::onnx::OnnxError,
+    dens3r_io::IoError
 );

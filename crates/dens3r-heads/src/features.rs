@@ -9,7 +9,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::dinov2::{Dinov2, IMAGENET_MEAN, IMAGENET_STD};
 use dens3r_backbone::preprocess::{normalised_planes, DENS3R_MEAN, DENS3R_STD};
 use dens3r_backbone::{Dens3r, ViewFeatures};
-pub use dens3r_scene::hash::fnv1a;
+pub use dens3r_io::hash::fnv1a;
 use image::RgbImage;
 use std::path::Path;
 
@@ -83,7 +83,7 @@ pub fn file_hash(path: &Path) -> std::io::Result<u64> {
         if n == 0 {
             return Ok(h);
         }
-        h = dens3r_scene::hash::fnv1a_update(h, &buf[..n]);
+        h = dens3r_io::hash::fnv1a_update(h, &buf[..n]);
     }
 }
 

@@ -86,7 +86,7 @@ pub fn write_label_png(path: &Path, ids: &[u16], width: u32, height: u32) -> Res
         w.write_image_data(&ids.iter().map(|&v| v as u8).collect::<Vec<u8>>()).map_err(err)?;
         w.finish().map_err(err)?;
     }
-    crate::io::write_atomic(path, &bytes)
+    Ok(dens3r_io::write_atomic(path, |w| std::io::Write::write_all(w, &bytes))?)
 }
 
 /// The image with each pixel's class colour blended in at one half, for viewing.

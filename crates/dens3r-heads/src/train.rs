@@ -261,7 +261,7 @@ impl Trainer {
             step: self.step,
             history: self.history.clone(),
         };
-        crate::io::save_json(&sp, &serde_json::to_value(&state).map_err(|e| HeadsError::file(&sp, e.to_string()))?)
+        Ok(dens3r_io::tensors::save_json(&sp, &state)?)
     }
 
     /// Crops drawn from an example per epoch (see [`TrainOptions::crops_per_image`]).

@@ -76,7 +76,7 @@ pub fn from_glb(bytes: &[u8]) -> Result<TriMesh, String> {
     // The gltf crate (1.4) panics on some damaged files (an accessor index past the list, a
     // GLB length under its header's, an out-of-range component type): such a panic is a
     // refusal of the file, not a crash.
-    crate::panics::catch_quietly(|| read_glb(bytes))
+    dens3r_io::panics::catch_quietly(|| read_glb(bytes))
         .unwrap_or_else(|e| Err(format!("the file is damaged (the glTF reader failed: {e})")))
 }
 

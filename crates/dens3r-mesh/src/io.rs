@@ -2,9 +2,10 @@
 //! OBJ. Writes are atomic: a temporary file in the target folder, renamed when complete.
 
 use crate::TriMesh;
+use dens3r_io::write_atomic;
 use glam::Vec3;
 use std::fs::File;
-use std::io::{BufReader, BufWriter, Read, Write};
+use std::io::{BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -16,6 +17,12 @@ pub struct MeshError {
     pub path: PathBuf,
     /// What went wrong and what to do about it.
     pub message: String,
+}
+
+impl From<dens3r_io::IoError> for MeshError {
+    fn from(e: dens3r_io::IoError) -> Self {
+        Self { path: e.path, message: e.message }
+    }
 }
 
 impl MeshError {
@@ -51,59 +58,14 @@ pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshError> {
 pub fn write_mesh(path: &Path, mesh: &TriMesh) -> Result<(), MeshError> {
     mesh.validate().map_err(|m| MeshError::new(path, format!("refusing to write an invalid mesh: {m}")))?;
     match extension(path).as_str() {
-        "ply" => write_atomic(path, |w| write_ply(w, mesh)),
-        "obj" => write_atomic(path, |w| write_obj(w, mesh)),
+        "ply" => Ok(write_atomic(path, |w| write_ply(w, mesh))?),
+        "obj" => Ok(write_atomic(path, |w| write_obj(w, mesh))?),
         "glb" => {
             let bytes = crate::glb::to_glb(mesh).map_err(|m| MeshError::new(path, m))?;
-            write_atomic(path, |w| w.write_all(&bytes))
+            Ok(write_atomic(path, |w| w.write_all(&bytes))?)
         }
         _ => Err(MeshError::new(path, "unknown output mesh format: use .ply, .obj or .glb")),
     }
-}
-
-/// Writes a file through `f` into a temporary file beside `path`, then renames it into place,
-/// so a failure never leaves a partial file, nor does a stop by SIGINT / SIGTERM (the file is
-/// staged in [`crate::cleanup`]); leftovers of killed runs in the folder are swept first.
-/// Creates the parent folder if needed.
-pub fn write_atomic(
-    path: &Path,
-    f: impl FnOnce(&mut BufWriter<&mut File>) -> std::io::Result<()>,
-) -> Result<(), MeshError> {
-    let parent = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let stopped = || MeshError::new(path, "not written: the process is stopping");
-    if crate::cleanup::stopping() {
-        return Err(stopped());
-    }
-    std::fs::create_dir_all(parent)
-        .map_err(|e| MeshError::new(path, format!("cannot create the output folder: {e}")))?;
-    crate::cleanup::sweep_stale(parent);
-    let mut tmp = tempfile::Builder::new()
-        .prefix(&crate::cleanup::temp_prefix())
-        .tempfile_in(parent)
-        .map_err(|e| MeshError::new(path, format!("cannot create a temporary file beside it: {e}")))?;
-    // Removed if the process is stopped before the rename.
-    let _staged = crate::cleanup::stage(tmp.path());
-    {
-        let mut w = BufWriter::new(tmp.as_file_mut());
-        f(&mut w).and_then(|_| w.flush()).map_err(|e| MeshError::new(path, format!("write failed: {e}")))?;
-    }
-    // Temporary files are created owner-only (0600); finished outputs get the usual 0644.
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        tmp.as_file()
-            .set_permissions(std::fs::Permissions::from_mode(0o644))
-            .map_err(|e| MeshError::new(path, format!("cannot set file permissions: {e}")))?;
-    }
-    if crate::cleanup::stopping() {
-        return Err(stopped());
-    }
-    tmp.persist(path)
-        .map_err(|e| MeshError::new(path, format!("cannot move the finished file into place: {}", e.error)))?;
-    Ok(())
 }
 
 fn extension(path: &Path) -> String {

@@ -2,11 +2,9 @@
 //! shapes ([`primitives`]), area-weighted surface sampling ([`sample`]) and mesh-to-mesh
 //! metrics ([`metrics`]: Chamfer-L1, F-score, normal consistency).
 
-pub mod cleanup;
 pub mod glb;
 pub mod io;
 pub mod metrics;
-pub mod panics;
 pub mod primitives;
 pub mod sample;
 

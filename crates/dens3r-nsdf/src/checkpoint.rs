@@ -7,9 +7,7 @@ use crate::data::Bounds;
 use crate::field::{param_names, FieldConfig};
 use crate::train::TrainOptions;
 use crate::NsdfError;
-use safetensors::tensor::{Dtype, TensorView};
 use serde::{Deserialize, Serialize};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 /// Everything a checkpoint holds.
@@ -54,34 +52,18 @@ pub fn meta_path(path: &Path) -> PathBuf {
     path.with_extension("json")
 }
 
-fn bytes(v: &[f32]) -> Vec<u8> {
-    v.iter().flat_map(|x| x.to_le_bytes()).collect()
-}
-
-fn write_atomic(path: &Path, data: &[u8]) -> Result<(), NsdfError> {
-    dens3r_mesh::io::write_atomic(path, |w| w.write_all(data))
-        .map_err(|e| NsdfError::Checkpoint(format!("{}: cannot write: {e}", path.display())))
-}
-
 /// Writes a checkpoint.
 pub fn save(path: &Path, ck: &Checkpoint) -> Result<(), NsdfError> {
     let names = param_names(&ck.config);
-    let mut owned: Vec<(String, Vec<u8>, Vec<usize>)> = Vec::new();
+    let mut named: Vec<(String, Vec<usize>, &[f32])> = Vec::new();
     for (i, (v, s)) in ck.values.iter().enumerate() {
-        owned.push((names[i].clone(), bytes(v), s.to_vec()));
+        named.push((names[i].clone(), s.to_vec(), v));
         if let Some(m) = &ck.moments {
-            owned.push((format!("adam.m.{}", names[i]), bytes(&m[i].0), s.to_vec()));
-            owned.push((format!("adam.v.{}", names[i]), bytes(&m[i].1), s.to_vec()));
+            named.push((format!("adam.m.{}", names[i]), s.to_vec(), &m[i].0));
+            named.push((format!("adam.v.{}", names[i]), s.to_vec(), &m[i].1));
         }
     }
-    let views: Vec<(String, TensorView)> = owned
-        .iter()
-        .map(|(n, b, s)| Ok((n.clone(), TensorView::new(Dtype::F32, s.clone(), b)?)))
-        .collect::<Result<_, safetensors::SafeTensorError>>()
-        .map_err(|e| NsdfError::Checkpoint(format!("{}: {e}", path.display())))?;
-    let data =
-        safetensors::serialize(views, None).map_err(|e| NsdfError::Checkpoint(format!("{}: {e}", path.display())))?;
-    write_atomic(path, &data)?;
+    let tensors_bytes = dens3r_io::tensors::save(path, &named).map_err(|e| NsdfError::Checkpoint(e.to_string()))?;
     let meta = Meta {
         format: FORMAT.into(),
         config: ck.config.clone(),
@@ -89,10 +71,9 @@ pub fn save(path: &Path, ck: &Checkpoint) -> Result<(), NsdfError> {
         bounds: ck.bounds,
         iter: ck.iter,
         data: ck.data.map(|h| format!("{h:016x}")),
-        tensors_bytes: data.len() as u64,
+        tensors_bytes,
     };
-    let json = serde_json::to_vec_pretty(&meta).map_err(|e| NsdfError::Checkpoint(e.to_string()))?;
-    write_atomic(&meta_path(path), &json)
+    dens3r_io::tensors::save_json(&meta_path(path), &meta).map_err(|e| NsdfError::Checkpoint(e.to_string()))
 }
 
 /// Reads a checkpoint, checking names, shapes and that both files belong together.
@@ -119,32 +100,28 @@ pub fn load(path: &Path) -> Result<Checkpoint, NsdfError> {
         })?),
         None => None,
     };
-    let data = std::fs::read(path).map_err(|e| err(format!("cannot read: {e}")))?;
-    if data.len() as u64 != meta.tensors_bytes {
+    let len = std::fs::metadata(path).map_err(|e| err(format!("cannot read: {e}")))?.len();
+    if len != meta.tensors_bytes {
         return Err(err(format!(
-            "{} bytes, but {} says {}: the pair is from different saves or truncated; delete both to start over",
-            data.len(),
+            "{len} bytes, but {} says {}: the pair is from different saves or truncated; delete both to start over",
             mp.display(),
             meta.tensors_bytes
         )));
     }
-    let st = safetensors::SafeTensors::deserialize(&data).map_err(|e| err(format!("corrupt safetensors: {e}")))?;
+    let file = dens3r_io::tensors::TensorFile::open(path, "delete both to start over")
+        .map_err(|e| NsdfError::Checkpoint(e.to_string()))?;
     let read = |name: &str| -> Result<(Vec<f32>, [usize; 2]), NsdfError> {
-        let t = st.tensor(name).map_err(|_| err(format!("missing tensor '{name}'")))?;
-        if t.dtype() != Dtype::F32 || t.shape().len() != 2 {
-            return Err(err(format!("tensor '{name}' must be 2-D f32, is {:?} {:?}", t.dtype(), t.shape())));
+        let (shape, v) = file.get(name).map_err(|e| NsdfError::Checkpoint(e.to_string()))?;
+        match shape[..] {
+            [a, b] => Ok((v, [a, b])),
+            _ => Err(err(format!("tensor '{name}' must be 2-D, is {shape:?}"))),
         }
-        let v: Vec<f32> = t.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        if v.iter().any(|x| !x.is_finite()) {
-            return Err(err(format!("tensor '{name}' holds NaN or infinite values")));
-        }
-        Ok((v, [t.shape()[0], t.shape()[1]]))
     };
     let expected = crate::field::param_shapes(&meta.config);
     let names = param_names(&meta.config);
     let mut values = Vec::new();
     let mut moments = Vec::new();
-    let has_moments = st.names().iter().any(|n| n.starts_with("adam."));
+    let has_moments = file.names().iter().any(|n| n.starts_with("adam."));
     for (name, shape) in names.iter().zip(&expected) {
         let v = read(name)?;
         if v.1 != *shape {

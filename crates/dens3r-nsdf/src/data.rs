@@ -195,7 +195,7 @@ impl TrainData {
     /// A hash of everything trained on (rays, bounds, frame count), so a checkpoint is resumed
     /// only with the input it was written for.
     pub fn fingerprint(&self) -> u64 {
-        use dens3r_scene::hash::{fnv1a, fnv1a_update};
+        use dens3r_io::hash::{fnv1a, fnv1a_update};
         let r = &self.rays;
         let mut h = fnv1a(&(self.frames as u64).to_le_bytes(), r.len() as u64);
         // Streamed value by value: no copy of the arrays.

@@ -56,10 +56,10 @@ impl PairCache {
         let Some(root) = &self.dir else { return Ok(()) };
         std::fs::create_dir_all(root).map_err(|e| format!("{}: cannot create the pair cache ({e})", root.display()))?;
         // Entries of killed runs are swept; this one is removed if the process is stopped.
-        dens3r_mesh::cleanup::sweep_stale(root);
-        let tmp = root.join(format!(".{key}{}d", dens3r_mesh::cleanup::temp_prefix()));
+        dens3r_io::cleanup::sweep_stale(root);
+        let tmp = root.join(format!(".{key}{}d", dens3r_io::cleanup::temp_prefix()));
         let _ = std::fs::remove_dir_all(&tmp);
-        let _staged = dens3r_mesh::cleanup::stage(&tmp);
+        let _staged = dens3r_io::cleanup::stage(&tmp);
         std::fs::create_dir_all(&tmp).map_err(|e| format!("{}: cannot write the pair cache ({e})", tmp.display()))?;
         let res = out.iter().enumerate().try_for_each(|(v, o)| write_view(&tmp, v, o));
         if let Err(e) = res {

@@ -45,7 +45,7 @@ impl InputImage {
     }
 }
 
-pub use dens3r_scene::hash::fnv1a;
+pub use dens3r_io::hash::fnv1a;
 
 /// The photos of a folder (sorted by file name), or the given files as they are.
 pub fn list_images(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, ReconError> {

@@ -2,7 +2,7 @@
 //! outputs).
 
 use crate::error::SceneError;
-use dens3r_mesh::io::write_atomic;
+use dens3r_io::write_atomic;
 use std::collections::BTreeMap;
 use std::path::Path;
 

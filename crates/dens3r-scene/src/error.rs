@@ -21,3 +21,9 @@ impl From<dens3r_mesh::MeshError> for SceneError {
         Self { path: e.path, message: e.message }
     }
 }
+
+impl From<dens3r_io::IoError> for SceneError {
+    fn from(e: dens3r_io::IoError) -> Self {
+        Self { path: e.path, message: e.message }
+    }
+}

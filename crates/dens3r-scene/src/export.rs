@@ -13,7 +13,7 @@
 use crate::{Frame, SceneError};
 use dens3r_geom::camera::{mat4_to_rows, opencv_to_opengl_pose, rigid_inverse};
 use dens3r_geom::{DMat3, DVec3};
-use dens3r_mesh::io::write_atomic;
+use dens3r_io::write_atomic;
 use glam::DQuat;
 use std::fmt::Write as _;
 use std::path::Path;

@@ -24,7 +24,6 @@ mod cameras;
 mod classes;
 mod error;
 pub mod export;
-pub mod hash;
 pub mod npy;
 mod reader;
 pub mod visibility;

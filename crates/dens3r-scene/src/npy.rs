@@ -82,7 +82,7 @@ pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), Scene
     let mut w = npyz::WriteOptions::new().default_dtype().shape(&shape).writer(&mut buf).begin_nd().map_err(io)?;
     w.extend(data.iter().copied()).map_err(io)?;
     w.finish().map_err(io)?;
-    dens3r_mesh::io::write_atomic(path, |f| std::io::Write::write_all(f, &buf))?;
+    dens3r_io::write_atomic(path, |f| std::io::Write::write_all(f, &buf))?;
     Ok(())
 }
 

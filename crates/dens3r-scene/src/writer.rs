@@ -5,7 +5,7 @@ use crate::error::SceneError;
 use crate::npy;
 use crate::reader::Layer;
 use dens3r_geom::{Raster, Vec3};
-use dens3r_mesh::io::write_atomic;
+use dens3r_io::write_atomic;
 use dens3r_mesh::TriMesh;
 use image::{ImageEncoder, RgbImage};
 use std::collections::BTreeMap;
@@ -25,7 +25,7 @@ pub struct SceneWriter {
     dest: Option<PathBuf>,
     /// The staging folder, or a folder this writer created, removed if the process is stopped
     /// before `finish`.
-    staged: Option<dens3r_mesh::cleanup::Staged>,
+    staged: Option<dens3r_io::cleanup::Staged>,
     frames: Vec<Frame>,
     extra: serde_json::Map<String, serde_json::Value>,
 }
@@ -47,7 +47,7 @@ impl SceneWriter {
     /// one is staged beside it and replaces it whole only when `finish` succeeds.
     pub fn create(dir: &Path) -> Result<Self, SceneError> {
         if let Some(parent) = dir.parent() {
-            dens3r_mesh::cleanup::sweep_stale(if parent.as_os_str().is_empty() { Path::new(".") } else { parent });
+            dens3r_io::cleanup::sweep_stale(if parent.as_os_str().is_empty() { Path::new(".") } else { parent });
         }
         let (root, dest) = if holds_scene(dir) {
             (siblings(dir, "stage"), Some(dir.to_path_buf()))
@@ -57,7 +57,7 @@ impl SceneWriter {
         let fresh = !root.exists();
         std::fs::create_dir_all(&root)
             .map_err(|e| SceneError::new(dir, format!("cannot create the scene folder: {e}")))?;
-        let staged = fresh.then(|| dens3r_mesh::cleanup::stage(&root));
+        let staged = fresh.then(|| dens3r_io::cleanup::stage(&root));
         Ok(Self { root, dest, staged, frames: Vec::new(), extra: Default::default() })
     }
 

@@ -91,7 +91,7 @@ pub fn run(
     }
     trainer.params.save(&paths.model).map_err(|e| e.to_string())?;
     let cfg = serde_json::to_string_pretty(&config_json(&trainer.params.config)).map_err(|e| e.to_string())?;
-    dens3r_mesh::io::write_atomic(&paths.model_config, |w| w.write_all(cfg.as_bytes())).map_err(|e| e.to_string())?;
+    dens3r_io::write_atomic(&paths.model_config, |w| w.write_all(cfg.as_bytes())).map_err(|e| e.to_string())?;
     write_curve(&paths.curve, &lines)?;
     Ok(trainer)
 }
@@ -153,7 +153,7 @@ fn write_log(path: &Path, lines: &[LogLine]) -> Result<(), String> {
         text += &serde_json::to_string(l).map_err(|e| e.to_string())?;
         text.push('\n');
     }
-    dens3r_mesh::io::write_atomic(path, |w| w.write_all(text.as_bytes())).map_err(|e| e.to_string())
+    dens3r_io::write_atomic(path, |w| w.write_all(text.as_bytes())).map_err(|e| e.to_string())
 }
 
 /// The total loss per step as a PNG line plot (log scale, 640x360; red), held-out losses as
@@ -203,6 +203,6 @@ pub fn write_curve(path: &Path, lines: &[LogLine]) -> Result<(), String> {
             img.put_pixel(20, yy, image::Rgb([0, 0, 0]));
         }
     }
-    dens3r_mesh::io::write_atomic(path, |f| img.write_to(f, image::ImageFormat::Png).map_err(std::io::Error::other))
+    dens3r_io::write_atomic(path, |f| img.write_to(f, image::ImageFormat::Png).map_err(std::io::Error::other))
         .map_err(|e| format!("{}: {e}", path.display()))
 }

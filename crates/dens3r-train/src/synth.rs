@@ -121,7 +121,7 @@ pub fn synthesise(
         ));
     }
     let text = serde_json::to_string_pretty(&manifest).map_err(|e| e.to_string())?;
-    dens3r_mesh::io::write_atomic(&mpath, |f| f.write_all(text.as_bytes()))
+    dens3r_io::write_atomic(&mpath, |f| f.write_all(text.as_bytes()))
         .map_err(|e| format!("{}: {e}", mpath.display()))?;
     let mut summary = SynthSummary::default();
     for k in 0..opts.scenes {
@@ -136,7 +136,7 @@ pub fn synthesise(
                     std::fs::remove_dir_all(d).map_err(|e| format!("{}: cannot remove ({e})", d.display()))?;
                 }
             }
-            let _staged = dens3r_mesh::cleanup::stage(&tmp);
+            let _staged = dens3r_io::cleanup::stage(&tmp);
             let scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;
             render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})
                 .map_err(|e| e.to_string())?;
@@ -172,8 +172,7 @@ pub fn write_pairs(dir: &Path) -> Result<(), String> {
         PairsFile { format: PAIRS_FORMAT.into(), frames: views.iter().map(|v| v.name.clone()).collect(), covisibility };
     let text = serde_json::to_string(&file).map_err(|e| e.to_string())?;
     let path = dir.join(PAIRS_FILE);
-    dens3r_mesh::io::write_atomic(&path, |f| f.write_all(text.as_bytes()))
-        .map_err(|e| format!("{}: {e}", path.display()))
+    dens3r_io::write_atomic(&path, |f| f.write_all(text.as_bytes())).map_err(|e| format!("{}: {e}", path.display()))
 }
 
 /// The co-visibility table (`n x n`, row-major) of a scene's `pairs.json`, if it has one that

@@ -662,9 +662,7 @@ impl Trainer {
         moments.values = self.m.iter().chain(&self.v).cloned().collect();
         moments.save(&dir.join("adam.safetensors")).map_err(|e| e.to_string())?;
         let state = State { format: STATE_FORMAT.into(), config: self.config.clone(), step: self.step };
-        let text = serde_json::to_string_pretty(&state).map_err(|e| e.to_string())?;
-        dens3r_mesh::io::write_atomic(&dir.join("state.json"), |w| std::io::Write::write_all(w, text.as_bytes()))
-            .map_err(|e| e.to_string())
+        dens3r_io::tensors::save_json(&dir.join("state.json"), &state).map_err(|e| e.to_string())
     }
 
     /// Resumes from a checkpoint folder written by [`Trainer::save`] for the same network and
