@@ -43,6 +43,45 @@ pub struct DptConfig {
     pub up: [usize; 2],
 }
 
+/// The widths of a DPT, shared by a network's heads (each has its own prefix and outputs).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DptWidths {
+    /// act_postprocess output widths (4 layers).
+    pub layer_dims: [usize; 4],
+    /// Fusion width.
+    pub feature_dim: usize,
+    /// Width after the first head conv.
+    pub head_dim: usize,
+    /// Width after the second head conv.
+    pub last_dim: usize,
+}
+
+impl DptWidths {
+    /// The DPT of the head `head` (keys under `{head}.dpt`) with `out_channels` outputs and the
+    /// official upsampling (4x, 2x).
+    pub fn dpt(&self, head: &str, out_channels: usize) -> DptConfig {
+        DptConfig {
+            prefix: format!("{head}.dpt"),
+            layer_dims: self.layer_dims,
+            feature_dim: self.feature_dim,
+            head_dim: self.head_dim,
+            last_dim: self.last_dim,
+            out_channels,
+            up: [4, 2],
+        }
+    }
+}
+
+/// Dens3R's two point heads (`ptsmatch_local_head`, `ptsmatch_global_head`): x, y, z and
+/// confidence from a DPT of `widths`, and a descriptor MLP of `mlp_hidden` when given.
+pub fn pts_heads(widths: DptWidths, mlp_hidden: Option<usize>) -> [PtsHeadConfig; 2] {
+    ["ptsmatch_local_head", "ptsmatch_global_head"].map(|prefix| PtsHeadConfig {
+        prefix: prefix.into(),
+        dpt: widths.dpt(prefix, 4),
+        mlp_hidden,
+    })
+}
+
 /// A point (+ descriptor) head.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PtsHeadConfig {
@@ -222,20 +261,8 @@ impl ModelConfig {
     /// both views, full DPT widths, conf, 24-d descriptors, normal head): for benchmarks and
     /// synthetic weights.
     pub fn dens3r_full() -> Self {
-        let dpt = |prefix: &str, out_channels: usize| DptConfig {
-            prefix: format!("{prefix}.dpt"),
-            layer_dims: [96, 192, 384, 768],
-            feature_dim: 256,
-            head_dim: 128,
-            last_dim: 128,
-            out_channels,
-            up: [4, 2],
-        };
-        let pts = |prefix: &str| PtsHeadConfig {
-            prefix: prefix.into(),
-            dpt: dpt(prefix, 4),
-            mlp_hidden: Some(4 * (1024 + 768)),
-        };
+        let widths = DptWidths { layer_dims: [96, 192, 384, 768], feature_dim: 256, head_dim: 128, last_dim: 128 };
+        let [head1, head2] = pts_heads(widths, Some(4 * (1024 + 768)));
         Self {
             encoder: EncoderKind::Vit,
             patch: 16,
@@ -249,9 +276,9 @@ impl ModelConfig {
             shared_decoder: true,
             rope_base: 100.0,
             rope: RopeScaling::Interpolated,
-            head1: pts("ptsmatch_local_head"),
-            head2: pts("ptsmatch_global_head"),
-            normal_head: Some(dpt("normal_local_head", 3)),
+            head1,
+            head2,
+            normal_head: Some(widths.dpt("normal_local_head", 3)),
             has_conf: true,
             desc_dim: 24,
             desc_conf: false,

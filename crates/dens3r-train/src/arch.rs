@@ -1,7 +1,7 @@
 //! A network architecture described by the official constructor's keywords (`--arch
 //! small.toml`), turned into the [`ModelConfig`] the backbone builds.
 
-use dens3r_backbone::config::{DptConfig, EncoderKind, PtsHeadConfig, RopeScaling};
+use dens3r_backbone::config::{pts_heads, DptWidths, EncoderKind, RopeScaling};
 use dens3r_backbone::ModelConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -108,20 +108,13 @@ impl Arch {
 
     /// The configuration the backbone builds.
     pub fn config(&self) -> ModelConfig {
-        let dpt = |prefix: &str, out_channels: usize| DptConfig {
-            prefix: format!("{prefix}.dpt"),
+        let widths = DptWidths {
             layer_dims: self.layer_dims,
             feature_dim: self.feature_dim,
             head_dim: self.feature_dim / 2,
             last_dim: self.last_dim,
-            out_channels,
-            up: [4, 2],
         };
-        let pts = |prefix: &str| PtsHeadConfig {
-            prefix: prefix.into(),
-            dpt: dpt(prefix, 4),
-            mlp_hidden: Some(self.desc_mlp_ratio * (self.enc_embed_dim + self.dec_embed_dim)),
-        };
+        let [head1, head2] = pts_heads(widths, Some(self.desc_mlp_ratio * (self.enc_embed_dim + self.dec_embed_dim)));
         ModelConfig {
             encoder: match self.encoder {
                 ArchEncoder::Vit => EncoderKind::Vit,
@@ -138,9 +131,9 @@ impl Arch {
             shared_decoder: self.symmetrize_dec,
             rope_base: 100.0,
             rope: RopeScaling::Interpolated,
-            head1: pts("ptsmatch_local_head"),
-            head2: pts("ptsmatch_global_head"),
-            normal_head: Some(dpt("normal_local_head", 3)),
+            head1,
+            head2,
+            normal_head: Some(widths.dpt("normal_local_head", 3)),
             has_conf: true,
             desc_dim: self.desc_dim,
             desc_conf: self.desc_conf,

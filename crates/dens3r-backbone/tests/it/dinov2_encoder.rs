@@ -1,7 +1,7 @@
 //! A Dens3R whose encoder is a frozen DINOv2 (`EncoderKind::Dinov2`): the image the DINOv2
 //! sees, the checkpoint without the encoder, and loading it back beside its `.onnx`.
 
-use dens3r_backbone::config::{DptConfig, EncoderKind, PtsHeadConfig, RopeScaling};
+use dens3r_backbone::config::{pts_heads, DptWidths, EncoderKind, RopeScaling};
 use dens3r_backbone::dinov2::{resize_bilinear, Dinov2, IMAGENET_MEAN, IMAGENET_STD};
 use dens3r_backbone::verify::{load_dinov2, load_model};
 use dens3r_backbone::{Device, ModelConfig, Params, Tensor, TensorData};
@@ -11,16 +11,8 @@ use crate::fetched::fetched;
 
 /// A small decoder and heads on DINOv2-S's 384-wide tokens.
 fn config() -> ModelConfig {
-    let dpt = |prefix: &str, out_channels: usize| DptConfig {
-        prefix: format!("{prefix}.dpt"),
-        layer_dims: [8, 16, 32, 64],
-        feature_dim: 16,
-        head_dim: 8,
-        last_dim: 8,
-        out_channels,
-        up: [4, 2],
-    };
-    let pts = |prefix: &str| PtsHeadConfig { prefix: prefix.into(), dpt: dpt(prefix, 4), mlp_hidden: Some(64) };
+    let widths = DptWidths { layer_dims: [8, 16, 32, 64], feature_dim: 16, head_dim: 8, last_dim: 8 };
+    let [head1, head2] = pts_heads(widths, Some(64));
     ModelConfig {
         encoder: EncoderKind::Dinov2,
         patch: 16,
@@ -34,9 +26,9 @@ fn config() -> ModelConfig {
         shared_decoder: true,
         rope_base: 100.0,
         rope: RopeScaling::Interpolated,
-        head1: pts("ptsmatch_local_head"),
-        head2: pts("ptsmatch_global_head"),
-        normal_head: Some(dpt("normal_local_head", 3)),
+        head1,
+        head2,
+        normal_head: Some(widths.dpt("normal_local_head", 3)),
         has_conf: true,
         desc_dim: 24,
         desc_conf: false,
