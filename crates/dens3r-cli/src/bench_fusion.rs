@@ -22,7 +22,7 @@ pub fn run_fuse(scene: &Path, voxel: f32, out: &Path, gpu: bool) -> Result<()> {
     let opts = SceneFusion { gpu, ..SceneFusion::new(params) };
     let (tsdf, summary) = fuse_scene(&scene, &opts, |_, _| {}).map_err(anyhow::Error::msg)?;
     let t = Instant::now();
-    let mesh = extract_mesh(&tsdf, &ExtractOptions::default());
+    let mesh = extract_mesh(tsdf.grid(), &ExtractOptions::default());
     let extract = t.elapsed().as_secs_f64();
     dens3r_mesh::write_mesh(out, &mesh)?;
     println!(

@@ -92,7 +92,7 @@ pub fn run(a: NsdfBenchArgs) -> Result<()> {
         let t = Instant::now();
         let params = TsdfParams::new(v);
         let (tsdf, _) = fuse_scene(&scene, &SceneFusion::new(params), |_, _| {}).map_err(anyhow::Error::msg)?;
-        let mesh = extract_mesh(&tsdf, &extract);
+        let mesh = extract_mesh(tsdf.grid(), &extract);
         let secs = t.elapsed().as_secs_f64();
         dens3r_mesh::write_mesh(&dir.join(format!("tsdf_{v}.ply")), &mesh)?;
         best_tsdf = best_tsdf.min(row("TSDF (dens3r fuse)", v, secs, &mesh)?);

@@ -118,7 +118,7 @@ pub fn run(a: FuseArgs) -> Result<()> {
         fuse_scene(&scene, &opts, |done, _| bar.set_position(done as u64)).map_err(anyhow::Error::msg)?;
     bar.finish_and_clear();
     let t = Instant::now();
-    let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: a.min_component, crop });
+    let mesh = extract_mesh(tsdf.grid(), &ExtractOptions { min_component_triangles: a.min_component, crop });
     let extract_s = t.elapsed().as_secs_f64();
     if mesh.indices.is_empty() {
         let why = why_empty(&a, &tsdf, &summary, crop);
@@ -136,8 +136,8 @@ fn why_empty(
     summary: &FusionSummary,
     crop: Option<(glam::Vec3, glam::Vec3)>,
 ) -> String {
-    let whole = extract_mesh(tsdf, &ExtractOptions { min_component_triangles: 0, crop: None });
-    let cropped = extract_mesh(tsdf, &ExtractOptions { min_component_triangles: 0, crop });
+    let whole = extract_mesh(tsdf.grid(), &ExtractOptions { min_component_triangles: 0, crop: None });
+    let cropped = extract_mesh(tsdf.grid(), &ExtractOptions { min_component_triangles: 0, crop });
     if whole.indices.is_empty() {
         format!(
             "the fused volume has no surface ({} of {} frames had no valid depth, {} no pixel weighted above zero: confidences NaN or under --min-conf, or grazing normals; too few views, or depth outside [{}, {}])",

@@ -4,7 +4,7 @@
 //! connected components and a crop to a box. The case tables are the classic Lorensen-Cline /
 //! Bourke tables from the `marching-cubes` crate.
 
-use crate::tsdf::{IntMap, SparseTsdf, BLOCK};
+use crate::grid::{IntMap, VoxelBlockGrid, BLOCK};
 use dens3r_mesh::TriMesh;
 use glam::{IVec3, Vec3};
 use marching_cubes::tables::{EDGE_TABLE, TRI_TABLE};
@@ -60,7 +60,7 @@ fn gidx(l: IVec3) -> usize {
 }
 
 /// Copies the block at `key` and the needed parts of its 26 neighbours into a local grid.
-fn gather(tsdf: &SparseTsdf, key: IVec3) -> Vec<Sample> {
+fn gather(tsdf: &VoxelBlockGrid, key: IVec3) -> Vec<Sample> {
     let mut g = vec![EMPTY; (G * G * G) as usize];
     for dz in -1..=1 {
         for dy in -1..=1 {
@@ -125,12 +125,12 @@ fn edge_key(v: IVec3, axis: usize) -> Option<u64> {
 }
 
 /// Cubes whose lower corner lies in one block: vertices (with duplicates) and triangles by key.
-fn block_surface(tsdf: &SparseTsdf, key: IVec3) -> (Vec<EdgeVertex>, Vec<[u64; 3]>) {
+fn block_surface(tsdf: &VoxelBlockGrid, key: IVec3) -> (Vec<EdgeVertex>, Vec<[u64; 3]>) {
     let g = gather(tsdf, key);
-    let voxel = tsdf.params().voxel;
+    let voxel = tsdf.spec().voxel;
     // Largest plausible TSDF step between neighbouring voxels (normalised units): one voxel of
     // distance is voxel / trunc; allow 3x for grazing views, and never less than 0.5.
-    let max_jump = (3.0 * voxel / tsdf.params().trunc).max(0.5);
+    let max_jump = (3.0 * voxel / tsdf.spec().trunc).max(0.5);
     let origin = key * BLOCK;
     let (mut verts, mut tris) = (Vec::new(), Vec::new());
     for z in 0..BLOCK {
@@ -197,7 +197,7 @@ fn block_surface(tsdf: &SparseTsdf, key: IVec3) -> (Vec<EdgeVertex>, Vec<[u64; 3
 }
 
 /// Extracts the zero level set as an indexed mesh with normals and (if integrated) colours.
-pub fn extract_mesh(tsdf: &SparseTsdf, opts: &ExtractOptions) -> TriMesh {
+pub fn extract_mesh(tsdf: &VoxelBlockGrid, opts: &ExtractOptions) -> TriMesh {
     // Blocks whose observed voxels are all on one side, like their +x/+y/+z neighbours,
     // cannot hold a zero crossing in the cubes they own: skip them without gathering.
     let signs: IntMap<IVec3, (bool, bool)> = tsdf
@@ -251,7 +251,7 @@ pub fn extract_mesh(tsdf: &SparseTsdf, opts: &ExtractOptions) -> TriMesh {
     }
     let mut mesh = TriMesh::new(positions, indices);
     mesh.normals = Some(normals);
-    if tsdf.params().color {
+    if tsdf.spec().color {
         mesh.colors = Some(colors);
     }
     if let Some((lo, hi)) = opts.crop {

@@ -1,6 +1,6 @@
 //! GPU TSDF integration through wgpu (Vulkan, Metal, DX12): the voxel pool lives on the GPU and
 //! one WGSL compute pass (`shaders/tsdf_integrate.wgsl`) updates the touched blocks of each
-//! frame. Block allocation (the hash map, the budget) stays on the host in [`SparseTsdf`], so
+//! frame. Block allocation (the hash map, the budget) stays on the host in [`SparseTsdf`]'s grid, so
 //! both paths allocate the same blocks; [`GpuTsdf::finish`] copies the pool back for extraction.
 //! The result equals the CPU path's within float tolerance (`tests/it/gpu.rs`).
 

@@ -3,48 +3,12 @@
 //! truncated signed distances averaged with weights, optional colour. Integration of one frame
 //! is rayon-parallel over the blocks it touches.
 
+pub use crate::grid::{block_voxel, Block, IntHasher, IntMap, BLOCK, BLOCK_VOXELS};
+use crate::grid::{GridSpec, VoxelBlockGrid};
 use dens3r_geom::{PinholeCamera, Raster, Vec3};
 use glam::{IVec3, Mat4};
 use rayon::prelude::*;
-use std::collections::{HashMap, HashSet};
-
-/// A fast hasher for integer keys (block coordinates, grid-edge keys): a multiply-rotate per
-/// word and a splitmix64 finish instead of SipHash, which dominated block lookups and vertex
-/// de-duplication.
-#[derive(Default, Clone, Copy)]
-pub struct IntHasher(u64);
-
-impl std::hash::Hasher for IntHasher {
-    fn finish(&self) -> u64 {
-        // splitmix64's finaliser: every input bit reaches the low bits the table indexes by.
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u64(b as u64);
-        }
-    }
-    fn write_u64(&mut self, v: u64) {
-        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-    fn write_u32(&mut self, v: u32) {
-        self.write_u64(v as u64);
-    }
-    fn write_i32(&mut self, v: i32) {
-        self.write_u64(v as u32 as u64);
-    }
-}
-
-/// `HashMap` with [`IntHasher`].
-pub type IntMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<IntHasher>>;
-
-/// Voxels per block side.
-pub const BLOCK: i32 = 8;
-/// Voxels per block.
-pub const BLOCK_VOXELS: usize = (BLOCK * BLOCK * BLOCK) as usize;
+use std::collections::HashSet;
 
 /// What can go wrong while fusing.
 #[derive(Debug, thiserror::Error)]
@@ -132,30 +96,12 @@ impl TsdfParams {
 
     /// Bytes one block takes.
     pub fn block_bytes(&self) -> usize {
-        BLOCK_VOXELS * (8 + if self.color { 12 } else { 0 }) + 64
+        self.grid_spec().block_bytes()
     }
-}
 
-/// One 8^3 block: TSDF in `[-1, 1]` (units of `trunc`), weights and colours (0..255 floats),
-/// voxel `(x, y, z)` at index `x + 8 y + 64 z`.
-#[derive(Debug, Clone)]
-pub struct Block {
-    /// Normalised truncated signed distance (positive in front of the surface).
-    pub tsdf: Vec<f32>,
-    /// Accumulated weight; 0 = never observed.
-    pub weight: Vec<f32>,
-    /// Average colour, empty when colour is off.
-    pub color: Vec<[f32; 3]>,
-}
-
-impl Block {
-    /// An unobserved block (TSDF 1, weight 0, black if `color`).
-    pub fn new(color: bool) -> Self {
-        Self {
-            tsdf: vec![1.0; BLOCK_VOXELS],
-            weight: vec![0.0; BLOCK_VOXELS],
-            color: if color { vec![[0.0; 3]; BLOCK_VOXELS] } else { Vec::new() },
-        }
+    /// The grid these parameters fill.
+    pub fn grid_spec(&self) -> GridSpec {
+        GridSpec { voxel: self.voxel, trunc: self.trunc, color: self.color }
     }
 }
 
@@ -174,18 +120,11 @@ pub struct FrameInput<'a> {
     pub weight: Option<&'a Raster<f32>>,
 }
 
-/// Global voxel coordinate of entry `i` of the block at `key` (layout `x + 8 y + 64 z`).
-pub fn block_voxel(key: IVec3, i: usize) -> IVec3 {
-    let i = i as i32;
-    key * BLOCK + IVec3::new(i % BLOCK, (i / BLOCK) % BLOCK, i / (BLOCK * BLOCK))
-}
-
-/// The sparse TSDF volume.
+/// TSDF integration into a [`VoxelBlockGrid`]: the grid with the parameters that fill it and
+/// the number of frames integrated.
 pub struct SparseTsdf {
     params: TsdfParams,
-    blocks: Vec<Block>,
-    keys: Vec<IVec3>,
-    index: IntMap<IVec3, u32>,
+    grid: VoxelBlockGrid,
     frames: usize,
 }
 
@@ -218,7 +157,8 @@ impl SparseTsdf {
     /// An empty volume.
     pub fn new(params: TsdfParams) -> Result<Self, FusionError> {
         params.check()?;
-        Ok(Self { params, blocks: Vec::new(), keys: Vec::new(), index: IntMap::default(), frames: 0 })
+        let grid = VoxelBlockGrid::new(params.grid_spec()).map_err(FusionError::Param)?;
+        Ok(Self { params, grid, frames: 0 })
     }
 
     /// The parameters.
@@ -226,9 +166,14 @@ impl SparseTsdf {
         &self.params
     }
 
+    /// The grid integrated into (what extraction meshes).
+    pub fn grid(&self) -> &VoxelBlockGrid {
+        &self.grid
+    }
+
     /// Allocated blocks.
     pub fn block_count(&self) -> usize {
-        self.blocks.len()
+        self.grid.block_count()
     }
 
     /// Frames integrated.
@@ -238,46 +183,27 @@ impl SparseTsdf {
 
     /// Bytes held by the blocks.
     pub fn memory_bytes(&self) -> usize {
-        self.blocks.len() * self.params.block_bytes()
+        self.grid.memory_bytes()
     }
 
     /// The block at a block coordinate.
     pub fn block(&self, key: IVec3) -> Option<&Block> {
-        self.index.get(&key).map(|&i| &self.blocks[i as usize])
+        self.grid.block(key)
     }
 
     /// All blocks with their block coordinates.
     pub fn blocks(&self) -> impl Iterator<Item = (IVec3, &Block)> {
-        self.keys.iter().copied().zip(&self.blocks)
-    }
-
-    /// Puts a block filled by other means than integration (e.g. an SDF sampled from a neural
-    /// field) at block coordinate `key`, replacing any block there. Its layers must hold
-    /// [`BLOCK_VOXELS`] entries (colour: that many, or none when colour is off).
-    pub fn insert_block(&mut self, key: IVec3, block: Block) -> Result<(), FusionError> {
-        let colors = if self.params.color { BLOCK_VOXELS } else { 0 };
-        if block.tsdf.len() != BLOCK_VOXELS || block.weight.len() != BLOCK_VOXELS || block.color.len() != colors {
-            return Err(FusionError::Param(format!(
-                "block {key} has {} / {} / {} tsdf / weight / colour entries, expected {BLOCK_VOXELS} / {BLOCK_VOXELS} / {colors}",
-                block.tsdf.len(),
-                block.weight.len(),
-                block.color.len()
-            )));
-        }
-        match self.index.get(&key) {
-            Some(&i) => self.blocks[i as usize] = block,
-            None => {
-                self.index.insert(key, self.blocks.len() as u32);
-                self.keys.push(key);
-                self.blocks.push(block);
-            }
-        }
-        Ok(())
+        self.grid.blocks()
     }
 
     /// World position of the centre of global voxel `v`.
     pub fn voxel_center(&self, v: IVec3) -> Vec3 {
-        (v.as_vec3() + 0.5) * self.params.voxel
+        self.grid.voxel_center(v)
+    }
+
+    /// Normalised TSDF, weight and colour of global voxel `v`, if its block exists.
+    pub fn voxel(&self, v: IVec3) -> Option<(f32, f32, [f32; 3])> {
+        self.grid.voxel(v)
     }
 
     /// Integrates one frame.
@@ -285,7 +211,7 @@ impl SparseTsdf {
         let Some(touched) = self.allocate_frame(f)? else {
             return Ok(()); // nothing valid in this frame
         };
-        let mut mask = vec![false; self.blocks.len()];
+        let mut mask = vec![false; self.grid.block_count()];
         for &slot in &touched {
             mask[slot as usize] = true;
         }
@@ -308,7 +234,8 @@ impl SparseTsdf {
             w2c.transform_vector3(Vec3::Z * voxel),
         );
         let (wf, hf) = (w as f32 - 0.5, h as f32 - 0.5);
-        self.blocks.par_iter_mut().zip(&self.keys).zip(&mask).filter(|(_, &m)| m).for_each(|((block, key), _)| {
+        let (keys, blocks) = self.grid.slots_mut();
+        blocks.par_iter_mut().zip(keys).zip(&mask).filter(|(_, &m)| m).for_each(|((block, key), _)| {
             let base = block_base(*key, &w2c, voxel);
             let mut i = 0;
             for z in 0..BLOCK {
@@ -451,10 +378,10 @@ impl SparseTsdf {
         // 2. Allocate, within the budget.
         // In a fixed order (the set's own order follows how the threads split the work), so a
         // grid's block order, which consumers sample by, does not depend on the machine's load.
-        let mut new: Vec<IVec3> = touched.iter().copied().filter(|k| !self.index.contains_key(k)).collect();
+        let mut new: Vec<IVec3> = touched.iter().copied().filter(|k| !self.grid.contains(*k)).collect();
         new.sort_unstable_by_key(|k| (k.z, k.y, k.x));
         if let Some(budget) = p.budget_bytes {
-            let blocks = self.blocks.len() + new.len();
+            let blocks = self.grid.block_count() + new.len();
             let needed = blocks * p.block_bytes();
             if needed > budget || over.load(std::sync::atomic::Ordering::Relaxed) {
                 return Err(FusionError::Budget {
@@ -465,13 +392,10 @@ impl SparseTsdf {
                 });
             }
         }
-        let color = p.color;
         for key in new {
-            self.index.insert(key, self.blocks.len() as u32);
-            self.keys.push(key);
-            self.blocks.push(Block::new(color));
+            self.grid.slot_or_insert(key);
         }
-        let mut slots: Vec<u32> = touched.iter().map(|key| self.index[key]).collect();
+        let mut slots: Vec<u32> = touched.iter().map(|key| self.grid.slot(*key).expect("allocated")).collect();
         slots.sort_unstable();
         Ok(Some(slots))
     }
@@ -485,21 +409,12 @@ impl SparseTsdf {
     /// Block coordinate of a slot (the GPU path's upload).
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
     pub(crate) fn key(&self, slot: u32) -> IVec3 {
-        self.keys[slot as usize]
+        self.grid.key(slot)
     }
 
     /// Mutable blocks (the GPU path's download).
     #[cfg_attr(not(feature = "gpu"), allow(dead_code))]
     pub(crate) fn blocks_mut(&mut self) -> &mut [Block] {
-        &mut self.blocks
-    }
-
-    /// Normalised TSDF, weight and colour of global voxel `v`, if its block exists.
-    pub fn voxel(&self, v: IVec3) -> Option<(f32, f32, [f32; 3])> {
-        let key = v.div_euclid(IVec3::splat(BLOCK));
-        let b = self.block(key)?;
-        let l = v - key * BLOCK;
-        let i = (l.x + BLOCK * (l.y + BLOCK * l.z)) as usize;
-        Some((b.tsdf[i], b.weight[i], b.color.get(i).copied().unwrap_or([0.0; 3])))
+        self.grid.slots_mut().1
     }
 }

@@ -1,5 +1,5 @@
 //! Mesh extraction: the field's SDF sampled at voxel centres of 8^3 blocks covering the occupied
-//! cells (the space near the observed surface), stored as a [`SparseTsdf`] and meshed by
+//! cells (the space near the observed surface), stored in a [`VoxelBlockGrid`] and meshed by
 //! dens3r-fusion's crack-free marching cubes, with colours from the colour branch.
 
 use crate::data::{Bounds, Occupancy};
@@ -8,8 +8,8 @@ use crate::NsdfError;
 use burn::tensor::activation::sigmoid;
 use burn::tensor::Device;
 use dens3r_fusion::extract::{component_filter, filter_triangles};
-use dens3r_fusion::tsdf::{block_voxel, Block, BLOCK, BLOCK_VOXELS};
-use dens3r_fusion::{extract_mesh, ExtractOptions, SparseTsdf, TsdfParams};
+use dens3r_fusion::grid::{block_voxel, Block, GridSpec, VoxelBlockGrid, BLOCK, BLOCK_VOXELS};
+use dens3r_fusion::{extract_mesh, ExtractOptions};
 use dens3r_mesh::TriMesh;
 use glam::{DVec3, IVec3, Vec3};
 use std::collections::BTreeSet;
@@ -26,11 +26,9 @@ pub fn sample_grid(
     occupancy: &Occupancy,
     voxel: f32,
     budget_bytes: Option<usize>,
-) -> Result<SparseTsdf, NsdfError> {
-    let mut tp = TsdfParams::new(voxel);
-    tp.color = cfg.color;
-    tp.budget_bytes = budget_bytes;
-    let mut grid = SparseTsdf::new(tp.clone()).map_err(|e| NsdfError::Options(e.to_string()))?;
+) -> Result<VoxelBlockGrid, NsdfError> {
+    let spec = GridSpec { voxel, trunc: 4.0 * voxel, color: cfg.color };
+    let mut grid = VoxelBlockGrid::new(spec).map_err(NsdfError::Options)?;
     let block = voxel as f64 * BLOCK as f64;
     let cell = occupancy.cell() as f64 * bounds.scale;
     let mut keys = BTreeSet::new();
@@ -47,7 +45,7 @@ pub fn sample_grid(
         }
     }
     if let Some(budget) = budget_bytes {
-        let need = keys.len() * tp.block_bytes();
+        let need = keys.len() * spec.block_bytes();
         if need > budget {
             return Err(NsdfError::Options(format!(
                 "the mesh grid would need {:.0} MB ({} blocks) at voxel {voxel}, over the {:.0} MB budget: use a larger --voxel",
@@ -80,7 +78,7 @@ pub fn sample_grid(
             rgb.extend(crate::field::to_vec(sigmoid(out.slice([0..n, 1..4]))));
         }
     }
-    let trunc = tp.trunc as f64;
+    let trunc = spec.trunc as f64;
     for (bi, k) in keys.iter().enumerate() {
         let mut b = Block::new(cfg.color);
         for i in 0..BLOCK_VOXELS {
@@ -93,7 +91,7 @@ pub fn sample_grid(
                 }
             }
         }
-        grid.insert_block(*k, b).map_err(|e| NsdfError::Options(e.to_string()))?;
+        grid.insert_block(*k, b).map_err(NsdfError::Options)?;
     }
     Ok(grid)
 }

@@ -180,7 +180,7 @@ fn fuse(
             r => break r.map_err(|e| ReconError::Other(e.to_string()))?,
         }
     };
-    let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: opts.min_component, crop: None });
+    let mesh = extract_mesh(tsdf.grid(), &ExtractOptions { min_component_triangles: opts.min_component, crop: None });
     summary.voxel = voxel;
     summary.gpu_adapter = fs.gpu_adapter;
     summary.fuse_seconds = t.elapsed().as_secs_f64();

@@ -60,7 +60,7 @@ fn sphere_is_closed_accurate_and_oriented() {
     let world = sphere_world(c, r);
     let voxel = 0.01;
     let tsdf = fuse_orbit(&world, c, 1.2, 12, TsdfParams::new(voxel));
-    let mesh = extract_mesh(&tsdf, &ExtractOptions::default());
+    let mesh = extract_mesh(tsdf.grid(), &ExtractOptions::default());
     let stats = |mesh: &dens3r_mesh::TriMesh| {
         let mut err: Vec<f32> = mesh.positions.iter().map(|p| ((*p - c).length() - r).abs()).collect();
         let mut deg: Vec<f32> = mesh
@@ -84,7 +84,7 @@ fn sphere_is_closed_accurate_and_oriented() {
     assert!(med_deg < 6.0, "median normal error {med_deg} deg");
     // ... and weighting pixels by the normal-to-ray angle removes most of that bias.
     let weighted = extract_mesh(
-        &fuse_orbit_weighted(&world, c, 1.2, 12, TsdfParams::new(voxel), true),
+        fuse_orbit_weighted(&world, c, 1.2, 12, TsdfParams::new(voxel), true).grid(),
         &ExtractOptions::default(),
     );
     let (wmean, _, _, wmed, wp99) = stats(&weighted);
@@ -177,7 +177,7 @@ fn rendered_room_matches_ground_truth() {
         let f = FrameInput { name: "v", camera: &cam, depth: &view.depth, color: Some(&view.rgb), weight: None };
         tsdf.integrate(&f).unwrap();
     }
-    let mesh = extract_mesh(&tsdf, &ExtractOptions { min_component_triangles: 50, crop: None });
+    let mesh = extract_mesh(tsdf.grid(), &ExtractOptions { min_component_triangles: 50, crop: None });
     let gt = world.gt_mesh();
     let m = mesh_metrics(&mesh, &gt, &MeshMetricsOptions { samples: 50_000, thresholds: vec![0.02, 0.04], seed: 1 })
         .unwrap();

@@ -103,7 +103,10 @@ fn gpu_tsdf_equals_cpu_tsdf() {
         // neighbouring pixel on one side; nothing else may differ.
         assert!(off < 1e-3, "{:.4}% of voxels differ", 100.0 * off);
         // And the meshes agree.
-        let (ma, mb) = (extract_mesh(&cpu, &ExtractOptions::default()), extract_mesh(&gpu, &ExtractOptions::default()));
+        let (ma, mb) = (
+            extract_mesh(cpu.grid(), &ExtractOptions::default()),
+            extract_mesh(gpu.grid(), &ExtractOptions::default()),
+        );
         let (na, nb) = (ma.indices.len() as f64, mb.indices.len() as f64);
         assert!((na - nb).abs() / na < 1e-3, "{na} vs {nb} triangles");
     }
