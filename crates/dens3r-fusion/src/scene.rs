@@ -3,8 +3,10 @@
 //! and the viewing ray.
 
 use crate::tsdf::{angle_weights, FrameInput, FusionError, SparseTsdf, TsdfParams};
-use dens3r_geom::Raster;
+use dens3r_geom::{PinholeCamera, Raster, Vec3};
 use dens3r_scene::Scene;
+use image::RgbImage;
+use std::borrow::Cow;
 use std::time::Instant;
 
 /// Scene-level fusion options on top of [`TsdfParams`].
@@ -108,44 +110,88 @@ pub enum SceneFusionError {
     Scene(String),
 }
 
-/// Integrates every frame of `scene`; `progress(done, total)` is called after each.
+/// One frame to fuse, read from a scene folder or handed over from memory (a reconstruction
+/// that has its aligned depth in hand need not write and re-read it).
+pub struct FusionFrame<'a> {
+    /// Frame name (for errors).
+    pub name: Cow<'a, str>,
+    /// Camera (OpenCV frame, camera-to-world pose).
+    pub camera: PinholeCamera,
+    /// Depth (z; 0 or NaN = invalid).
+    pub depth: Cow<'a, Raster<f32>>,
+    /// Pixels to keep (`false` drops the depth), e.g. a scene's `masks/`.
+    pub mask: Option<Cow<'a, Raster<bool>>>,
+    /// Colour image (needed when the parameters integrate colour).
+    pub color: Option<Cow<'a, RgbImage>>,
+    /// Confidence, used with [`SceneFusion::use_conf`].
+    pub conf: Option<Cow<'a, Raster<f32>>>,
+    /// Camera-frame normals, used with [`SceneFusion::use_normals`].
+    pub normals: Option<Cow<'a, Raster<Vec3>>>,
+}
+
+/// Integrates every frame of `scene` ([`fuse_frames`] over its frames, read one at a time);
+/// `progress(done, total)` is called after each.
 pub fn fuse_scene(
     scene: &Scene,
     opts: &SceneFusion,
-    mut progress: impl FnMut(usize, usize),
+    progress: impl FnMut(usize, usize),
 ) -> Result<(SparseTsdf, FusionSummary), SceneFusionError> {
     let err = |e: dens3r_scene::SceneError| SceneFusionError::Scene(e.to_string());
-    let frames = scene.frames();
-    if frames.is_empty() {
-        return Err(SceneFusionError::Scene(format!("{}: the scene has no frames", scene.root().display())));
+    let root = scene.root().display().to_string();
+    let read = |f: &'_ dens3r_scene::Frame| -> Result<FusionFrame<'static>, SceneFusionError> {
+        let Some(depth) = scene.depth(f).map_err(err)? else {
+            return Err(SceneFusionError::Scene(format!(
+                "{root}: frame '{}' has no depth/{}.npy: fusion needs depth for every frame (run dens3r predict or render)",
+                f.name, f.name
+            )));
+        };
+        Ok(FusionFrame {
+            name: Cow::Owned(f.name.clone()),
+            camera: f.camera(),
+            depth: Cow::Owned(depth),
+            mask: scene.mask(f).map_err(err)?.map(Cow::Owned),
+            color: if opts.params.color { Some(Cow::Owned(scene.image(f).map_err(err)?)) } else { None },
+            conf: if opts.use_conf { scene.conf(f).map_err(err)?.map(Cow::Owned) } else { None },
+            normals: if opts.use_normals { scene.normals(f).map_err(err)?.map(Cow::Owned) } else { None },
+        })
+    };
+    fuse_frames(&root, scene.frames().iter().map(read), opts, progress)
+}
+
+/// Integrates `frames` (produced one at a time, so a large set is never held whole) into a new
+/// volume: depth masked by `mask`, weighted by confidence (below `min_conf` dropped) and by the
+/// normal-to-ray angle as `opts` says, with colour. `what` names the source in errors (a scene
+/// folder). `progress(done, total)` is called after each frame.
+pub fn fuse_frames<'a>(
+    what: &str,
+    frames: impl ExactSizeIterator<Item = Result<FusionFrame<'a>, SceneFusionError>>,
+    opts: &SceneFusion,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<(SparseTsdf, FusionSummary), SceneFusionError> {
+    let total = frames.len();
+    if total == 0 {
+        return Err(SceneFusionError::Scene(format!("{what}: the scene has no frames")));
     }
     let mut volume = Volume::new(opts)?;
     let mut summary = FusionSummary { gpu_adapter: volume.adapter(), ..Default::default() };
     let mut any_depth = false;
-    for (i, f) in frames.iter().enumerate() {
+    let mut frames = frames;
+    for i in 0..total {
         let t = Instant::now();
-        let Some(mut depth) = scene.depth(f).map_err(err)? else {
-            return Err(SceneFusionError::Scene(format!(
-                "{}: frame '{}' has no depth/{}.npy: fusion needs depth for every frame (run dens3r predict or render)",
-                scene.root().display(),
-                f.name,
-                f.name
-            )));
-        };
-        if let Some(mask) = scene.mask(f).map_err(err)? {
-            depth.data_mut().iter_mut().zip(mask.data()).filter(|(_, &m)| !m).for_each(|(d, _)| *d = 0.0);
+        let f = frames.next().expect("an exact-size iterator")?;
+        let mut depth = f.depth;
+        if let Some(mask) = &f.mask {
+            depth.to_mut().data_mut().iter_mut().zip(mask.data()).filter(|(_, &m)| !m).for_each(|(d, _)| *d = 0.0);
         }
-        let color = if opts.params.color { Some(scene.image(f).map_err(err)?) } else { None };
-        let camera = f.camera();
         let mut weight: Option<Raster<f32>> = None;
         if opts.use_conf {
-            if let Some(conf) = scene.conf(f).map_err(err)? {
+            if let Some(conf) = &f.conf {
                 weight = Some(conf.map(|&c| if c.is_finite() && c >= opts.min_conf { c } else { 0.0 }));
             }
         }
         if opts.use_normals {
-            if let Some(n) = scene.normals(f).map_err(err)? {
-                let a = angle_weights(&n, &camera);
+            if let Some(n) = &f.normals {
+                let a = angle_weights(n, &f.camera);
                 weight = Some(match weight {
                     Some(w) => Raster::from_fn(w.width(), w.height(), |x, y| w.get(x, y) * a.get(x, y)),
                     None => a,
@@ -163,23 +209,16 @@ pub fn fuse_scene(
             summary.empty_frames += 1;
         }
         let t = Instant::now();
-        let input = FrameInput {
-            name: &f.name,
-            camera: &camera,
-            depth: &depth,
-            color: color.as_ref(),
-            weight: weight.as_ref(),
-        };
+        let color = f.color.as_deref().filter(|_| opts.params.color);
+        let input = FrameInput { name: &f.name, camera: &f.camera, depth: &depth, color, weight: weight.as_ref() };
         volume.integrate(&input)?;
         summary.integrate_seconds += t.elapsed().as_secs_f64();
-        progress(i + 1, frames.len());
+        progress(i + 1, total);
     }
     if !any_depth {
         return Err(SceneFusionError::Scene(format!(
-            "{}: no frame has valid depth in [{}, {}] (all zero, NaN or out of range)",
-            scene.root().display(),
-            opts.params.depth_range.0,
-            opts.params.depth_range.1
+            "{what}: no frame has valid depth in [{}, {}] (all zero, NaN or out of range)",
+            opts.params.depth_range.0, opts.params.depth_range.1
         )));
     }
     // The GPU runs asynchronously: its time ends when the voxels are back.

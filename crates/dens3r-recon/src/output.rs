@@ -12,10 +12,11 @@
 use crate::pipeline::Reconstruction;
 use crate::viz::match_picture;
 use crate::ReconError;
-use dens3r_fusion::scene::{fuse_scene, SceneFusion, SceneFusionError};
+use dens3r_fusion::scene::{fuse_frames, FusionFrame, SceneFusion, SceneFusionError};
 use dens3r_fusion::{extract_mesh, ExtractOptions, FusionError, TsdfParams};
 use dens3r_scene::export::{write_colmap_text, write_transforms_json};
 use dens3r_scene::{Frame, Layer, Scene, SceneWriter};
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -124,7 +125,7 @@ pub fn write_outputs(
 
     let mut summary = OutputSummary { scene: scene_dir, colmap, ..Default::default() };
     if opts.mesh {
-        fuse(rec, &scene, out, opts, &mut summary, &mut fuse_progress)?;
+        fuse(rec, out, opts, &mut summary, &mut fuse_progress)?;
     }
     Ok(summary)
 }
@@ -144,9 +145,10 @@ pub fn auto_voxel(rec: &Reconstruction) -> Option<f32> {
     dens3r_geom::focal::median(&mut per_view).map(|v| v as f32).filter(|v| v.is_finite() && *v > 0.0)
 }
 
+/// The aligned views fused into a mesh straight from memory (what the scene folder holds,
+/// without reading it back).
 fn fuse(
     rec: &Reconstruction,
-    scene: &Scene,
     out: &Path,
     opts: &OutputOptions,
     summary: &mut OutputSummary,
@@ -169,7 +171,18 @@ fn fuse(
         params.depth_range = (voxel * 1e-3, f32::MAX);
         params.budget_bytes = Some(opts.budget_bytes);
         let fusion = SceneFusion { params, use_conf: true, min_conf: opts.min_conf, use_normals: false, gpu: opts.gpu };
-        match fuse_scene(scene, &fusion, &mut *progress) {
+        let frames = rec.alignment.views.iter().enumerate().map(|(k, v)| {
+            Ok(FusionFrame {
+                name: Cow::Borrowed(rec.names[k].as_str()),
+                camera: v.camera,
+                depth: Cow::Borrowed(&v.depth),
+                mask: None,
+                color: Some(Cow::Borrowed(&rec.rgb[k])),
+                conf: Some(Cow::Borrowed(&v.conf)),
+                normals: None,
+            })
+        });
+        match fuse_frames("the reconstruction", frames, &fusion, &mut *progress) {
             Err(e @ SceneFusionError::Fusion(FusionError::Budget { .. })) if tries > 0 => {
                 summary
                     .warnings

@@ -235,3 +235,48 @@ fn fusion_is_deterministic_across_thread_counts() {
         assert!(values(g) == values(&grids[0]), "values depend on the thread count");
     }
 }
+
+/// Frames handed over from memory fuse to the same grid, bit for bit, as the scene folder the
+/// same renders were written to (with its weights from confidence and normals), so a
+/// reconstruction can fuse what it holds without writing and re-reading it.
+#[test]
+fn frames_from_memory_fuse_as_their_scene_folder() {
+    use dens3r_fusion::scene::{fuse_frames, fuse_scene, FusionFrame, SceneFusion};
+    use std::borrow::Cow;
+    let (c, r) = (Vec3::new(0.013, -0.021, 0.007), 0.3f32);
+    let world = sphere_world(c, r);
+    let k = Intrinsics::from_hfov(96, 72, 60.0);
+    let cams: Vec<PinholeCamera> = orbit(c.as_dvec3(), 1.2, 30.0, 0.0, 5)
+        .into_iter()
+        .map(|pose| PinholeCamera { intrinsics: k, width: 96, height: 72, cam_to_world: pose })
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    dens3r_render::render_cameras_to_scene(&world, &cams, &Default::default(), false, dir.path(), |_| {}).unwrap();
+    let scene = dens3r_scene::Scene::open(dir.path()).unwrap();
+    let mut opts = SceneFusion::new(TsdfParams::new(0.02));
+    opts.use_normals = true;
+    let (a, sa) = fuse_scene(&scene, &opts, |_, _| {}).unwrap();
+    let views: Vec<_> = cams.iter().map(|cam| world.render(cam)).collect();
+    let frames = cams.iter().zip(&views).map(|(cam, v)| {
+        Ok(FusionFrame {
+            name: Cow::Borrowed("v"),
+            camera: *cam,
+            depth: Cow::Borrowed(&v.depth),
+            mask: None,
+            color: Some(Cow::Borrowed(&v.rgb)),
+            conf: None,
+            normals: Some(Cow::Borrowed(&v.normals)),
+        })
+    });
+    let (b, sb) = fuse_frames("memory", frames, &opts, |_, _| {}).unwrap();
+    assert_eq!((sa.frames, sa.blocks), (sb.frames, sb.blocks));
+    assert!(sa.blocks > 50);
+    let bits = |t: &SparseTsdf| {
+        t.blocks()
+            .flat_map(|(k, b)| {
+                [k.x, k.y, k.z].map(|v| v as u32).into_iter().chain(b.tsdf.iter().chain(&b.weight).map(|v| v.to_bits()))
+            })
+            .collect::<Vec<_>>()
+    };
+    assert!(bits(&a) == bits(&b), "the grids differ");
+}
