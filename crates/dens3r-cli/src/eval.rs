@@ -1,18 +1,14 @@
 //! `dens3r eval depth|normals|mesh`.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use clap::{Args, Subcommand, ValueEnum};
-use dens3r_geom::metrics::{
-    camera_metrics, cameras::median as cam_median, constant_baseline, depth_metrics, normal_metrics, plane_baseline,
-    DepthAlign, DepthMetrics, NormalMetrics,
-};
-use dens3r_geom::normals::normals_from_pointmap_robust;
-use dens3r_geom::pointmap::depth_to_pointmap;
-use dens3r_geom::{NormalConvention, Raster};
+use dens3r_geom::metrics::{cameras::median as cam_median, DepthAlign, DepthMetrics, NormalMetrics};
+use dens3r_geom::NormalConvention;
 use dens3r_mesh::{mesh_metrics, MeshMetricsOptions};
-use dens3r_scene::{Frame, Scene};
+use dens3r_scene::eval::{self, NormalSource};
+use dens3r_scene::Scene;
 use serde_json::json;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(Subcommand)]
 pub enum EvalCommand {
@@ -148,22 +144,11 @@ fn depth_align(a: Align) -> DepthAlign {
 }
 
 fn cameras(a: CameraArgs) -> Result<()> {
-    let (p, g) = (Scene::open(&a.pred)?, Scene::open(&a.gt)?);
-    let (est, truth): (Vec<_>, Vec<_>) =
-        g.frames().iter().filter_map(|gf| p.frame(&gf.name).map(|pf| (pf.camera(), gf.camera()))).unzip();
-    if truth.len() < 2 {
-        bail!(
-            "{} and {} share {} frame name(s): relative poses need at least 2",
-            a.pred.display(),
-            a.gt.display(),
-            truth.len()
-        );
-    }
-    let m = camera_metrics(&est, &truth);
+    let (views, m) = eval::camera_scores(&a.pred, &a.gt)?;
     let under = |t: f64| m.rotation_deg.iter().filter(|&&e| e < t).count() as f64 / m.rotation_deg.len() as f64;
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let j = json!({
-        "views": truth.len(), "pairs": m.rotation_deg.len(),
+        "views": views, "pairs": m.rotation_deg.len(),
         "rotation_median_deg": cam_median(&m.rotation_deg), "rotation_mean_deg": mean(&m.rotation_deg),
         "rotation_under_5": under(5.0), "rotation_under_15": under(15.0),
         "translation_median_deg": cam_median(&m.translation_deg),
@@ -175,7 +160,7 @@ fn cameras(a: CameraArgs) -> Result<()> {
     }
     println!(
         "{} views, {} pairs: relative rotation error median {:.3} deg, mean {:.3} deg, {:.1}% under 5 deg, {:.1}% under 15 deg",
-        truth.len(),
+        views,
         m.rotation_deg.len(),
         cam_median(&m.rotation_deg),
         mean(&m.rotation_deg),
@@ -194,33 +179,7 @@ fn cameras(a: CameraArgs) -> Result<()> {
 fn baselines(a: BaselineArgs) -> Result<()> {
     let gs = Scene::open(&a.gt)?;
     // Per baseline: depth metrics and normal metrics of every frame.
-    let mut rows: [(Vec<DepthMetrics>, Vec<NormalMetrics>); 2] = Default::default();
-    // Frames without depth (e.g. the second view of a stereo pair) are not scored.
-    for gf in gs.frames() {
-        let Some(gd) = gs.depth(gf)? else { continue };
-        let mask = gs.mask(gf)?;
-        let gn = gs.normals(gf)?;
-        let k = gf.camera().intrinsics;
-        let made = [
-            (constant_baseline(&gd, mask.as_ref()), DepthAlign::None),
-            (plane_baseline(&gd, &k, mask.as_ref()), depth_align(a.align)),
-        ];
-        for ((b, align), row) in made.into_iter().zip(rows.iter_mut()) {
-            let b =
-                b.with_context(|| format!("{}: frame '{}': too few valid depth pixels", a.gt.display(), gf.name))?;
-            row.0.push(
-                depth_metrics(&b.depth, &gd, mask.as_ref(), align).with_context(|| format!("frame '{}'", gf.name))?,
-            );
-            if let Some(gn) = &gn {
-                row.1.push(
-                    normal_metrics(&b.normals, gn, mask.as_ref()).with_context(|| format!("frame '{}'", gf.name))?,
-                );
-            }
-        }
-    }
-    if rows[0].0.is_empty() {
-        bail!("{}: no frame has depth (depth/NAME.npy): nothing to fit a baseline to", a.gt.display());
-    }
+    let rows = eval::baseline_scores(&gs, depth_align(a.align))?;
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let names = ["constant", "plane"];
     let table: Vec<_> = rows
@@ -257,73 +216,6 @@ fn baselines(a: BaselineArgs) -> Result<()> {
     }
     println!("(mean over {} frames; normal angles in degrees)", rows[0].0.len());
     Ok(())
-}
-
-/// A predicted and a ground-truth scene with their frames matched by name.
-struct Paired {
-    pred: Scene,
-    gt: Scene,
-    frames: Vec<(Frame, Frame)>,
-}
-
-/// Frames present in both scenes, with matching sizes.
-fn paired(c: &Common) -> Result<Paired> {
-    let (p, g) = (Scene::open(&c.pred)?, Scene::open(&c.gt)?);
-    let mut pairs = Vec::new();
-    for gf in g.frames() {
-        if let Some(pf) = p.frame(&gf.name) {
-            if (pf.width, pf.height) != (gf.width, gf.height) {
-                bail!(
-                    "frame '{}' is {}x{} in {} but {}x{} in {}: resample one of them first",
-                    gf.name,
-                    pf.width,
-                    pf.height,
-                    c.pred.display(),
-                    gf.width,
-                    gf.height,
-                    c.gt.display()
-                );
-            }
-            pairs.push((pf.clone(), gf.clone()));
-        }
-    }
-    if pairs.is_empty() {
-        bail!("{} and {} share no frame names: nothing to compare", c.pred.display(), c.gt.display());
-    }
-    Ok(Paired { pred: p, gt: g, frames: pairs })
-}
-
-fn need<T>(v: Option<T>, scene: &Scene, f: &Frame, what: &str) -> Result<T> {
-    v.with_context(|| {
-        format!("{}: frame '{}' has no {what} file ({what}/{}.npy)", scene.root().display(), f.name, f.name)
-    })
-}
-
-/// Depth maps of a folder of `NAME.npy` files (`predict --head` output) for GT's frames.
-fn npy_depths(dir: &Path, gs: &Scene) -> Result<Vec<(Raster<f32>, Frame)>> {
-    let mut out = Vec::new();
-    for gf in gs.frames() {
-        let path = dir.join(format!("{}.npy", gf.name));
-        if !path.is_file() {
-            continue;
-        }
-        let (shape, data) = dens3r_scene::npy::read_f32(&path)?;
-        if shape != [gf.height, gf.width] {
-            bail!(
-                "{}: {:?} does not fit frame '{}' ({}x{}); predict with --original-size",
-                path.display(),
-                shape,
-                gf.name,
-                gf.width,
-                gf.height
-            );
-        }
-        out.push((Raster::from_vec(gf.width, gf.height, data)?, gf.clone()));
-    }
-    if out.is_empty() {
-        bail!("{}: no NAME.npy depth map for any frame of {}", dir.display(), gs.root().display());
-    }
-    Ok(out)
 }
 
 /// The frames that could be scored. One that cannot (no pixel valid in both maps: NaN,
@@ -368,19 +260,14 @@ fn keep_scored<M, E: std::fmt::Display>(
 fn depth(a: DepthArgs) -> Result<()> {
     let align = depth_align(a.align);
     // A scene folder, or a folder of depth .npy files named by frame.
-    let (pairs, gs): (Vec<(Raster<f32>, Frame)>, Scene) = if a.common.pred.join("cameras.json").is_file() {
-        let Paired { pred: ps, gt, frames } = paired(&a.common)?;
-        let d = frames.into_iter().map(|(pf, gf)| Ok((need(ps.depth(&pf)?, &ps, &pf, "depth")?, gf)));
-        (d.collect::<Result<_>>()?, gt)
+    let (pred, gt) = if a.common.pred.join("cameras.json").is_file() {
+        let p = eval::pair(&a.common.pred, &a.common.gt)?;
+        (eval::pred_depths(&p)?, p.gt)
     } else {
         let gt = Scene::open(&a.common.gt)?;
-        (npy_depths(&a.common.pred, &gt)?, gt)
+        (eval::npy_depths(&a.common.pred, &gt)?, gt)
     };
-    let mut scored = Vec::new();
-    for (pd, gf) in &pairs {
-        let gd = need(gs.depth(gf)?, &gs, gf, "depth")?;
-        scored.push((gf.name.clone(), depth_metrics(pd, &gd, gs.mask(gf)?.as_ref(), align)));
-    }
+    let scored = eval::depth_scores(&pred, &gt, align)?;
     let rows = keep_scored(scored, "depth", &a.common)?;
     let mean = |f: &dyn Fn(&DepthMetrics) -> f64| rows.iter().map(|r| f(&r.1)).sum::<f64>() / rows.len() as f64;
     let summary =
@@ -409,24 +296,14 @@ fn depth(a: DepthArgs) -> Result<()> {
 }
 
 fn normals(a: NormalArgs) -> Result<()> {
-    let Paired { pred: ps, gt: gs, frames: pairs } = paired(&a.common)?;
-    let conv = match a.pred_convention {
-        Convention::Opencv => NormalConvention::OpenCv,
-        Convention::Dens3rRaw => NormalConvention::Dens3rRaw,
-        Convention::Dens3rSaved => NormalConvention::Dens3rSaved,
-        Convention::Opengl => NormalConvention::OpenGl,
+    let source = match (a.from_depth, a.pred_convention) {
+        (true, _) => NormalSource::FromDepth,
+        (false, Convention::Opencv) => NormalSource::Layer(NormalConvention::OpenCv),
+        (false, Convention::Dens3rRaw) => NormalSource::Layer(NormalConvention::Dens3rRaw),
+        (false, Convention::Dens3rSaved) => NormalSource::Layer(NormalConvention::Dens3rSaved),
+        (false, Convention::Opengl) => NormalSource::Layer(NormalConvention::OpenGl),
     };
-    let mut rows = Vec::new();
-    for (pf, gf) in &pairs {
-        let pred: Raster<glam::Vec3> = if a.from_depth {
-            let d = need(ps.depth(pf)?, &ps, pf, "depth")?;
-            normals_from_pointmap_robust(&depth_to_pointmap(&d, &pf.camera().intrinsics), 0.05)
-        } else {
-            need(ps.normals(pf)?, &ps, pf, "normals")?.map(|n| conv.to_opencv(*n))
-        };
-        let gt = need(gs.normals(gf)?, &gs, gf, "normals")?;
-        rows.push((gf.name.clone(), normal_metrics(&pred, &gt, gs.mask(gf)?.as_ref())));
-    }
+    let rows = eval::normal_scores(&eval::pair(&a.common.pred, &a.common.gt)?, source)?;
     let rows = keep_scored(rows, "normals", &a.common)?;
     let mean = |f: &dyn Fn(&NormalMetrics) -> f64| rows.iter().map(|r| f(&r.1)).sum::<f64>() / rows.len() as f64;
     let s = [

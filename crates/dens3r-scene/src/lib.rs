@@ -23,6 +23,7 @@
 mod cameras;
 mod classes;
 mod error;
+pub mod eval;
 pub mod export;
 pub mod npy;
 mod reader;

@@ -1,0 +1,194 @@
+//! A predicted scene scored against a ground-truth one, frame by frame (`dens3r eval`):
+//! frames paired by name, depth and normal metrics per frame with the frames that cannot be
+//! scored set apart (and why), relative camera errors, and the image-blind baselines a
+//! predictor must beat. The metrics themselves are dens3r-geom's.
+
+use crate::{Frame, Scene, SceneError};
+use dens3r_geom::metrics::{
+    camera_metrics, constant_baseline, depth_metrics, normal_metrics, plane_baseline, CameraMetrics, DepthAlign,
+    DepthMetrics, MetricError, NormalMetrics,
+};
+use dens3r_geom::normals::normals_from_pointmap_robust;
+use dens3r_geom::pointmap::depth_to_pointmap;
+use dens3r_geom::{NormalConvention, Raster, Vec3};
+use std::path::Path;
+
+/// A predicted and a ground-truth scene with the frames both hold, matched by name.
+pub struct Paired {
+    /// The prediction.
+    pub pred: Scene,
+    /// The ground truth.
+    pub gt: Scene,
+    /// `(predicted frame, ground-truth frame)`, in the ground truth's order.
+    pub frames: Vec<(Frame, Frame)>,
+}
+
+/// Opens both scenes and pairs their frames by name; an error when a shared frame differs in
+/// size or none is shared.
+pub fn pair(pred: &Path, gt: &Path) -> Result<Paired, SceneError> {
+    let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
+    let mut frames = Vec::new();
+    for gf in g.frames() {
+        if let Some(pf) = p.frame(&gf.name) {
+            if (pf.width, pf.height) != (gf.width, gf.height) {
+                return Err(SceneError::new(
+                    pred,
+                    format!(
+                        "frame '{}' is {}x{} here but {}x{} in {}: resample one of them first",
+                        gf.name,
+                        pf.width,
+                        pf.height,
+                        gf.width,
+                        gf.height,
+                        gt.display()
+                    ),
+                ));
+            }
+            frames.push((pf.clone(), gf.clone()));
+        }
+    }
+    if frames.is_empty() {
+        return Err(SceneError::new(
+            pred,
+            format!("this scene and {} share no frame names: nothing to compare", gt.display()),
+        ));
+    }
+    Ok(Paired { pred: p, gt: g, frames })
+}
+
+/// Per frame: its name and metrics, or why it could not be scored (no pixel valid in both maps:
+/// NaN, infinite or zero values, or an empty mask).
+pub type Scores<M> = Vec<(String, Result<M, MetricError>)>;
+
+/// A layer a frame must have.
+fn need<T>(v: Option<T>, scene: &Scene, f: &Frame, what: &str) -> Result<T, SceneError> {
+    v.ok_or_else(|| {
+        SceneError::new(scene.root(), format!("frame '{}' has no {what} file ({what}/{}.npy)", f.name, f.name))
+    })
+}
+
+/// The predicted depth of every paired frame, with its ground-truth frame.
+pub fn pred_depths(p: &Paired) -> Result<Vec<(Raster<f32>, Frame)>, SceneError> {
+    p.frames.iter().map(|(pf, gf)| Ok((need(p.pred.depth(pf)?, &p.pred, pf, "depth")?, gf.clone()))).collect()
+}
+
+/// Depth maps of a folder of `NAME.npy` files (`predict --head` output) for `gt`'s frames; an
+/// error for a map of another size or when none is there.
+pub fn npy_depths(dir: &Path, gt: &Scene) -> Result<Vec<(Raster<f32>, Frame)>, SceneError> {
+    let mut out = Vec::new();
+    for gf in gt.frames() {
+        let path = dir.join(format!("{}.npy", gf.name));
+        if !path.is_file() {
+            continue;
+        }
+        let (shape, data) = crate::npy::read_f32(&path)?;
+        if shape != [gf.height, gf.width] {
+            return Err(SceneError::new(
+                &path,
+                format!(
+                    "{shape:?} does not fit frame '{}' ({}x{}); predict with --original-size",
+                    gf.name, gf.width, gf.height
+                ),
+            ));
+        }
+        let r = Raster::from_vec(gf.width, gf.height, data).map_err(|e| SceneError::new(&path, e.to_string()))?;
+        out.push((r, gf.clone()));
+    }
+    if out.is_empty() {
+        return Err(SceneError::new(dir, format!("no NAME.npy depth map for any frame of {}", gt.root().display())));
+    }
+    Ok(out)
+}
+
+/// Depth metrics of each predicted map against `gt`'s depth (within its masks).
+pub fn depth_scores(
+    pred: &[(Raster<f32>, Frame)],
+    gt: &Scene,
+    align: DepthAlign,
+) -> Result<Scores<DepthMetrics>, SceneError> {
+    pred.iter()
+        .map(|(pd, gf)| {
+            let gd = need(gt.depth(gf)?, gt, gf, "depth")?;
+            Ok((gf.name.clone(), depth_metrics(pd, &gd, gt.mask(gf)?.as_ref(), align)))
+        })
+        .collect()
+}
+
+/// Where the predicted normals come from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum NormalSource {
+    /// The prediction's `normals/`, stored in this convention.
+    Layer(NormalConvention),
+    /// Derived from the prediction's depth (discontinuity-robust central differences).
+    FromDepth,
+}
+
+/// Normal metrics of every paired frame against the ground truth's normals (within its masks).
+pub fn normal_scores(p: &Paired, source: NormalSource) -> Result<Scores<NormalMetrics>, SceneError> {
+    let (ps, gs) = (&p.pred, &p.gt);
+    p.frames
+        .iter()
+        .map(|(pf, gf)| {
+            let pred: Raster<Vec3> = match source {
+                NormalSource::FromDepth => {
+                    let d = need(ps.depth(pf)?, ps, pf, "depth")?;
+                    normals_from_pointmap_robust(&depth_to_pointmap(&d, &pf.camera().intrinsics), 0.05)
+                }
+                NormalSource::Layer(conv) => need(ps.normals(pf)?, ps, pf, "normals")?.map(|n| conv.to_opencv(*n)),
+            };
+            let gt = need(gs.normals(gf)?, gs, gf, "normals")?;
+            Ok((gf.name.clone(), normal_metrics(&pred, &gt, gs.mask(gf)?.as_ref())))
+        })
+        .collect()
+}
+
+/// Relative camera errors over every pair of the frames both scenes hold; with the number of
+/// those frames. An error when fewer than 2 are shared.
+pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, CameraMetrics), SceneError> {
+    let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
+    let (est, truth): (Vec<_>, Vec<_>) =
+        g.frames().iter().filter_map(|gf| p.frame(&gf.name).map(|pf| (pf.camera(), gf.camera()))).unzip();
+    if truth.len() < 2 {
+        return Err(SceneError::new(
+            pred,
+            format!(
+                "this scene and {} share {} frame name(s): relative poses need at least 2",
+                gt.display(),
+                truth.len()
+            ),
+        ));
+    }
+    Ok((truth.len(), camera_metrics(&est, &truth)))
+}
+
+/// Depth and normal metrics of each frame of one image-blind baseline.
+pub type BaselineScores = (Vec<DepthMetrics>, Vec<NormalMetrics>);
+
+/// The two image-blind baselines on every frame of `gt` with depth (frames without, e.g. the
+/// second view of a stereo pair, are not scored): the median depth facing the camera
+/// (unaligned), and the best-fit plane (depth aligned by `plane_align`).
+pub fn baseline_scores(gt: &Scene, plane_align: DepthAlign) -> Result<[BaselineScores; 2], SceneError> {
+    let mut rows: [BaselineScores; 2] = Default::default();
+    for gf in gt.frames() {
+        let Some(gd) = gt.depth(gf)? else { continue };
+        let mask = gt.mask(gf)?;
+        let gn = gt.normals(gf)?;
+        let k = gf.camera().intrinsics;
+        let made = [
+            (constant_baseline(&gd, mask.as_ref()), DepthAlign::None),
+            (plane_baseline(&gd, &k, mask.as_ref()), plane_align),
+        ];
+        let frame_err = |m: String| SceneError::new(gt.root(), format!("frame '{}': {m}", gf.name));
+        for ((b, align), row) in made.into_iter().zip(rows.iter_mut()) {
+            let b = b.ok_or_else(|| frame_err("too few valid depth pixels".into()))?;
+            row.0.push(depth_metrics(&b.depth, &gd, mask.as_ref(), align).map_err(|e| frame_err(e.to_string()))?);
+            if let Some(gn) = &gn {
+                row.1.push(normal_metrics(&b.normals, gn, mask.as_ref()).map_err(|e| frame_err(e.to_string()))?);
+            }
+        }
+    }
+    if rows[0].0.is_empty() {
+        return Err(SceneError::new(gt.root(), "no frame has depth (depth/NAME.npy): nothing to fit a baseline to"));
+    }
+    Ok(rows)
+}
