@@ -4,10 +4,11 @@
 //! seeded images make the pair; each side runs the forward `--repeat` times and reports the
 //! fastest (this 2-core VM's timings drift by 20% from run to run).
 
+use crate::bench_fusion::FusionArgs;
+use crate::bench_peer::{bench_python, child_json, peak_rss_mb, PeerArgs};
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use dens3r_backbone::{Dens3r, ModelConfig, Tensor, TensorData, Weights};
-use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
@@ -69,54 +70,6 @@ pub struct BackboneArgs {
     config: Option<PathBuf>,
 }
 
-/// What a benchmark against a PyTorch peer needs: threads, the Python, a working folder.
-#[derive(Args)]
-pub struct PeerArgs {
-    /// Threads for both sides (default: all cores).
-    #[arg(long)]
-    pub(crate) threads: Option<usize>,
-    /// Python with torch, safetensors and numpy (default: .cache/bench-venv/bin/python3 made by
-    /// scripts/bench-setup.sh, else python3).
-    #[arg(long)]
-    pub(crate) python: Option<PathBuf>,
-    /// Working folder for weights and inputs (default: a temporary folder).
-    #[arg(long)]
-    pub(crate) workdir: Option<PathBuf>,
-}
-
-impl PeerArgs {
-    /// `--threads`, else every core.
-    pub(crate) fn threads(&self) -> usize {
-        self.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
-    }
-}
-
-#[derive(Args)]
-pub struct FusionArgs {
-    /// Views per scene.
-    #[arg(long, default_value_t = 30)]
-    pub(crate) views: usize,
-    /// Image size WIDTHxHEIGHT.
-    #[arg(long, default_value = "640x480")]
-    pub(crate) size: String,
-    /// Voxel sizes (comma separated).
-    #[arg(long, default_value = "0.01,0.02")]
-    pub(crate) voxels: String,
-    /// Python with open3d (default: .cache/bench-venv/bin/python3, else python3).
-    #[arg(long)]
-    pub(crate) python: Option<PathBuf>,
-    /// Working folder for the rendered scenes (default: a temporary folder).
-    #[arg(long)]
-    pub(crate) workdir: Option<PathBuf>,
-    /// Points sampled per mesh for Chamfer / F-score.
-    #[arg(long, default_value_t = 200_000)]
-    pub(crate) samples: usize,
-    /// Also fuse on the GPU (ours through wgpu, Open3D on CUDA:0 where its wheel has CUDA) and
-    /// print those rows.
-    #[arg(long)]
-    pub(crate) gpu: bool,
-}
-
 pub fn run(c: BenchCommand) -> Result<()> {
     match c {
         BenchCommand::Backbone(a) => backbone(a),
@@ -135,27 +88,6 @@ pub fn run(c: BenchCommand) -> Result<()> {
             run_rust(&weights, config.as_deref(), width, height, &dir, repeat)
         }
     }
-}
-
-/// The Python for benchmark peers: the given one, else .cache/bench-venv's
-/// (scripts/bench-setup.sh), else `python3`.
-pub(crate) fn bench_python(given: Option<PathBuf>) -> PathBuf {
-    given.unwrap_or_else(|| {
-        let venv = PathBuf::from(".cache/bench-venv/bin/python3");
-        if venv.is_file() {
-            venv
-        } else {
-            PathBuf::from("python3")
-        }
-    })
-}
-
-pub(crate) fn peak_rss_mb() -> f64 {
-    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    s.lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
-        .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
 /// A seeded input in [-1, 1], `(1, 3, H, W)`.
@@ -227,16 +159,6 @@ fn run_rust(
         serde_json::json!({"seconds": seconds, "mono_seconds": mono, "all_seconds": times, "load_seconds": load_s, "peak_rss_mb": peak_rss_mb()})
     );
     Ok(())
-}
-
-pub(crate) fn child_json(cmd: &mut Command, what: &str) -> Result<Value> {
-    let out = cmd.output().with_context(|| format!("cannot start the {what} run"))?;
-    if !out.status.success() {
-        bail!("{what} run failed: {}", String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or(""));
-    }
-    let text = String::from_utf8_lossy(&out.stdout);
-    serde_json::from_str(text.lines().last().unwrap_or(""))
-        .with_context(|| format!("{what} run printed no JSON: {text}"))
 }
 
 /// `WxH,WxH,...`, each side a positive multiple of 16.

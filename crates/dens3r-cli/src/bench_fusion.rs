@@ -4,8 +4,9 @@
 //! process) and both meshes' Chamfer-L1 / F-score against the ground-truth mesh, measured by the
 //! same code for both.
 
-use crate::bench::{bench_python, child_json, peak_rss_mb, FusionArgs};
+use crate::bench_peer::{bench_python, child_json, peak_rss_mb};
 use anyhow::{bail, Context, Result};
+use clap::Args;
 use dens3r_fusion::scene::{fuse_scene, SceneFusion};
 use dens3r_fusion::{extract_mesh, ExtractOptions, TsdfParams};
 use dens3r_mesh::metrics::{mesh_metrics_where, MeshMetrics, MeshMetricsOptions};
@@ -13,6 +14,33 @@ use dens3r_render::noise::Noise;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
+
+/// `dens3r bench fusion`: ours against Open3D on rendered scenes.
+#[derive(Args)]
+pub struct FusionArgs {
+    /// Views per scene.
+    #[arg(long, default_value_t = 30)]
+    pub(crate) views: usize,
+    /// Image size WIDTHxHEIGHT.
+    #[arg(long, default_value = "640x480")]
+    pub(crate) size: String,
+    /// Voxel sizes (comma separated).
+    #[arg(long, default_value = "0.01,0.02")]
+    pub(crate) voxels: String,
+    /// Python with open3d (default: .cache/bench-venv/bin/python3, else python3).
+    #[arg(long)]
+    pub(crate) python: Option<PathBuf>,
+    /// Working folder for the rendered scenes (default: a temporary folder).
+    #[arg(long)]
+    pub(crate) workdir: Option<PathBuf>,
+    /// Points sampled per mesh for Chamfer / F-score.
+    #[arg(long, default_value_t = 200_000)]
+    pub(crate) samples: usize,
+    /// Also fuse on the GPU (ours through wgpu, Open3D on CUDA:0 where its wheel has CUDA) and
+    /// print those rows.
+    #[arg(long)]
+    pub(crate) gpu: bool,
+}
 
 /// Fuses one scene (no component filtering, like Open3D) and prints a JSON line.
 pub fn run_fuse(scene: &Path, voxel: f32, out: &Path, gpu: bool) -> Result<()> {

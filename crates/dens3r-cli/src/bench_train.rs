@@ -5,7 +5,7 @@
 //! so peak memory is its own. Prints seconds per step, the ratio, peak RSS, and both sides'
 //! losses (step 0 compares the losses; later steps the optimiser).
 
-use crate::bench::{bench_python, child_json, peak_rss_mb, PeerArgs};
+use crate::bench_peer::{bench_python, child_json, peak_rss_mb, PeerArgs};
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Args;
 use dens3r_backbone::{verify::heads_from_config, ModelConfig, Params, Weights};

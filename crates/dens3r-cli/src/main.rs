@@ -4,6 +4,7 @@
 mod bench;
 mod bench_fusion;
 mod bench_nsdf;
+mod bench_peer;
 mod bench_train;
 mod eval;
 mod fuse;

@@ -262,7 +262,7 @@ fn new_head(a: &TrainHeadArgs, backbone: &dyn Backbone, task: Task) -> Result<He
         size: a.size,
     };
     match &pointmap {
-        Some(w) => dens3r_heads::pointmap::start_from_pointmap(config, w, a.seed),
+        Some(w) => dens3r_heads::Head::from_pointmap(config, w, a.seed),
         None => Head::new(config, a.seed),
     }
     .map_err(|e| anyhow!(e))

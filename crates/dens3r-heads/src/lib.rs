@@ -10,6 +10,7 @@
 //! pass feeds every head) and writes label PNGs. The backbone is never trained: only head
 //! parameters are tracked by autodiff.
 
+pub mod arch;
 pub mod cache;
 pub mod data;
 mod error;

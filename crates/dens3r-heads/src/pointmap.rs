@@ -1,6 +1,6 @@
 //! The `pointmap` head: the network's own DPT ([`dens3r_backbone::model::Dpt`], DUSt3R's
 //! `DPTOutputAdapter`) run on a head's trainable parameters, so a head can start from the
-//! pointmap head of a Dens3R / DUSt3R / MASt3R checkpoint ([`start_from_pointmap`]) and be
+//! pointmap head of a Dens3R / DUSt3R / MASt3R checkpoint ([`crate::Head::from_pointmap`]) and be
 //! fine-tuned on frozen features. Parameter names are the checkpoint's below the point head's
 //! prefix (`dpt.act_postprocess.0.0.weight`, ...); the output is resized to the image.
 //!
@@ -9,14 +9,12 @@
 //! checkpoint predicts that network's own depth. Segmentation: one channel per class from
 //! the same trunk.
 
-use crate::head::{resize, Head, HeadArch, HeadConfig, Task};
+use crate::arch::{resize, HeadArch, HeadConfig, Task};
 use crate::HeadsError;
 use burn::tensor::Tensor;
 use dens3r_backbone::config::DptConfig;
 use dens3r_backbone::model::{exp_depth_mode, Dpt};
-use dens3r_backbone::{ModelConfig, Weights};
 use std::collections::HashMap;
-use std::path::Path;
 use std::sync::{Mutex, OnceLock};
 
 /// Upsampling factors of the transposed convs of layers 0 and 1.
@@ -92,52 +90,4 @@ impl HeadArch for PointmapDpt {
         };
         resize(x, out)
     }
-}
-
-/// A `pointmap` head (`config.kind`) with the widths of the checkpoint's point head (Dens3R's
-/// `ptsmatch_local_head`, DUSt3R / MASt3R's `downstream_head1`), its parameters copied from
-/// it. For depth every parameter is copied (the last conv's x, y, z rows; the confidence row is
-/// dropped), so the head predicts the network's own depth; for segmentation everything but the
-/// last conv, which keeps its fresh initialisation from `seed`. The head must read the
-/// network's DPT hooks ([`crate::Dens3rBackbone`]'s default layers) for that to hold.
-pub fn start_from_pointmap(mut config: HeadConfig, weights: &Path, seed: u64) -> Result<Head, HeadsError> {
-    if config.kind != "pointmap" {
-        return Err(HeadsError::invalid(format!(
-            "only a pointmap head starts from the pointmap head, not {:?}",
-            config.kind
-        )));
-    }
-    let w = Weights::from_safetensors(weights)?;
-    // Head counts (1, 1) divide any width; they do not shape the DPT.
-    let point = ModelConfig::from_weights(&w, Some((1, 1)))?.head1;
-    let d = &point.dpt;
-    config.width = d.feature_dim;
-    config.widths = d.layer_dims.iter().copied().chain([d.head_dim, d.last_dim]).collect();
-    let depth = config.task == Task::Depth;
-    if depth && d.out_channels < 3 {
-        return Err(HeadsError::file(weights, "the pointmap head has fewer than 3 output channels"));
-    }
-    let mut head = Head::new(config, seed)?;
-    let device = burn::tensor::Device::flex();
-    for ((name, shape), value) in head.param_shapes().into_iter().zip(head.values.iter_mut()) {
-        let last = name.starts_with("dpt.head.4.");
-        if last && !depth {
-            continue;
-        }
-        let key = format!("{}.{name}", point.prefix);
-        // The last conv: the checkpoint's rows x, y, z (and confidence), of which three are kept.
-        let rows = if last { d.out_channels } else { shape[0] };
-        let v = match shape.len() {
-            1 => crate::features::to_vec(w.get(&key, [rows], &device)),
-            _ => crate::features::to_vec(w.get(&key, [rows, shape[1], shape[2], shape[3]], &device)),
-        };
-        *value = v[..value.len()].to_vec();
-    }
-    w.finish().map_err(|e| {
-        HeadsError::file(
-            &e.path,
-            format!("{}; the head's layers do not match this checkpoint's pointmap head", e.message),
-        )
-    })?;
-    Ok(head)
 }

@@ -661,7 +661,7 @@ fn pointmap_head_starts_at_the_networks_depth() {
     assert_eq!(z.len(), h * w);
 
     let c = config("pointmap", Task::Depth, &f.dims, vec![0, 1, 2, 3], 0, 16);
-    let head = dens3r_heads::pointmap::start_from_pointmap(c.clone(), &weights, 0).unwrap();
+    let head = dens3r_heads::Head::from_pointmap(c.clone(), &weights, 0).unwrap();
     assert_eq!((head.config.width, head.config.widths.clone()), (32, vec![16, 24, 32, 48, 16, 16]));
     let depth: Vec<f32> = to_vec(head.predict(&f, (h, w), &Device::flex()).exp());
     let front = z.iter().filter(|&&v| v > 1e-3).count();
@@ -674,7 +674,7 @@ fn pointmap_head_starts_at_the_networks_depth() {
     // Segmentation: the trunk is the checkpoint's, the class layer stays fresh (the seed's).
     let mut s = c.clone();
     s.task = seg(3);
-    let started = dens3r_heads::pointmap::start_from_pointmap(s, &weights, 0).unwrap();
+    let started = dens3r_heads::Head::from_pointmap(s, &weights, 0).unwrap();
     let fresh = Head::new(started.config.clone(), 0).unwrap();
     for ((name, _), (a, b)) in fresh.param_shapes().iter().zip(fresh.values.iter().zip(&started.values)) {
         assert_eq!(name.starts_with("dpt.head.4."), a == b, "{name}");
@@ -683,6 +683,6 @@ fn pointmap_head_starts_at_the_networks_depth() {
     // Layers that do not fit the checkpoint's widths are refused, naming it.
     let mut wrong = c;
     wrong.in_dims[1] = 20;
-    let e = dens3r_heads::pointmap::start_from_pointmap(wrong, &weights, 0).unwrap_err().to_string();
+    let e = dens3r_heads::Head::from_pointmap(wrong, &weights, 0).unwrap_err().to_string();
     assert!(e.contains("weights.safetensors") && e.contains("act_postprocess.1"), "{e}");
 }

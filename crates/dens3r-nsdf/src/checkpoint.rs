@@ -5,7 +5,7 @@
 
 use crate::data::Bounds;
 use crate::field::{param_names, FieldConfig};
-use crate::train::TrainOptions;
+use crate::options::TrainOptions;
 use crate::NsdfError;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

@@ -14,6 +14,7 @@ pub mod checkpoint;
 pub mod data;
 pub mod extract;
 pub mod field;
+pub mod options;
 pub mod render;
 pub mod train;
 
