@@ -225,8 +225,33 @@ pub fn global_align(
     sizes: &[(usize, usize)],
     pairs: &[PairPrediction],
     opts: &AlignOptions,
-    mut progress: impl FnMut(usize, f64),
+    progress: impl FnMut(usize, f64),
 ) -> Result<Alignment, GlobalAlignError> {
+    check_inputs(sizes, pairs)?;
+    let n = sizes.len();
+    // Loss weights per pair side, and pair scores.
+    let weights = |pts: &Raster<Vec3>, conf: &Raster<f32>| -> Vec<f64> {
+        pts.data().iter().zip(conf.data()).map(|(&p, &c)| if valid(p) { opts.conf.weight(c) } else { 0.0 }).collect()
+    };
+    let w: Vec<[Vec<f64>; 2]> =
+        pairs.iter().map(|p| [weights(&p.pts_i, &p.conf_i), weights(&p.pts_j, &p.conf_j)]).collect();
+    let mean_conf = |c: &Raster<f32>| {
+        let v: Vec<f64> = c.data().iter().filter(|c| c.is_finite()).map(|&c| c as f64).collect();
+        v.iter().sum::<f64>() / v.len().max(1) as f64
+    };
+    let score: Vec<f64> = pairs.iter().map(|p| mean_conf(&p.conf_i) * mean_conf(&p.conf_j)).collect();
+
+    let world = spanning_tree_points(n, pairs, &w, &score)?;
+    let init = initial_cameras(sizes, pairs, &w, &score, world)?;
+    let grids: Vec<Vec<(usize, usize)>> = sizes.iter().map(|&(wk, hk)| grid(wk, hk, opts.grid_points)).collect();
+    let (problem, mut state, g) = Problem::new(sizes, pairs, &w, grids, &init)?;
+    let (loss0, last) = problem.optimise(&mut state, opts, progress);
+    let (views, pair_transforms) = outputs(sizes, pairs, &w, &problem, &state, g);
+    Ok(Alignment { views, pair_transforms, loss: (loss0 / g, last / g), warnings: init.warnings })
+}
+
+/// Refuses pair lists that do not fit the images.
+fn check_inputs(sizes: &[(usize, usize)], pairs: &[PairPrediction]) -> Result<(), GlobalAlignError> {
     let n = sizes.len();
     let bad = |m: String| Err(GlobalAlignError::Input(m));
     if n < 2 {
@@ -255,20 +280,35 @@ pub fn global_align(
             "image {k} is never the first view of a pair, so no pointmap is in its own frame: add ({k}, j) pairs (symmetrize the pair graph)"
         ));
     }
+    Ok(())
+}
 
-    // Loss weights per pair side, and pair scores.
-    let weights = |pts: &Raster<Vec3>, conf: &Raster<f32>| -> Vec<f64> {
-        pts.data().iter().zip(conf.data()).map(|(&p, &c)| if valid(p) { opts.conf.weight(c) } else { 0.0 }).collect()
-    };
-    let w: Vec<[Vec<f64>; 2]> =
-        pairs.iter().map(|p| [weights(&p.pts_i, &p.conf_i), weights(&p.pts_j, &p.conf_j)]).collect();
-    let mean_conf = |c: &Raster<f32>| {
-        let v: Vec<f64> = c.data().iter().filter(|c| c.is_finite()).map(|&c| c as f64).collect();
-        v.iter().sum::<f64>() / v.len().max(1) as f64
-    };
-    let score: Vec<f64> = pairs.iter().map(|p| mean_conf(&p.conf_i) * mean_conf(&p.conf_j)).collect();
+/// `r`'s valid points through `t` (NaN elsewhere).
+fn to_world(r: &Raster<Vec3>, t: &Sim3) -> Vec<DVec3> {
+    r.data().iter().map(|&p| if valid(p) { t.apply(dv(p)) } else { DVec3::NAN }).collect()
+}
 
-    // 1. Maximum spanning tree (Kruskal) and propagation from the strongest pair.
+/// The weighted similarity taking `src`'s valid points onto `dst`.
+fn procrustes(src: &Raster<Vec3>, dst: &[DVec3], w: &[f64]) -> Result<Sim3, GlobalAlignError> {
+    let (mut s, mut d, mut ww) = (Vec::new(), Vec::new(), Vec::new());
+    for ((&p, &q), &wk) in src.data().iter().zip(dst).zip(w) {
+        if wk > 0.0 && valid(p) && q.is_finite() {
+            s.push(dv(p));
+            d.push(q);
+            ww.push(wk);
+        }
+    }
+    umeyama(&s, &d, Some(&ww), true).map_err(|e| GlobalAlignError::Degenerate(e.to_string()))
+}
+
+/// Stage 1: the maximum spanning tree of pair scores (Kruskal), propagated from the strongest pair
+/// (whose frame becomes the world's): every image's points in the world.
+fn spanning_tree_points(
+    n: usize,
+    pairs: &[PairPrediction],
+    w: &[[Vec<f64>; 2]],
+    score: &[f64],
+) -> Result<Vec<Vec<DVec3>>, GlobalAlignError> {
     let mut order: Vec<usize> = (0..pairs.len()).collect();
     order.sort_by(|&a, &b| score[b].total_cmp(&score[a]));
     let mut uf = UnionFind::new(n);
@@ -278,20 +318,6 @@ pub fn global_align(
     if !lost.is_empty() {
         return Err(GlobalAlignError::Disconnected(lost));
     }
-    let to_world = |r: &Raster<Vec3>, t: &Sim3| -> Vec<DVec3> {
-        r.data().iter().map(|&p| if valid(p) { t.apply(dv(p)) } else { DVec3::NAN }).collect()
-    };
-    let procrustes = |src: &Raster<Vec3>, dst: &[DVec3], w: &[f64]| -> Result<Sim3, GlobalAlignError> {
-        let (mut s, mut d, mut ww) = (Vec::new(), Vec::new(), Vec::new());
-        for ((&p, &q), &wk) in src.data().iter().zip(dst).zip(w) {
-            if wk > 0.0 && valid(p) && q.is_finite() {
-                s.push(dv(p));
-                d.push(q);
-                ww.push(wk);
-            }
-        }
-        umeyama(&s, &d, Some(&ww), true).map_err(|e| GlobalAlignError::Degenerate(e.to_string()))
-    };
     let mut world: Vec<Option<Vec<DVec3>>> = vec![None; n];
     let first = &pairs[tree[0]];
     world[first.i] = Some(to_world(&first.pts_i, &Sim3::IDENTITY));
@@ -320,16 +346,39 @@ pub fn global_align(
             break; // unreachable for a spanning tree
         }
     }
+    Ok(world.into_iter().map(|p| p.expect("a spanning tree reaches every image")).collect())
+}
 
-    // 2. Per image, from its strongest own pair (view k first): the camera in the pair's frame
-    // by resection, so the pair frame need not be camera k's; the focal by Weiszfeld on the
-    // camera-frame pointmap; pose and depth scale by Procrustes onto the propagated points
-    // (world point = s R x_cam + t, so the depth is s z).
-    let mut warnings = Vec::new();
-    let mut focal = vec![0.0f64; n];
-    let mut poses: Vec<Pose> = Vec::with_capacity(n);
-    let mut scale = vec![1.0f64; n];
-    let mut cam_pts: Vec<Raster<Vec3>> = Vec::with_capacity(n);
+/// Each image's starting camera.
+struct InitialCameras {
+    focal: Vec<f64>,
+    poses: Vec<Pose>,
+    /// Depth scale of each camera-frame pointmap in the world.
+    scale: Vec<f64>,
+    /// Each image's own pointmap in its camera frame.
+    cam_pts: Vec<Raster<Vec3>>,
+    warnings: Vec<String>,
+}
+
+/// Stage 2: per image, from its strongest own pair (view k first): the camera in the pair's frame by
+/// resection, so the pair frame need not be camera k's; the focal by Weiszfeld on the
+/// camera-frame pointmap; pose and depth scale by Procrustes onto the propagated points
+/// (world point = s R x_cam + t, so the depth is s z).
+fn initial_cameras(
+    sizes: &[(usize, usize)],
+    pairs: &[PairPrediction],
+    w: &[[Vec<f64>; 2]],
+    score: &[f64],
+    world: Vec<Vec<DVec3>>,
+) -> Result<InitialCameras, GlobalAlignError> {
+    let n = sizes.len();
+    let mut init = InitialCameras {
+        focal: vec![0.0f64; n],
+        poses: Vec::with_capacity(n),
+        scale: vec![1.0f64; n],
+        cam_pts: Vec::with_capacity(n),
+        warnings: Vec::new(),
+    };
     for k in 0..n {
         let e = (0..pairs.len()).filter(|&e| pairs[e].i == k).max_by(|&a, &b| score[a].total_cmp(&score[b])).unwrap();
         let (wk, hk) = sizes[k];
@@ -346,155 +395,199 @@ pub fn global_align(
         let (rot, tr) = match resection::pointmap_camera(pts, &samples) {
             Some(c) => c,
             None => {
-                warnings.push(format!(
+                init.warnings.push(format!(
                     "image {k}: no camera explains its pointmap; taking the pair frame as its camera frame"
                 ));
                 (DMat3::IDENTITY, DVec3::ZERO)
             }
         };
         let cam = pts.map(|&q| if valid(q) { (rot * dv(q) + tr).as_vec3() } else { Vec3::NAN });
-        focal[k] = focal_or_fallback(&cam, wk, hk).unwrap_or_else(|f| {
-            warnings.push(format!(
+        init.focal[k] = focal_or_fallback(&cam, wk, hk).unwrap_or_else(|f| {
+            init.warnings.push(format!(
                 "image {k}: its pointmap gives no positive focal (untrained weights?); starting from a {FALLBACK_HFOV_DEG}-degree field of view"
             ));
             f
         });
-        let t = procrustes(&cam, world[k].as_ref().unwrap(), &w[e][0])?;
-        scale[k] = t.scale;
-        poses.push(Pose::new(t.rotation, t.translation));
-        cam_pts.push(cam);
+        let t = procrustes(&cam, &world[k], &w[e][0])?;
+        init.scale[k] = t.scale;
+        init.poses.push(Pose::new(t.rotation, t.translation));
+        init.cam_pts.push(cam);
     }
-    drop(world);
+    Ok(init)
+}
 
-    // 3. Grids, initial depths, and a global scale that makes the median depth 1.
-    let grids: Vec<Vec<(usize, usize)>> = sizes.iter().map(|&(wk, hk)| grid(wk, hk, opts.grid_points)).collect();
-    let mut logd: Vec<Vec<f64>> = (0..n)
-        .map(|k| {
-            let p = &cam_pts[k];
-            grids[k]
-                .iter()
-                .map(|&(x, y)| {
-                    let q = *p.get(x, y);
-                    if q.is_finite() && q.z > 0.0 {
-                        (scale[k] * q.z as f64).ln()
-                    } else {
-                        f64::NAN
-                    }
-                })
-                .collect()
-        })
-        .collect();
-    // Fill invalid grid depths with the image's median so every parameter is finite.
-    for d in logd.iter_mut() {
-        let mut v: Vec<f64> = d.iter().copied().filter(|x| x.is_finite()).collect();
-        let med = dens3r_geom::focal::median(&mut v).unwrap_or(0.0);
-        d.iter_mut().filter(|x| !x.is_finite()).for_each(|x| *x = med);
-    }
-    let mut all: Vec<f64> = logd.iter().flatten().copied().collect();
-    let g = (-dens3r_geom::focal::median(&mut all).unwrap_or(0.0)).exp(); // world scale factor
-    for (k, d) in logd.iter_mut().enumerate() {
-        d.iter_mut().for_each(|x| *x += g.ln());
-        poses[k].t *= g;
-    }
-    let mut logf: Vec<f64> = focal.iter().map(|f| f.ln()).collect();
+/// What is optimised: per image log-depth on its grid, pose and log-focal; per pair its
+/// similarity (rotation, translation, log-scale) with Adam state.
+struct State {
+    logd: Vec<Vec<f64>>,
+    logf: Vec<f64>,
+    poses: Vec<Pose>,
+    pair_pose: Vec<Pose>,
+    log_s: Vec<f64>,
+}
 
-    // Pixel rays at the grid, camera frame, for focal f: ((x - cx) / f, (y - cy) / f, 1).
-    let offsets: Vec<Vec<(f64, f64)>> = (0..n)
-        .map(|k| {
-            let (wk, hk) = sizes[k];
-            grids[k].iter().map(|&(x, y)| (x as f64 - wk as f64 / 2.0, y as f64 - hk as f64 / 2.0)).collect()
-        })
-        .collect();
-    let camera_points = |k: usize, logd: &[Vec<f64>], logf: &[f64]| -> Vec<DVec3> {
-        let f = logf[k].exp();
-        offsets[k].iter().zip(&logd[k]).map(|(&(u, v), &ld)| DVec3::new(u / f, v / f, 1.0) * ld.exp()).collect()
-    };
+/// The fixed parts of the problem: where each image is sampled and which pair sides see it.
+struct Problem {
+    n: usize,
+    sizes: Vec<(usize, usize)>,
+    /// Grid pixel offsets from the principal point, per image.
+    offsets: Vec<Vec<(f64, f64)>>,
+    /// Grid samples of each pair side: (grid index, point, weight).
+    samples: Vec<[Vec<(usize, DVec3, f64)>; 2]>,
+    /// Per image: its (pair, side) occurrences.
+    sides_of: Vec<Vec<(usize, usize)>>,
+    total_w: f64,
+    /// Initial mean log pair scale (the gauge of scale).
+    mean_log_s0: f64,
+}
 
-    // 4. Pair similarities onto the initial world points.
-    let mut pair_pose: Vec<Pose> = Vec::with_capacity(pairs.len());
-    let mut log_s: Vec<f64> = Vec::with_capacity(pairs.len());
-    // Grid samples of each pair side: (grid index, point, weight).
-    let samples: Vec<[Vec<(usize, DVec3, f64)>; 2]> = pairs
-        .iter()
-        .zip(&w)
-        .map(|(p, w)| {
-            let side = |pts: &Raster<Vec3>, ws: &[f64], k: usize| {
+/// One image's share of the loss and its gradients.
+struct ImageGrad {
+    loss: f64,
+    pose: Grad,
+    logd: Vec<f64>,
+    logf: f64,
+    pairs: Vec<(usize, Grad, f64)>, // (pair, pose grad, log-scale grad)
+}
+
+impl Problem {
+    /// Stages 3 and 4: grids, initial depths, and a global scale `g` that makes the median
+    /// depth 1; then pair similarities onto the initial world points.
+    fn new(
+        sizes: &[(usize, usize)],
+        pairs: &[PairPrediction],
+        w: &[[Vec<f64>; 2]],
+        grids: Vec<Vec<(usize, usize)>>,
+        init: &InitialCameras,
+    ) -> Result<(Self, State, f64), GlobalAlignError> {
+        let n = sizes.len();
+        let mut logd: Vec<Vec<f64>> = (0..n)
+            .map(|k| {
+                let p = &init.cam_pts[k];
                 grids[k]
                     .iter()
-                    .enumerate()
-                    .filter_map(|(gi, &(x, y))| {
-                        let q = *pts.get(x, y);
-                        let wk = ws[y * pts.width() + x];
-                        (wk > 0.0 && valid(q)).then_some((gi, dv(q), wk))
+                    .map(|&(x, y)| {
+                        let q = *p.get(x, y);
+                        if q.is_finite() && q.z > 0.0 {
+                            (init.scale[k] * q.z as f64).ln()
+                        } else {
+                            f64::NAN
+                        }
                     })
-                    .collect::<Vec<_>>()
-            };
-            [side(&p.pts_i, &w[0], p.i), side(&p.pts_j, &w[1], p.j)]
-        })
-        .collect();
-    {
-        let cam: Vec<Vec<DVec3>> = (0..n).map(|k| camera_points(k, &logd, &logf)).collect();
+                    .collect()
+            })
+            .collect();
+        // Fill invalid grid depths with the image's median so every parameter is finite.
+        for d in logd.iter_mut() {
+            let mut v: Vec<f64> = d.iter().copied().filter(|x| x.is_finite()).collect();
+            let med = dens3r_geom::focal::median(&mut v).unwrap_or(0.0);
+            d.iter_mut().filter(|x| !x.is_finite()).for_each(|x| *x = med);
+        }
+        let mut all: Vec<f64> = logd.iter().flatten().copied().collect();
+        let g = (-dens3r_geom::focal::median(&mut all).unwrap_or(0.0)).exp(); // world scale factor
+        let mut poses = init.poses.clone();
+        for (k, d) in logd.iter_mut().enumerate() {
+            d.iter_mut().for_each(|x| *x += g.ln());
+            poses[k].t *= g;
+        }
+        let logf: Vec<f64> = init.focal.iter().map(|f| f.ln()).collect();
+        // Pixel rays at the grid, camera frame, for focal f: ((x - cx) / f, (y - cy) / f, 1).
+        let offsets: Vec<Vec<(f64, f64)>> = (0..n)
+            .map(|k| {
+                let (wk, hk) = sizes[k];
+                grids[k].iter().map(|&(x, y)| (x as f64 - wk as f64 / 2.0, y as f64 - hk as f64 / 2.0)).collect()
+            })
+            .collect();
+        let samples: Vec<[Vec<(usize, DVec3, f64)>; 2]> = pairs
+            .iter()
+            .zip(w)
+            .map(|(p, w)| {
+                let side = |pts: &Raster<Vec3>, ws: &[f64], k: usize| {
+                    grids[k]
+                        .iter()
+                        .enumerate()
+                        .filter_map(|(gi, &(x, y))| {
+                            let q = *pts.get(x, y);
+                            let wk = ws[y * pts.width() + x];
+                            (wk > 0.0 && valid(q)).then_some((gi, dv(q), wk))
+                        })
+                        .collect::<Vec<_>>()
+                };
+                [side(&p.pts_i, &w[0], p.i), side(&p.pts_j, &w[1], p.j)]
+            })
+            .collect();
+        let sides_of: Vec<Vec<(usize, usize)>> = (0..n)
+            .map(|k| {
+                (0..pairs.len())
+                    .flat_map(|e| [(e, 0), (e, 1)])
+                    .filter(|&(e, s)| [pairs[e].i, pairs[e].j][s] == k)
+                    .collect()
+            })
+            .collect();
+        let total_w: f64 =
+            samples.iter().flat_map(|s| s.iter()).flat_map(|s| s.iter()).map(|s| s.2).sum::<f64>().max(1e-300);
+        let mut problem = Self { n, sizes: sizes.to_vec(), offsets, samples, sides_of, total_w, mean_log_s0: 0.0 };
+        let mut state = State { logd, logf, poses, pair_pose: Vec::with_capacity(pairs.len()), log_s: Vec::new() };
+        problem.initial_pair_poses(pairs, &mut state)?;
+        // Pair scales with their geometric mean held at the initial one.
+        problem.mean_log_s0 = state.log_s.iter().sum::<f64>() / state.log_s.len() as f64;
+        Ok((problem, state, g))
+    }
+
+    /// Each pair's similarity onto the initial world points of both its views.
+    fn initial_pair_poses(&self, pairs: &[PairPrediction], state: &mut State) -> Result<(), GlobalAlignError> {
+        let cam: Vec<Vec<DVec3>> = (0..self.n).map(|k| self.camera_points(k, state)).collect();
         for (e, p) in pairs.iter().enumerate() {
             let (mut s, mut d, mut ww) = (Vec::new(), Vec::new(), Vec::new());
             for (side, k) in [(0, p.i), (1, p.j)] {
-                for &(gi, q, wk) in &samples[e][side] {
+                for &(gi, q, wk) in &self.samples[e][side] {
                     s.push(q);
-                    d.push(poses[k].r * cam[k][gi] + poses[k].t);
+                    d.push(state.poses[k].r * cam[k][gi] + state.poses[k].t);
                     ww.push(wk);
                 }
             }
             let t = umeyama(&s, &d, Some(&ww), true)
                 .map_err(|err| GlobalAlignError::Degenerate(format!("pair ({}, {}): {err}", p.i, p.j)))?;
-            pair_pose.push(Pose::new(t.rotation, t.translation));
-            log_s.push(t.scale.ln());
+            state.pair_pose.push(Pose::new(t.rotation, t.translation));
+            state.log_s.push(t.scale.ln());
         }
+        Ok(())
     }
-    // Pair scales with their geometric mean held at the initial one (the gauge of scale).
-    let mean_log_s0 = log_s.iter().sum::<f64>() / log_s.len() as f64;
-    let pair_scales = |log_s: &[f64]| -> Vec<f64> {
-        let mean = log_s.iter().sum::<f64>() / log_s.len() as f64;
-        log_s.iter().map(|l| (l - mean + mean_log_s0).exp()).collect()
-    };
-    let mut adam_s = Adam::new(pairs.len());
-    let mut adam_d: Vec<Adam> = logd.iter().map(|d| Adam::new(d.len())).collect();
-    let mut adam_f = Adam::new(n);
 
-    // Loss and gradients. Per image k (in parallel): its sides of every pair.
-    let sides_of: Vec<Vec<(usize, usize)>> = (0..n)
-        .map(|k| {
-            (0..pairs.len()).flat_map(|e| [(e, 0), (e, 1)]).filter(|&(e, s)| [pairs[e].i, pairs[e].j][s] == k).collect()
-        })
-        .collect();
-    let total_w: f64 =
-        samples.iter().flat_map(|s| s.iter()).flat_map(|s| s.iter()).map(|s| s.2).sum::<f64>().max(1e-300);
-    struct ImageGrad {
-        loss: f64,
-        pose: Grad,
-        logd: Vec<f64>,
-        logf: f64,
-        pairs: Vec<(usize, Grad, f64)>, // (pair, pose grad, log-scale grad)
+    /// Image `k`'s grid points in its camera frame.
+    fn camera_points(&self, k: usize, st: &State) -> Vec<DVec3> {
+        let f = st.logf[k].exp();
+        self.offsets[k].iter().zip(&st.logd[k]).map(|(&(u, v), &ld)| DVec3::new(u / f, v / f, 1.0) * ld.exp()).collect()
     }
-    let eval = |logd: &[Vec<f64>], logf: &[f64], poses: &[Pose], pair_pose: &[Pose], log_s: &[f64]| {
-        let s = pair_scales(log_s);
-        (0..n)
+
+    /// Pair scales with their geometric mean held at the initial one (the gauge of scale).
+    fn pair_scales(&self, log_s: &[f64]) -> Vec<f64> {
+        let mean = log_s.iter().sum::<f64>() / log_s.len() as f64;
+        log_s.iter().map(|l| (l - mean + self.mean_log_s0).exp()).collect()
+    }
+
+    /// Loss and analytic gradients, per image (in parallel): its sides of every pair.
+    fn gradients(&self, st: &State) -> Vec<ImageGrad> {
+        let s = self.pair_scales(&st.log_s);
+        (0..self.n)
             .into_par_iter()
             .map(|k| {
-                let f = logf[k].exp();
-                let (rk, tk) = (poses[k].r, poses[k].t);
+                let f = st.logf[k].exp();
+                let (rk, tk) = (st.poses[k].r, st.poses[k].t);
                 let mut out = ImageGrad {
                     loss: 0.0,
                     pose: (DVec3::ZERO, DVec3::ZERO),
-                    logd: vec![0.0; logd[k].len()],
+                    logd: vec![0.0; st.logd[k].len()],
                     logf: 0.0,
                     pairs: Vec::new(),
                 };
-                for &(e, side) in &sides_of[k] {
-                    let (re, te, se) = (pair_pose[e].r, pair_pose[e].t, s[e]);
+                for &(e, side) in &self.sides_of[k] {
+                    let (re, te, se) = (st.pair_pose[e].r, st.pair_pose[e].t, s[e]);
                     let mut pg: Grad = (DVec3::ZERO, DVec3::ZERO);
                     let mut sg = 0.0;
-                    for &(gi, q, wq) in &samples[e][side] {
-                        let (u, v) = offsets[k][gi];
-                        let d = logd[k][gi].exp();
+                    for &(gi, q, wq) in &self.samples[e][side] {
+                        let (u, v) = self.offsets[k][gi];
+                        let d = st.logd[k][gi].exp();
                         let cam = DVec3::new(u / f, v / f, 1.0) * d;
                         let rc = rk * cam;
                         let x = rc + tk;
@@ -505,7 +598,7 @@ pub fn global_align(
                         if len < 1e-12 {
                             continue;
                         }
-                        let g = r * (wq / (len * total_w));
+                        let g = r * (wq / (len * self.total_w));
                         out.pose.0 += rc.cross(g);
                         out.pose.1 += g;
                         out.logd[gi] += g.dot(rc);
@@ -516,86 +609,104 @@ pub fn global_align(
                     }
                     out.pairs.push((e, pg, sg));
                 }
-                out.loss /= total_w;
+                out.loss /= self.total_w;
                 out
             })
-            .collect::<Vec<_>>()
-    };
-
-    let mut loss0 = f64::NAN;
-    let mut last = f64::NAN;
-    let iters = opts.iterations;
-    for it in 0..=iters {
-        let grads = eval(&logd, &logf, &poses, &pair_pose, &log_s);
-        let loss: f64 = grads.iter().map(|g| g.loss).sum();
-        if it == 0 {
-            loss0 = loss;
-        }
-        last = loss;
-        if it == iters {
-            break;
-        }
-        progress(it, loss);
-        let frac = it as f64 / iters.max(1) as f64;
-        let lr = if opts.cosine {
-            opts.lr_min + (opts.lr - opts.lr_min) * (1.0 + (std::f64::consts::PI * frac).cos()) / 2.0
-        } else {
-            opts.lr + (opts.lr_min - opts.lr) * frac
-        };
-        let t = it as i32 + 1;
-        let mut pg: Vec<Grad> = vec![(DVec3::ZERO, DVec3::ZERO); pairs.len()];
-        let mut sg = vec![0.0; pairs.len()];
-        let mut fg = vec![0.0; n];
-        for (k, g) in grads.into_iter().enumerate() {
-            poses[k].update(g.pose, lr, t);
-            let step = adam_d[k].step(&g.logd, lr, t);
-            logd[k].iter_mut().zip(step).for_each(|(d, s)| *d -= s);
-            fg[k] = g.logf;
-            for (e, gp, gs) in g.pairs {
-                pg[e].0 += gp.0;
-                pg[e].1 += gp.1;
-                sg[e] += gs;
-            }
-        }
-        if opts.optimize_focal {
-            // DUSt3R optimises 20 log f: the same Adam step moves log f 20 times less.
-            let step = adam_f.step(&fg, lr / 20.0, t);
-            // Fields of view between about 1 and 168 degrees: a bound that only untrained
-            // or broken predictions reach (they otherwise drive the focal to 0).
-            for (k, (l, s)) in logf.iter_mut().zip(step).enumerate() {
-                let side = sizes[k].0.max(sizes[k].1) as f64;
-                *l = (*l - s).clamp((0.05 * side).ln(), (50.0 * side).ln());
-            }
-        }
-        // The mean log-scale is fixed: only deviations from it carry gradient.
-        let mean_g = sg.iter().sum::<f64>() / sg.len() as f64;
-        let sg: Vec<f64> = sg.iter().map(|g| g - mean_g).collect();
-        let step = adam_s.step(&sg, lr, t);
-        log_s.iter_mut().zip(step).for_each(|(l, s)| *l -= s);
-        for (e, g) in pg.into_iter().enumerate() {
-            pair_pose[e].update(g, lr, t);
-        }
+            .collect()
     }
 
-    // 5. Outputs: cameras in the input scale (undo g), full-resolution depth from every aligned
-    // pair prediction of each image.
-    let pair_transforms: Vec<Sim3> = pair_pose
+    /// Adam over every parameter for `opts.iterations` steps; the loss before and after.
+    fn optimise(&self, st: &mut State, opts: &AlignOptions, mut progress: impl FnMut(usize, f64)) -> (f64, f64) {
+        let (n, pairs) = (self.n, self.samples.len());
+        let mut adam_s = Adam::new(pairs);
+        let mut adam_d: Vec<Adam> = st.logd.iter().map(|d| Adam::new(d.len())).collect();
+        let mut adam_f = Adam::new(n);
+        let mut loss0 = f64::NAN;
+        let mut last = f64::NAN;
+        let iters = opts.iterations;
+        for it in 0..=iters {
+            let grads = self.gradients(st);
+            let loss: f64 = grads.iter().map(|g| g.loss).sum();
+            if it == 0 {
+                loss0 = loss;
+            }
+            last = loss;
+            if it == iters {
+                break;
+            }
+            progress(it, loss);
+            let frac = it as f64 / iters.max(1) as f64;
+            let lr = if opts.cosine {
+                opts.lr_min + (opts.lr - opts.lr_min) * (1.0 + (std::f64::consts::PI * frac).cos()) / 2.0
+            } else {
+                opts.lr + (opts.lr_min - opts.lr) * frac
+            };
+            let t = it as i32 + 1;
+            let mut pg: Vec<Grad> = vec![(DVec3::ZERO, DVec3::ZERO); pairs];
+            let mut sg = vec![0.0; pairs];
+            let mut fg = vec![0.0; n];
+            for (k, g) in grads.into_iter().enumerate() {
+                st.poses[k].update(g.pose, lr, t);
+                let step = adam_d[k].step(&g.logd, lr, t);
+                st.logd[k].iter_mut().zip(step).for_each(|(d, s)| *d -= s);
+                fg[k] = g.logf;
+                for (e, gp, gs) in g.pairs {
+                    pg[e].0 += gp.0;
+                    pg[e].1 += gp.1;
+                    sg[e] += gs;
+                }
+            }
+            if opts.optimize_focal {
+                // DUSt3R optimises 20 log f: the same Adam step moves log f 20 times less.
+                let step = adam_f.step(&fg, lr / 20.0, t);
+                // Fields of view between about 1 and 168 degrees: a bound that only untrained
+                // or broken predictions reach (they otherwise drive the focal to 0).
+                for (k, (l, s)) in st.logf.iter_mut().zip(step).enumerate() {
+                    let side = self.sizes[k].0.max(self.sizes[k].1) as f64;
+                    *l = (*l - s).clamp((0.05 * side).ln(), (50.0 * side).ln());
+                }
+            }
+            // The mean log-scale is fixed: only deviations from it carry gradient.
+            let mean_g = sg.iter().sum::<f64>() / sg.len() as f64;
+            let sg: Vec<f64> = sg.iter().map(|g| g - mean_g).collect();
+            let step = adam_s.step(&sg, lr, t);
+            st.log_s.iter_mut().zip(step).for_each(|(l, s)| *l -= s);
+            for (e, g) in pg.into_iter().enumerate() {
+                st.pair_pose[e].update(g, lr, t);
+            }
+        }
+        (loss0, last)
+    }
+}
+
+/// Stage 5, the outputs: cameras in the input scale (undo `g`), full-resolution depth from every aligned
+/// pair prediction of each image, and the pair similarities.
+fn outputs(
+    sizes: &[(usize, usize)],
+    pairs: &[PairPrediction],
+    w: &[[Vec<f64>; 2]],
+    problem: &Problem,
+    st: &State,
+    g: f64,
+) -> (Vec<AlignedView>, Vec<Sim3>) {
+    let pair_transforms: Vec<Sim3> = st
+        .pair_pose
         .iter()
-        .zip(pair_scales(&log_s))
+        .zip(problem.pair_scales(&st.log_s))
         .map(|(p, s)| Sim3 { scale: s / g, rotation: p.r, translation: p.t / g })
         .collect();
-    let views = (0..n)
+    let views = (0..sizes.len())
         .into_par_iter()
         .map(|k| {
             let (wk, hk) = sizes[k];
-            let f = logf[k].exp();
-            let c2w = DMat4::from_mat3_translation(poses[k].r, poses[k].t / g);
+            let f = st.logf[k].exp();
+            let c2w = DMat4::from_mat3_translation(st.poses[k].r, st.poses[k].t / g);
             let w2c = dens3r_geom::camera::rigid_inverse(&c2w);
             let mut num = vec![0.0f64; wk * hk];
             let mut den = vec![0.0f64; wk * hk];
             let mut conf = Raster::filled(wk, hk, 0.0f32);
             let cc = conf.data_mut();
-            for &(e, side) in &sides_of[k] {
+            for &(e, side) in &problem.sides_of[k] {
                 let p = &pairs[e];
                 let (pts, cf) = if side == 0 { (&p.pts_i, &p.conf_i) } else { (&p.pts_j, &p.conf_j) };
                 for (idx, (&q, &c)) in pts.data().iter().zip(cf.data()).enumerate() {
@@ -624,5 +735,5 @@ pub fn global_align(
             AlignedView { camera: PinholeCamera { intrinsics, width: wk, height: hk, cam_to_world: c2w }, depth, conf }
         })
         .collect();
-    Ok(Alignment { views, pair_transforms, loss: (loss0 / g, last / g), warnings })
+    (views, pair_transforms)
 }
