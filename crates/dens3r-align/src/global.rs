@@ -20,6 +20,7 @@ use dens3r_geom::align::umeyama;
 use dens3r_geom::focal::{focal_or_fallback, FALLBACK_HFOV_DEG};
 use dens3r_geom::transform::{axis_angle, nearest_rotation, Sim3};
 use dens3r_geom::{Intrinsics, PinholeCamera, Raster, Vec3};
+use dens3r_optim::{AdamW, Decay, Schedule};
 use glam::{DMat3, DMat4, DVec3};
 use rayon::prelude::*;
 
@@ -145,6 +146,9 @@ pub struct Alignment {
 
 type Grad = (DVec3, DVec3); // (rotation tangent, translation)
 
+/// Adam as DUSt3R's global alignment runs it (betas 0.9 and 0.9), in f64.
+const ADAM: AdamW<f64> = AdamW { beta1: 0.9, beta2: 0.9, eps: 1e-8, weight_decay: 0.0 };
+
 /// Adam moments of one parameter vector.
 #[derive(Clone)]
 struct Adam {
@@ -158,17 +162,9 @@ impl Adam {
     }
     /// Returns the steps (to subtract) for gradient `g` at iteration `t` (1-based).
     fn step(&mut self, g: &[f64], lr: f64, t: i32) -> Vec<f64> {
-        const B1: f64 = 0.9;
-        const B2: f64 = 0.9; // DUSt3R's betas
-        let (c1, c2) = (1.0 - B1.powi(t), 1.0 - B2.powi(t));
-        g.iter()
-            .enumerate()
-            .map(|(k, &gk)| {
-                self.m[k] = B1 * self.m[k] + (1.0 - B1) * gk;
-                self.v[k] = B2 * self.v[k] + (1.0 - B2) * gk * gk;
-                lr * (self.m[k] / c1) / ((self.v[k] / c2).sqrt() + 1e-8)
-            })
-            .collect()
+        let mut out = vec![0.0; g.len()];
+        ADAM.steps(t as usize - 1, lr, &mut self.m, &mut self.v, g, 1.0, &mut out);
+        out
     }
 }
 
@@ -624,6 +620,8 @@ impl Problem {
         let mut loss0 = f64::NAN;
         let mut last = f64::NAN;
         let iters = opts.iterations;
+        let decay = if opts.cosine { Decay::Cosine } else { Decay::Linear };
+        let schedule = Schedule { peak: opts.lr, end: opts.lr_min, warmup_steps: 0, total: iters, decay };
         for it in 0..=iters {
             let grads = self.gradients(st);
             let loss: f64 = grads.iter().map(|g| g.loss).sum();
@@ -635,12 +633,7 @@ impl Problem {
                 break;
             }
             progress(it, loss);
-            let frac = it as f64 / iters.max(1) as f64;
-            let lr = if opts.cosine {
-                opts.lr_min + (opts.lr - opts.lr_min) * (1.0 + (std::f64::consts::PI * frac).cos()) / 2.0
-            } else {
-                opts.lr + (opts.lr_min - opts.lr) * frac
-            };
+            let lr = schedule.at(it);
             let t = it as i32 + 1;
             let mut pg: Vec<Grad> = vec![(DVec3::ZERO, DVec3::ZERO); pairs];
             let mut sg = vec![0.0; pairs];

@@ -8,6 +8,11 @@ use crate::field::{self, encode, Evaluated, FieldConfig, Params};
 pub use crate::options::{DepthMode, TrainOptions};
 use crate::render;
 use crate::NsdfError;
+use dens3r_optim::{AdamW, Decay, Schedule};
+
+/// The field's Adam: betas 0.9 and 0.99 with a tiny epsilon, as hash-grid fields are trained
+/// (the MLP's update runs on the device's tensors with these numbers, the table's on the host).
+const ADAM: AdamW<f64> = AdamW { beta1: 0.9, beta2: 0.99, eps: 1e-15, weight_decay: 0.0 };
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -229,13 +234,10 @@ impl Trainer {
         (mask, self.config.level_res(active - 1))
     }
 
+    /// Warm-up, then cosine decay to a tenth of the peak.
     fn lr_at(&self, it: usize) -> f64 {
         let o = &self.options;
-        if it < o.warmup {
-            return o.lr * (it + 1) as f64 / o.warmup as f64;
-        }
-        let p = ((it - o.warmup) as f64 / (o.iters.saturating_sub(o.warmup)).max(1) as f64).min(1.0);
-        o.lr * (0.1 + 0.9 * 0.5 * (1.0 + (std::f64::consts::PI * p).cos()))
+        Schedule { peak: o.lr, end: 0.1 * o.lr, warmup_steps: o.warmup, total: o.iters, decay: Decay::Cosine }.at(it)
     }
 
     /// One iteration on `data`.
@@ -422,10 +424,9 @@ impl Trainer {
     /// Backward pass and one Adam update (MLP on the device, table on the host, where its
     /// gradient is scattered from the feature leaves of `evals`).
     fn apply(&mut self, loss: Tensor<1>, lr: f64, evals: &[Evaluated], mask: &[f32]) {
-        let (b1, b2, eps) = (0.9f64, 0.99f64, 1e-15f64);
+        let (b1, b2, eps) = (ADAM.beta1, ADAM.beta2, ADAM.eps);
         let grads = loss.backward();
-        let t = (self.iter + 1) as i32;
-        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+        let (c1, c2) = ADAM.bias_corrections(self.iter);
         let gtable = &mut self.table_grad;
         gtable.par_iter_mut().for_each(|g| *g = 0.0);
         for ev in evals {
@@ -433,18 +434,17 @@ impl Trainer {
                 field::grid_backward(&self.config, &ev.enc, mask, &field::to_vec(g), gtable);
             }
         }
-        let (lr32, b1f, b2f) = (lr as f32, b1 as f32, b2 as f32);
-        let (c1f, c2f, epsf) = (c1 as f32, c2 as f32, eps as f32);
-        self.table
-            .par_iter_mut()
-            .zip(self.table_m.par_iter_mut())
-            .zip(self.table_v.par_iter_mut())
-            .zip(gtable.par_iter())
-            .for_each(|(((p, m), v), &g)| {
-                *m = b1f * *m + (1.0 - b1f) * g;
-                *v = b2f * *v + (1.0 - b2f) * g * g;
-                *p -= lr32 * (*m / c1f) / ((*v / c2f).sqrt() + epsf);
-            });
+        let adam32 = AdamW::<f32> { beta1: b1 as f32, beta2: b2 as f32, eps: eps as f32, weight_decay: 0.0 };
+        adam32.update_par(
+            self.iter,
+            lr as f32,
+            &mut self.table,
+            &mut self.table_m,
+            &mut self.table_v,
+            gtable,
+            1.0,
+            false,
+        );
         for (p, mo) in self.params.tensors.iter_mut().zip(self.moments.iter_mut()) {
             let Some(g) = p.grad(&grads) else { continue };
             let g = g.inner();

@@ -1,9 +1,59 @@
-//! The optimisation shared by dens3r's trainers (heads on frozen features, the network
-//! itself): one warm-up + cosine learning-rate schedule and one AdamW, on plain host buffers
-//! (the parameters live on the host between steps, so the update needs no tensor library).
+//! The optimisation shared by dens3r's trainers (heads on frozen features, the network itself,
+//! the neural SDF) and its global alignment: one learning-rate schedule (linear warm-up, then a
+//! cosine or linear decay) and one Adam(W), on plain host buffers in f32 or f64 (the
+//! parameters live on the host between steps, so the update needs no tensor library).
+
+use num_traits::Float;
+use rayon::prelude::*;
+
+/// How the learning rate falls after the warm-up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Decay {
+    /// `end + (peak - end) (1 + cos(pi t)) / 2`.
+    Cosine,
+    /// `peak + (end - peak) t`.
+    Linear,
+}
+
+/// Linear warm-up over the first `warmup_steps` steps to `peak` (`peak (step + 1) /
+/// warmup_steps`), then a decay to `end` at step `total`, `t` going from 0 after the warm-up
+/// to 1 at the end (and held there past it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Schedule<F> {
+    /// Peak learning rate.
+    pub peak: F,
+    /// Learning rate at the end.
+    pub end: F,
+    /// Warm-up steps (0: none).
+    pub warmup_steps: usize,
+    /// Steps in all.
+    pub total: usize,
+    /// Shape of the decay.
+    pub decay: Decay,
+}
+
+impl<F: Float> Schedule<F> {
+    /// The learning rate of 0-based step `step`.
+    pub fn at(&self, step: usize) -> F {
+        let f = |x: usize| F::from(x).expect("a step count");
+        let warm = self.warmup_steps;
+        if step < warm {
+            return self.peak * f(step + 1) / f(warm);
+        }
+        let t = (f(step - warm) / f(self.total.saturating_sub(warm).max(1))).min(F::one());
+        match self.decay {
+            Decay::Cosine => {
+                let pi = F::from(std::f64::consts::PI).expect("pi");
+                let half = F::from(0.5).expect("0.5");
+                self.end + (self.peak - self.end) * half * (F::one() + (pi * t).cos())
+            }
+            Decay::Linear => self.peak + (self.end - self.peak) * t,
+        }
+    }
+}
 
 /// Linear warm-up over the first `warmup` fraction of `total` steps (at least one step), then
-/// cosine decay to zero at the last step.
+/// cosine decay to zero at the last step: the trainers' [`Schedule`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WarmupCosine {
     /// Peak learning rate.
@@ -15,65 +65,112 @@ pub struct WarmupCosine {
 }
 
 impl WarmupCosine {
+    /// The schedule this describes.
+    pub fn schedule(&self) -> Schedule<f32> {
+        let warmup_steps = ((self.warmup * self.total as f32) as usize).max(1);
+        Schedule { peak: self.lr, end: 0.0, warmup_steps, total: self.total, decay: Decay::Cosine }
+    }
+
     /// The learning rate of 0-based step `step`.
     pub fn at(&self, step: usize) -> f32 {
-        let warm = ((self.warmup * self.total as f32) as usize).max(1);
-        if step < warm {
-            return self.lr * (step + 1) as f32 / warm as f32;
-        }
-        let t = (step - warm) as f32 / (self.total - warm).max(1) as f32;
-        self.lr * 0.5 * (1.0 + (std::f32::consts::PI * t.min(1.0)).cos())
+        self.schedule().at(step)
     }
 }
 
-/// AdamW: Adam's bias-corrected moments with decoupled weight decay (Loshchilov & Hutter),
-/// as PyTorch's `torch.optim.AdamW` updates (`p -= lr * wd * p`, then the Adam step).
+/// Adam(W): Adam's bias-corrected moments with decoupled weight decay (Loshchilov & Hutter),
+/// as PyTorch's `torch.optim.AdamW` updates (`p -= lr * wd * p`, then the Adam step); with
+/// `weight_decay` 0 it is Adam.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct AdamW {
+pub struct AdamW<F = f32> {
     /// First-moment decay.
-    pub beta1: f32,
+    pub beta1: F,
     /// Second-moment decay.
-    pub beta2: f32,
+    pub beta2: F,
     /// Denominator epsilon.
-    pub eps: f32,
+    pub eps: F,
     /// Decoupled weight decay (applied where the caller says a tensor decays).
-    pub weight_decay: f32,
+    pub weight_decay: F,
 }
 
-impl Default for AdamW {
+impl<F: Float> Default for AdamW<F> {
     fn default() -> Self {
-        Self { beta1: 0.9, beta2: 0.999, eps: 1e-8, weight_decay: 0.0 }
+        let c = |x: f64| F::from(x).expect("a constant");
+        Self { beta1: c(0.9), beta2: c(0.999), eps: c(1e-8), weight_decay: F::zero() }
     }
 }
 
-impl AdamW {
+impl<F: Float + Send + Sync> AdamW<F> {
+    /// The bias corrections `(1 - beta1^t, 1 - beta2^t)` of 0-based step `step` (`t = step +
+    /// 1`), for updates done elsewhere (a device's tensors).
+    pub fn bias_corrections(&self, step: usize) -> (F, F) {
+        let t = step as i32 + 1;
+        (F::one() - self.beta1.powi(t), F::one() - self.beta2.powi(t))
+    }
+
+    /// Updates the moments `m`, `v` by the gradient `grad * scale` at 0-based step `step` and
+    /// writes each coordinate's step (to subtract, learning rate `lr` included) into `out`;
+    /// for parameters not updated by subtraction (rotations on their manifold).
+    #[allow(clippy::too_many_arguments)]
+    pub fn steps(&self, step: usize, lr: F, m: &mut [F], v: &mut [F], grad: &[F], scale: F, out: &mut [F]) {
+        let (b1, b2) = (self.beta1, self.beta2);
+        let (c1, c2) = self.bias_corrections(step);
+        for j in 0..grad.len() {
+            let g = grad[j] * scale;
+            m[j] = b1 * m[j] + (F::one() - b1) * g;
+            v[j] = b2 * v[j] + (F::one() - b2) * g * g;
+            out[j] = lr * (m[j] / c1) / ((v[j] / c2).sqrt() + self.eps);
+        }
+    }
+
     /// One update of `values` (with moments `m`, `v`) by the gradient `grad * scale` at 0-based
     /// step `step` and learning rate `lr`; `decay` applies the weight decay.
     #[allow(clippy::too_many_arguments)]
     pub fn update(
         &self,
         step: usize,
-        lr: f32,
-        values: &mut [f32],
-        m: &mut [f32],
-        v: &mut [f32],
-        grad: &[f32],
-        scale: f32,
+        lr: F,
+        values: &mut [F],
+        m: &mut [F],
+        v: &mut [F],
+        grad: &[F],
+        scale: F,
         decay: bool,
     ) {
         let (b1, b2) = (self.beta1, self.beta2);
-        let t = (step + 1) as i32;
-        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+        let (c1, c2) = self.bias_corrections(step);
         let wd = self.weight_decay;
         for j in 0..values.len() {
             let g = grad[j] * scale;
-            m[j] = b1 * m[j] + (1.0 - b1) * g;
-            v[j] = b2 * v[j] + (1.0 - b2) * g * g;
+            m[j] = b1 * m[j] + (F::one() - b1) * g;
+            v[j] = b2 * v[j] + (F::one() - b2) * g * g;
             if decay {
-                values[j] -= lr * wd * values[j];
+                values[j] = values[j] - lr * wd * values[j];
             }
-            values[j] -= lr * (m[j] / c1) / ((v[j] / c2).sqrt() + self.eps);
+            values[j] = values[j] - lr * (m[j] / c1) / ((v[j] / c2).sqrt() + self.eps);
         }
+    }
+
+    /// [`AdamW::update`] over rayon's threads, in blocks (the same numbers: each coordinate is
+    /// updated alone); for large buffers such as a hash-grid table.
+    #[allow(clippy::too_many_arguments)]
+    pub fn update_par(
+        &self,
+        step: usize,
+        lr: F,
+        values: &mut [F],
+        m: &mut [F],
+        v: &mut [F],
+        grad: &[F],
+        scale: F,
+        decay: bool,
+    ) {
+        const BLOCK: usize = 1 << 14;
+        values
+            .par_chunks_mut(BLOCK)
+            .zip(m.par_chunks_mut(BLOCK))
+            .zip(v.par_chunks_mut(BLOCK))
+            .zip(grad.par_chunks(BLOCK))
+            .for_each(|(((x, m), v), g)| self.update(step, lr, x, m, v, g, scale, decay));
     }
 }
 
@@ -116,5 +213,50 @@ mod tests {
             opt.update(k, s.at(k), &mut x, &mut m, &mut v, &g, 1.0, false);
         }
         assert!((x[0] - 3.0).abs() < 1e-3, "{}", x[0]);
+    }
+
+    /// The f64 schedule of global alignment: no warm-up, linear or cosine from the peak to the
+    /// end, held at the end past the last step.
+    #[test]
+    fn linear_and_cosine_decays() {
+        let lin = Schedule { peak: 0.01f64, end: 1e-6, warmup_steps: 0, total: 300, decay: Decay::Linear };
+        assert_eq!(lin.at(0), 0.01);
+        assert!((lin.at(150) - (0.01 + 1e-6) / 2.0).abs() < 1e-15);
+        assert!((lin.at(300) - 1e-6).abs() < 1e-15 && lin.at(1000) == lin.at(300));
+        let cos = Schedule { decay: Decay::Cosine, ..lin };
+        assert_eq!(cos.at(0), 0.01);
+        assert!((cos.at(150) - (0.01 + 1e-6) / 2.0).abs() < 1e-15);
+        assert!((cos.at(75) - (1e-6 + (0.01 - 1e-6) * (1.0 + 0.5f64.sqrt()) / 2.0)).abs() < 1e-15);
+        assert!((cos.at(300) - 1e-6).abs() < 1e-18);
+    }
+
+    /// `steps` gives what `update` subtracts, and the parallel update is the serial one, bit
+    /// for bit.
+    #[test]
+    fn steps_and_parallel_update_agree_with_update() {
+        let n = 100_003;
+        let g: Vec<f32> = (0..n).map(|i| ((i as f32) * 0.618).sin()).collect();
+        let x0: Vec<f32> = (0..n).map(|i| ((i as f32) * 0.377).cos()).collect();
+        let opt = AdamW::<f32> { weight_decay: 0.1, ..Default::default() };
+        let run = |par: bool| {
+            let (mut x, mut m, mut v) = (x0.clone(), vec![0.1f32; n], vec![0.2f32; n]);
+            for step in 0..3 {
+                if par {
+                    opt.update_par(step, 1e-3, &mut x, &mut m, &mut v, &g, 0.5, true);
+                } else {
+                    opt.update(step, 1e-3, &mut x, &mut m, &mut v, &g, 0.5, true);
+                }
+            }
+            x
+        };
+        assert!(run(true).iter().zip(run(false)).all(|(a, b)| a.to_bits() == b.to_bits()));
+        let opt = AdamW::<f64>::default();
+        let g: Vec<f64> = vec![0.3, -2.0, 1e-4];
+        let (mut x, mut m, mut v) = (vec![1.0f64, 2.0, 3.0], vec![0.0; 3], vec![0.0; 3]);
+        opt.update(0, 0.01, &mut x, &mut m, &mut v, &g, 1.0, false);
+        let (mut m2, mut v2, mut out) = (vec![0.0; 3], vec![0.0; 3], vec![0.0; 3]);
+        opt.steps(0, 0.01, &mut m2, &mut v2, &g, 1.0, &mut out);
+        assert_eq!(x, vec![1.0 - out[0], 2.0 - out[1], 3.0 - out[2]]);
+        assert_eq!((m, v), (m2, v2));
     }
 }
