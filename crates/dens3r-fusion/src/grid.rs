@@ -4,6 +4,7 @@
 //! integration ([`crate::tsdf`]) fills one from depth maps, the neural SDF fills one from its
 //! field; marching cubes ([`crate::extract`]) meshes either.
 
+use crate::error::FusionError;
 use glam::{IVec3, Vec3};
 use std::collections::HashMap;
 
@@ -103,12 +104,15 @@ pub struct VoxelBlockGrid {
 
 impl VoxelBlockGrid {
     /// An empty grid; the voxel must be a positive length and `trunc` at least one voxel.
-    pub fn new(spec: GridSpec) -> Result<Self, String> {
+    pub fn new(spec: GridSpec) -> Result<Self, FusionError> {
         if !(spec.voxel.is_finite() && spec.voxel > 0.0) {
-            return Err(format!("voxel size {} must be a positive length", spec.voxel));
+            return Err(FusionError::Param(format!("voxel size {} must be a positive length", spec.voxel)));
         }
         if !(spec.trunc.is_finite() && spec.trunc >= spec.voxel) {
-            return Err(format!("truncation {} must be at least one voxel ({})", spec.trunc, spec.voxel));
+            return Err(FusionError::Param(format!(
+                "truncation {} must be at least one voxel ({})",
+                spec.trunc, spec.voxel
+            )));
         }
         Ok(Self { spec, blocks: Vec::new(), keys: Vec::new(), index: IntMap::default() })
     }
@@ -171,15 +175,15 @@ impl VoxelBlockGrid {
     /// Puts a block filled by other means than integration (e.g. an SDF sampled from a neural
     /// field) at block coordinate `key`, replacing any block there. Its layers must hold
     /// [`BLOCK_VOXELS`] entries (colour: that many, or none when the grid has no colour).
-    pub fn insert_block(&mut self, key: IVec3, block: Block) -> Result<(), String> {
+    pub fn insert_block(&mut self, key: IVec3, block: Block) -> Result<(), FusionError> {
         let colors = if self.spec.color { BLOCK_VOXELS } else { 0 };
         if block.tsdf.len() != BLOCK_VOXELS || block.weight.len() != BLOCK_VOXELS || block.color.len() != colors {
-            return Err(format!(
+            return Err(FusionError::Param(format!(
                 "block {key} has {} / {} / {} tsdf / weight / colour entries, expected {BLOCK_VOXELS} / {BLOCK_VOXELS} / {colors}",
                 block.tsdf.len(),
                 block.weight.len(),
                 block.color.len()
-            ));
+            )));
         }
         let slot = self.slot_or_insert(key);
         self.blocks[slot as usize] = block;

@@ -5,6 +5,7 @@
 //! [`scene`] drives both from a scene folder. With the `gpu` feature, `gpu::GpuTsdf` runs the
 //! integration as a WGSL compute pass through wgpu.
 
+mod error;
 pub mod extract;
 #[cfg(feature = "gpu")]
 pub mod gpu;

@@ -3,41 +3,13 @@
 //! truncated signed distances averaged with weights, optional colour. Integration of one frame
 //! is rayon-parallel over the blocks it touches.
 
+pub use crate::error::FusionError;
 pub use crate::grid::{block_voxel, Block, IntHasher, IntMap, BLOCK, BLOCK_VOXELS};
 use crate::grid::{GridSpec, VoxelBlockGrid};
 use dens3r_geom::{PinholeCamera, Raster, Vec3};
 use glam::{IVec3, Mat4};
 use rayon::prelude::*;
 use std::collections::HashSet;
-
-/// What can go wrong while fusing.
-#[derive(Debug, thiserror::Error)]
-pub enum FusionError {
-    /// A parameter is out of range.
-    #[error("invalid fusion parameter: {0}")]
-    Param(String),
-    /// The next frame would take the grid past its memory budget.
-    #[error(
-        "the voxel grid would need {}{needed_mb:.0} MB ({blocks} blocks), over the {budget_mb:.0} MB budget: use a larger --voxel, a smaller --max-depth or --trunc, or raise --budget-mb",
-        if *.at_least { "more than " } else { "" }
-    )]
-    Budget {
-        /// Blocks the grid would hold.
-        blocks: usize,
-        /// Memory they would take.
-        needed_mb: f64,
-        /// The budget.
-        budget_mb: f64,
-        /// Counting stopped once past the budget: the grid would need more.
-        at_least: bool,
-    },
-    /// The GPU path could not run (no adapter, buffer limits, device lost).
-    #[error("GPU fusion: {0}")]
-    Gpu(String),
-    /// A frame's layers do not fit its camera.
-    #[error("frame '{0}': {1}")]
-    Frame(String, String),
-}
 
 /// Fusion parameters (lengths in scene units, metres for our rendered scenes).
 #[derive(Debug, Clone, PartialEq)]
@@ -157,7 +129,7 @@ impl SparseTsdf {
     /// An empty volume.
     pub fn new(params: TsdfParams) -> Result<Self, FusionError> {
         params.check()?;
-        let grid = VoxelBlockGrid::new(params.grid_spec()).map_err(FusionError::Param)?;
+        let grid = VoxelBlockGrid::new(params.grid_spec())?;
         Ok(Self { params, grid, frames: 0 })
     }
 

@@ -28,7 +28,7 @@ pub fn sample_grid(
     budget_bytes: Option<usize>,
 ) -> Result<VoxelBlockGrid, NsdfError> {
     let spec = GridSpec { voxel, trunc: 4.0 * voxel, color: cfg.color };
-    let mut grid = VoxelBlockGrid::new(spec).map_err(NsdfError::Options)?;
+    let mut grid = VoxelBlockGrid::new(spec).map_err(|e| NsdfError::Options(e.to_string()))?;
     let block = voxel as f64 * BLOCK as f64;
     let cell = occupancy.cell() as f64 * bounds.scale;
     let mut keys = BTreeSet::new();
@@ -91,7 +91,7 @@ pub fn sample_grid(
                 }
             }
         }
-        grid.insert_block(*k, b).map_err(NsdfError::Options)?;
+        grid.insert_block(*k, b).map_err(|e| NsdfError::Options(e.to_string()))?;
     }
     Ok(grid)
 }
