@@ -6,6 +6,9 @@
 Needs `torch` and `safetensors` (pip install torch safetensors). Writes OUT.safetensors (the
 state_dict, every tensor contiguous and unshared) and OUT.json ({"args": <the constructor
 string stored in the checkpoint>}). The input is only read.
+
+Optional: `dens3r convert MODEL.pth -o DIR` does the same natively (no PyTorch, and nothing in the
+pickle is executed), writing DIR/model.safetensors and DIR/config.json.
 """
 import json
 import sys

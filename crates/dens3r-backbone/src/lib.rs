@@ -8,6 +8,7 @@
 //! [`Predictions`].
 
 pub mod config;
+pub mod convert;
 pub mod cpu;
 pub mod default_model;
 pub mod device;

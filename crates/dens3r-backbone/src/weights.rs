@@ -17,6 +17,12 @@ pub struct WeightsError {
     pub message: String,
 }
 
+impl From<dens3r_io::IoError> for WeightsError {
+    fn from(e: dens3r_io::IoError) -> Self {
+        Self { path: e.path, message: e.message }
+    }
+}
+
 impl WeightsError {
     /// A problem with the file `path`.
     pub fn new(path: &Path, message: impl Into<String>) -> Self {

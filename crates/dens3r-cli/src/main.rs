@@ -6,6 +6,7 @@ mod bench_fusion;
 mod bench_nsdf;
 mod bench_peer;
 mod bench_train;
+mod convert;
 mod eval;
 mod fuse;
 mod info;
@@ -114,6 +115,9 @@ enum Command {
     Bench(bench::BenchCommand),
     /// Check a checkpoint against arrays dumped from the PyTorch model (parity).
     Verify(verify::VerifyArgs),
+    /// Convert a checkpoint (an official .pth, natively, nothing executed) into a folder that
+    /// every command takes as --weights.
+    Convert(convert::ConvertArgs),
 }
 
 /// A closed stdout (`dens3r info SCENE | head -1`) ends the process quietly, as it ends `cat`:
@@ -147,6 +151,7 @@ fn main() {
         Command::Eval(c) => eval::run(c),
         Command::Info(a) => info::run(a),
         Command::Verify(a) => verify::run(a),
+        Command::Convert(a) => convert::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Fuse(a) => fuse::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),

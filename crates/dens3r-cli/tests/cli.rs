@@ -144,6 +144,25 @@ fn copy_files(from: &Path, to: &Path) {
     }
 }
 
+/// `dens3r convert` writes a folder from an official-style `.pth` (its constructor call kept)
+/// that `verify`-style loading reads without `--config`, and refuses to replace one silently.
+#[test]
+fn convert_writes_a_weights_folder_and_refuses_to_overwrite() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("m");
+    let pth = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/pth/small.pth");
+    let (p, o) = (pth.to_str().unwrap(), out.to_str().unwrap());
+    let line = ok(&["convert", p, "-o", o]);
+    assert!(line.contains("converted 7 tensors") && line.contains("AsymmetricCroCo3DStereo"), "{line}");
+    let cfg: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    assert!(cfg["args"].as_str().unwrap().contains("dec_num_heads=12"), "{cfg}");
+    let e = fails(&["convert", p, "-o", o]);
+    assert!(e.contains("already holds model.safetensors") && e.contains("--overwrite"), "{e}");
+    ok(&["convert", p, "-o", o, "--overwrite"]);
+    let e = fails(&["convert", "no-such.pth", "-o", o]);
+    assert!(e.contains("no-such.pth"), "{e}");
+}
+
 #[test]
 fn verify_passes_on_fixtures_and_fails_on_a_wrong_dump() {
     let out = ok(&["verify", parity(A).to_str().unwrap()]);

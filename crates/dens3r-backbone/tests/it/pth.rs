@@ -90,3 +90,47 @@ fn hugging_face_folder_loads_like_its_files() {
     let e = dens3r_backbone::verify::load_model(tmp.path(), None, &device).err().unwrap();
     assert!(e.path == tmp.path() && e.message.contains("model.safetensors"), "{e}");
 }
+
+/// `convert`: a `.pth` becomes a folder whose `model.safetensors` holds what torch saved (f16 and
+/// bf16 widened to f32 exactly) and whose `config.json` carries the constructor call, which gives
+/// the head counts; a folder in, its config kept, and the network it holds unchanged: fixture A
+/// converted still passes parity.
+#[test]
+fn convert_writes_a_folder_every_command_reads() {
+    use dens3r_backbone::convert::to_folder;
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("small");
+    let c = to_folder(&fixture("small.pth"), &out).unwrap();
+    assert_eq!((c.tensors, c.config), (7, true));
+    let w = Weights::from_safetensors(&out.join("model.safetensors")).unwrap();
+    check(&w, "enc.weight", &[3, 4], &ramp(12, 0.25), 0.0);
+    check(&w, "dec.shared", &[2, 3], &ramp(20, 0.5)[10..16], 0.0);
+    let original = Weights::from_safetensors(&fixture("small.pth")).unwrap();
+    assert_eq!(w.values("half.weight", &[2, 3]), original.values("half.weight", &[2, 3]), "f16 widened exactly");
+    assert_eq!(w.values("bf.weight", &[4]), original.values("bf.weight", &[4]), "bf16 widened exactly");
+    assert_eq!(dens3r_backbone::verify::heads_from_config(&out.join("config.json")).unwrap(), Some((16, 12)));
+    // A folder in: fixture A as a Hugging Face folder, converted, still passes parity.
+    let a = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/parity/A_shared_dec_48x64");
+    let hf = tmp.path().join("hf");
+    std::fs::create_dir_all(&hf).unwrap();
+    std::fs::copy(a.join("weights.safetensors"), hf.join("model.safetensors")).unwrap();
+    std::fs::copy(a.join("config.json"), hf.join("config.json")).unwrap();
+    let conv = tmp.path().join("conv");
+    let c = to_folder(&hf, &conv).unwrap();
+    assert!(c.config && c.args.is_none());
+    let check_dir = tmp.path().join("A");
+    std::fs::create_dir_all(&check_dir).unwrap();
+    for e in std::fs::read_dir(&a).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), check_dir.join(e.file_name())).unwrap();
+    }
+    std::fs::copy(conv.join("model.safetensors"), check_dir.join("weights.safetensors")).unwrap();
+    std::fs::copy(conv.join("config.json"), check_dir.join("config.json")).unwrap();
+    let results = dens3r_backbone::verify::verify_dir(&check_dir, &dens3r_backbone::Device::flex()).unwrap();
+    assert!(results.len() > 5 && results.iter().all(|r| r.pass), "converted fixture A fails parity");
+    // Converting a folder into itself is refused; a missing input is named.
+    let e = to_folder(&conv, &conv).unwrap_err();
+    assert!(e.path == conv, "{e}");
+    let e = to_folder(&tmp.path().join("none.pth"), &tmp.path().join("x")).unwrap_err();
+    assert!(e.to_string().contains("none.pth"), "{e}");
+}
