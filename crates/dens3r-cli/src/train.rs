@@ -270,7 +270,7 @@ pub fn run(a: TrainArgs) -> Result<()> {
         sizes.join(" then ")
     );
     let mut first = Some(first);
-    let mut load = |size: (usize, usize)| -> Result<(Dataset, Option<Dataset>), String> {
+    let mut load = |size: (usize, usize)| -> Result<(Dataset, Option<Dataset>), dens3r_train::TrainError> {
         let data = match first.take().filter(|_| size == config.size) {
             Some(d) => d,
             None => Dataset::load(&a.data, size, config.covis)?,

@@ -1,6 +1,7 @@
 //! A network architecture described by the official constructor's keywords (`--arch
 //! small.toml`), turned into the [`ModelConfig`] the backbone builds.
 
+use crate::TrainError;
 use dens3r_backbone::config::{pts_heads, DptWidths, EncoderKind, RopeScaling};
 use dens3r_backbone::ModelConfig;
 use serde::{Deserialize, Serialize};
@@ -80,28 +81,30 @@ fn desc_dim() -> usize {
 
 impl Arch {
     /// Reads a TOML (or JSON, by extension) architecture file.
-    pub fn read(path: &Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
+    pub fn read(path: &Path) -> Result<Self, TrainError> {
+        let text = std::fs::read_to_string(path).map_err(|e| TrainError::file(path, format!("cannot read ({e})")))?;
         let arch: Self = if path.extension().is_some_and(|e| e == "json") {
-            serde_json::from_str(&text).map_err(|e| format!("{}: invalid architecture ({e})", path.display()))?
+            serde_json::from_str(&text).map_err(|e| TrainError::file(path, format!("invalid architecture ({e})")))?
         } else {
-            toml::from_str(&text).map_err(|e| format!("{}: invalid architecture ({e})", path.display()))?
+            toml::from_str(&text).map_err(|e| TrainError::file(path, format!("invalid architecture ({e})")))?
         };
-        arch.check().map_err(|e| format!("{}: {e}", path.display()))?;
+        arch.check().map_err(|e| TrainError::file(path, format!("{e}")))?;
         Ok(arch)
     }
 
     /// Checks the widths fit together (heads divide widths, the heads' hooks exist).
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), TrainError> {
         let ok_heads = |d: usize, h: usize| h > 0 && d.is_multiple_of(h) && (d / h).is_multiple_of(4);
         if !ok_heads(self.enc_embed_dim, self.enc_num_heads) || !ok_heads(self.dec_embed_dim, self.dec_num_heads) {
-            return Err("each width must split into heads whose dimension is a multiple of 4 (RoPE-2D)".into());
+            return Err(TrainError::invalid(
+                "each width must split into heads whose dimension is a multiple of 4 (RoPE-2D)",
+            ));
         }
         if self.enc_depth == 0 || self.dec_depth < 4 {
-            return Err("the encoder needs a block and the decoder at least 4 (the DPT hooks)".into());
+            return Err(TrainError::invalid("the encoder needs a block and the decoder at least 4 (the DPT hooks)"));
         }
         if self.patch_size < 2 || self.layer_dims.contains(&0) || self.feature_dim < 2 || self.last_dim == 0 {
-            return Err("patch size and DPT widths must be positive".into());
+            return Err(TrainError::invalid("patch size and DPT widths must be positive"));
         }
         Ok(())
     }

@@ -7,6 +7,7 @@
 //! writes real held-out frames with metric ground truth (`dens3r real-scenes`).
 
 pub mod arch;
+mod error;
 pub mod loss;
 pub mod pair;
 pub mod real;
@@ -15,4 +16,5 @@ pub mod synth;
 pub mod train;
 
 pub use arch::Arch;
+pub use error::TrainError;
 pub use train::{scene_dirs, Dataset, LossTerms, PointsFrame, Stage, TrainConfig, Trainer};

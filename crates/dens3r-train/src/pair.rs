@@ -4,6 +4,7 @@
 //! test.
 
 use crate::loss::Matches;
+use crate::TrainError;
 use dens3r_geom::camera::{rigid_inverse, Intrinsics};
 use dens3r_geom::pointmap::depth_valid;
 use dens3r_geom::Raster;
@@ -33,7 +34,7 @@ impl View {
     /// Reads frame `f` of `scene`, centre-cropped to the aspect of `(w, h)` and resized to it
     /// (depth and normals by nearest neighbour, so no value is invented at an edge). A frame
     /// without depth is an error naming its file and the fix.
-    pub fn load(scene: &Scene, f: &Frame, (w, h): (usize, usize)) -> Result<Self, String> {
+    pub fn load(scene: &Scene, f: &Frame, (w, h): (usize, usize)) -> Result<Self, TrainError> {
         Self::load_window(scene, f, crop_window((f.width, f.height), (w, h), 1.0, (0.5, 0.5)), (w, h))
     }
 
@@ -43,12 +44,12 @@ impl View {
         f: &Frame,
         (x0, y0, cw, ch): (usize, usize, usize, usize),
         (w, h): (usize, usize),
-    ) -> Result<Self, String> {
-        let image = scene.image(f).map_err(|e| e.to_string())?;
-        let depth = scene.depth(f).map_err(|e| e.to_string())?.ok_or_else(|| missing_depth(scene, f))?;
-        let normals = scene.normals(f).map_err(|e| e.to_string())?;
+    ) -> Result<Self, TrainError> {
+        let image = scene.image(f)?;
+        let depth = scene.depth(f)?.ok_or_else(|| missing_depth(scene, f))?;
+        let normals = scene.normals(f)?;
         let k = Intrinsics::from_rows(&f.k).ok_or_else(|| {
-            format!("{}: frame '{}' has no valid pinhole K", scene.root().join("cameras.json").display(), f.name)
+            TrainError::file(&scene.root().join("cameras.json"), format!("frame '{}' has no valid pinhole K", f.name))
         })?;
         let (fw, fh) = (f.width, f.height);
         if image.width() as usize != fw
@@ -60,11 +61,7 @@ impl View {
             || cw == 0
             || ch == 0
         {
-            return Err(format!(
-                "{}: frame '{}': image or depth is not the {fw}x{fh} that cameras.json gives; re-render or fix the scene",
-                scene.root().display(),
-                f.name
-            ));
+            return Err(TrainError::file(scene.root(), format!("frame '{}': image or depth is not the {fw}x{fh} that cameras.json gives; re-render or fix the scene", f.name)));
         }
         let (sx, sy) = (w as f64 / cw as f64, h as f64 / ch as f64);
         let crop = image::imageops::crop_imm(&image, x0 as u32, y0 as u32, cw as u32, ch as u32).to_image();
@@ -105,13 +102,14 @@ impl View {
     }
 }
 
-/// The message for a frame without depth.
-pub fn missing_depth(scene: &Scene, f: &Frame) -> String {
-    format!(
-        "{}: frame '{}' has no depth/{}.npy; training needs depth and poses (render or synthesise the scene with `dens3r render` / `dens3r synth`)",
-        scene.root().display(),
-        f.name,
-        f.name
+/// The error for a frame without depth.
+pub fn missing_depth(scene: &Scene, f: &Frame) -> TrainError {
+    TrainError::file(
+        scene.root(),
+        format!(
+            "frame '{}' has no depth/{}.npy; training needs depth and poses (render or synthesise the scene with `dens3r render` / `dens3r synth`)",
+            f.name, f.name
+        ),
     )
 }
 
@@ -264,7 +262,7 @@ pub fn pair_target(v1: &View, v2: &View) -> PairTarget {
 }
 
 /// The frames of a scene folder at network size `(w, h)`.
-pub fn load_views(dir: &Path, size: (usize, usize)) -> Result<Vec<View>, String> {
-    let scene = Scene::open(dir).map_err(|e| e.to_string())?;
+pub fn load_views(dir: &Path, size: (usize, usize)) -> Result<Vec<View>, TrainError> {
+    let scene = Scene::open(dir)?;
     scene.frames().iter().map(|f| View::load(&scene, f, size)).collect()
 }

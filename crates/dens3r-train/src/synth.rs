@@ -5,6 +5,7 @@
 //! same bytes; a rerun after an interruption keeps the finished scenes.
 
 use crate::pair::{covisibility, View};
+use crate::TrainError;
 use dens3r_render::procedural::classes;
 use dens3r_render::render_cameras_to_scene;
 use dens3r_render::synth::{scene_seed, synth_scene, Assets, SynthKind};
@@ -37,15 +38,15 @@ pub struct SynthOptions {
 
 impl SynthOptions {
     /// Checks the options; returns the kind.
-    pub fn check(&self) -> Result<SynthKind, String> {
+    pub fn check(&self) -> Result<SynthKind, TrainError> {
         let kind = SynthKind::parse(&self.kind)
-            .ok_or_else(|| format!("--kind {:?}: expected rooms, objects or mixed", self.kind))?;
+            .ok_or_else(|| TrainError::invalid(format!("--kind {:?}: expected rooms, objects or mixed", self.kind)))?;
         let (w, h) = self.size;
         if !(16..=4096).contains(&w) || !(16..=4096).contains(&h) {
-            return Err(format!("--size {w}x{h}: each side must be 16..4096 pixels"));
+            return Err(TrainError::invalid(format!("--size {w}x{h}: each side must be 16..4096 pixels")));
         }
         if !(2..=1000).contains(&self.views) || !(1..=1_000_000).contains(&self.scenes) {
-            return Err("--views must be 2..1000 and --scenes 1..1000000".into());
+            return Err(TrainError::invalid("--views must be 2..1000 and --scenes 1..1000000"));
         }
         Ok(kind)
     }
@@ -95,34 +96,35 @@ pub fn synthesise(
     opts: &SynthOptions,
     assets: &Assets,
     progress: &mut dyn FnMut(usize, usize),
-) -> Result<SynthSummary, String> {
+) -> Result<SynthSummary, TrainError> {
     let kind = opts.check()?;
-    std::fs::create_dir_all(out).map_err(|e| format!("{}: cannot create ({e})", out.display()))?;
+    std::fs::create_dir_all(out).map_err(|e| TrainError::file(out, format!("cannot create ({e})")))?;
     let manifest = Manifest { format: MANIFEST_FORMAT.into(), options: opts.clone(), assets: assets.names.clone() };
     let mpath = out.join(MANIFEST_FILE);
     if mpath.is_file() {
-        let text = std::fs::read_to_string(&mpath).map_err(|e| format!("{}: {e}", mpath.display()))?;
-        let old: Manifest = serde_json::from_str(&text)
-            .map_err(|e| format!("{}: damaged manifest ({e}); delete the folder to start over", mpath.display()))?;
+        let text = std::fs::read_to_string(&mpath).map_err(|e| TrainError::file(&mpath, format!("{e}")))?;
+        let old: Manifest = serde_json::from_str(&text).map_err(|e| {
+            TrainError::file(&mpath, format!("damaged manifest ({e}); delete the folder to start over"))
+        })?;
         // A rerun with more scenes extends the set; anything else must match.
         let same = old.format == manifest.format
             && old.assets == manifest.assets
             && SynthOptions { scenes: opts.scenes, ..old.options.clone() } == *opts;
         if !same {
-            return Err(format!(
-                "{}: this folder holds a set made with other options or assets; use another -o or delete it",
-                mpath.display()
+            return Err(TrainError::file(
+                &mpath,
+                "this folder holds a set made with other options or assets; use another -o or delete it",
             ));
         }
-    } else if std::fs::read_dir(out).map_err(|e| e.to_string())?.next().is_some() {
-        return Err(format!(
-            "{}: the folder is not empty and holds no {MANIFEST_FILE}; give a new folder",
-            out.display()
+    } else if std::fs::read_dir(out)?.next().is_some() {
+        return Err(TrainError::file(
+            out,
+            format!("the folder is not empty and holds no {MANIFEST_FILE}; give a new folder"),
         ));
     }
-    let text = serde_json::to_string_pretty(&manifest).map_err(|e| e.to_string())?;
+    let text = serde_json::to_string_pretty(&manifest)?;
     dens3r_io::write_atomic(&mpath, |f| f.write_all(text.as_bytes()))
-        .map_err(|e| format!("{}: {e}", mpath.display()))?;
+        .map_err(|e| TrainError::file(&mpath, format!("{e}")))?;
     let mut summary = SynthSummary::default();
     for k in 0..opts.scenes {
         let dir = scene_dir(out, k);
@@ -133,15 +135,15 @@ pub fn synthesise(
             let tmp = out.join(format!(".scene_{k:05}.tmp"));
             for d in [&tmp, &dir] {
                 if d.exists() {
-                    std::fs::remove_dir_all(d).map_err(|e| format!("{}: cannot remove ({e})", d.display()))?;
+                    std::fs::remove_dir_all(d).map_err(|e| TrainError::file(d, format!("cannot remove ({e})")))?;
                 }
             }
             let _staged = dens3r_io::cleanup::stage(&tmp);
-            let scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;
-            render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})
-                .map_err(|e| e.to_string())?;
+            let scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)
+                .map_err(TrainError::Invalid)?;
+            render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})?;
             write_pairs(&tmp)?;
-            std::fs::rename(&tmp, &dir).map_err(|e| format!("{}: cannot rename ({e})", dir.display()))?;
+            std::fs::rename(&tmp, &dir).map_err(|e| TrainError::file(&dir, format!("cannot rename ({e})")))?;
             summary.rendered += 1;
             if scene.kind == "room" {
                 summary.rooms += 1;
@@ -149,7 +151,7 @@ pub fn synthesise(
                 summary.objects += 1;
             }
         }
-        let s = Scene::open(&dir).map_err(|e| e.to_string())?;
+        let s = Scene::open(&dir)?;
         let n = s.frames().len();
         let table = read_pairs(&s)?.unwrap_or_default();
         summary.pairs += (0..n * n).filter(|&i| i / n != i % n && (0.1..=0.98).contains(&table[i])).count();
@@ -160,8 +162,8 @@ pub fn synthesise(
 
 /// Measures the co-visibility of every ordered frame pair of the scene in `dir` (at full
 /// resolution) and writes its `pairs.json`.
-pub fn write_pairs(dir: &Path) -> Result<(), String> {
-    let scene = Scene::open(dir).map_err(|e| e.to_string())?;
+pub fn write_pairs(dir: &Path) -> Result<(), TrainError> {
+    let scene = Scene::open(dir)?;
     let views =
         scene.frames().iter().map(|f| View::load(&scene, f, (f.width, f.height))).collect::<Result<Vec<_>, _>>()?;
     let n = views.len();
@@ -170,21 +172,23 @@ pub fn write_pairs(dir: &Path) -> Result<(), String> {
         .collect();
     let file =
         PairsFile { format: PAIRS_FORMAT.into(), frames: views.iter().map(|v| v.name.clone()).collect(), covisibility };
-    let text = serde_json::to_string(&file).map_err(|e| e.to_string())?;
+    let text = serde_json::to_string(&file)?;
     let path = dir.join(PAIRS_FILE);
-    dens3r_io::write_atomic(&path, |f| f.write_all(text.as_bytes())).map_err(|e| format!("{}: {e}", path.display()))
+    dens3r_io::write_atomic(&path, |f| f.write_all(text.as_bytes()))
+        .map_err(|e| TrainError::file(&path, format!("{e}")))
 }
 
 /// The co-visibility table (`n x n`, row-major) of a scene's `pairs.json`, if it has one that
 /// lists exactly its frames.
-pub fn read_pairs(scene: &Scene) -> Result<Option<Vec<f64>>, String> {
+pub fn read_pairs(scene: &Scene) -> Result<Option<Vec<f64>>, TrainError> {
     let path = scene.root().join(PAIRS_FILE);
     if !path.is_file() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let file: PairsFile = serde_json::from_str(&text)
-        .map_err(|e| format!("{}: damaged ({e}); delete it to have co-visibility measured again", path.display()))?;
+    let text = std::fs::read_to_string(&path).map_err(|e| TrainError::file(&path, format!("{e}")))?;
+    let file: PairsFile = serde_json::from_str(&text).map_err(|e| {
+        TrainError::file(&path, format!("damaged ({e}); delete it to have co-visibility measured again"))
+    })?;
     let names: Vec<&str> = scene.frames().iter().map(|f| f.name.as_str()).collect();
     let n = names.len();
     if file.format != PAIRS_FORMAT
@@ -192,9 +196,9 @@ pub fn read_pairs(scene: &Scene) -> Result<Option<Vec<f64>>, String> {
         || file.covisibility.len() != n * n
         || file.covisibility.iter().any(|c| !c.is_finite())
     {
-        return Err(format!(
-            "{}: does not list this scene's frames; delete it to have co-visibility measured again",
-            path.display()
+        return Err(TrainError::file(
+            &path,
+            "does not list this scene's frames; delete it to have co-visibility measured again",
         ));
     }
     Ok(Some(file.covisibility))

@@ -5,6 +5,7 @@
 
 use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, Matches, RegrView};
 use crate::pair::{covisibility, crop_window, missing_depth, pair_target, PairTarget, View};
+use crate::TrainError;
 use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::{Dens3r, Freeze, HeadOutputs, Params, Weights};
 use dens3r_optim::{AdamW, WarmupCosine};
@@ -164,33 +165,40 @@ impl TrainConfig {
     }
 
     /// Checks the settings against the network's patch size.
-    pub fn check(&self, patch: usize) -> Result<(), String> {
+    pub fn check(&self, patch: usize) -> Result<(), TrainError> {
         let (w, h) = self.size;
         if w == 0 || h == 0 || !w.is_multiple_of(patch) || !h.is_multiple_of(patch) || w.max(h) > 2048 {
-            return Err(format!("--size {w}x{h}: width and height must be multiples of {patch}, at most 2048"));
+            return Err(TrainError::invalid(format!(
+                "--size {w}x{h}: width and height must be multiples of {patch}, at most 2048"
+            )));
         }
         if self.batch == 0 || self.steps == 0 || !(self.lr > 0.0 && self.lr.is_finite()) {
-            return Err("steps, batch and lr must be positive".into());
+            return Err(TrainError::invalid("steps, batch and lr must be positive"));
         }
         if !(self.crop > 0.0 && self.crop <= 1.0) {
-            return Err(format!("--crop {}: expected a fraction in (0, 1]", self.crop));
+            return Err(TrainError::invalid(format!("--crop {}: expected a fraction in (0, 1]", self.crop)));
         }
         if !(0.0..=1.0).contains(&self.self_pairs) {
-            return Err(format!("--self-pairs {}: expected a fraction in [0, 1]", self.self_pairs));
+            return Err(TrainError::invalid(format!(
+                "--self-pairs {}: expected a fraction in [0, 1]",
+                self.self_pairs
+            )));
         }
         if self.match_block == 0 {
-            return Err("the matching block size must be positive".into());
+            return Err(TrainError::invalid("the matching block size must be positive"));
         }
         if let Some(w) = self.loss_weights {
             if w.iter().any(|x| !x.is_finite() || *x < 0.0) || w.iter().all(|x| *x == 0.0) {
-                return Err(format!("loss weights {w:?}: expected four finite, non-negative numbers, not all 0"));
+                return Err(TrainError::invalid(format!(
+                    "loss weights {w:?}: expected four finite, non-negative numbers, not all 0"
+                )));
             }
             if self.stage == Stage::One && w[3] > 0.0 {
-                return Err("stage 1 has no normal-head loss: its weight must be 0".into());
+                return Err(TrainError::invalid("stage 1 has no normal-head loss: its weight must be 0"));
             }
         }
         if self.checkpoint_every == 0 {
-            return Err("checkpoint interval must be positive".into());
+            return Err(TrainError::invalid("checkpoint interval must be positive"));
         }
         Ok(())
     }
@@ -252,7 +260,7 @@ fn trained_term(cfg: &TrainConfig, t: &LossTerms) -> bool {
 }
 
 /// The weighted loss of a batch under `stage` (and each term), from the network's outputs.
-pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(Tensor<1>, LossTerms), String> {
+pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(Tensor<1>, LossTerms), TrainError> {
     let device = model.device().clone();
     let [img1, img2] = batch.images.clone();
     let [w_glb, w_n, w_match, w_normal] = cfg.weights();
@@ -271,8 +279,8 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
         (vec3_tensor(&pts, size, &device), mask_tensor(&valid, size, &device))
     };
     let ((g1, m1), (g2, m2)) = (view(0), view(1));
-    let no_conf = || "the network has no confidence channel; train a Dens3R with conf".to_string();
-    let regr = |p: &dens3r_backbone::ViewPrediction, gt: Tensor<4>, valid: Tensor<3>| -> Result<RegrView, String> {
+    let no_conf = || TrainError::invalid("the network has no confidence channel; train a Dens3R with conf");
+    let regr = |p: &dens3r_backbone::ViewPrediction, gt: Tensor<4>, valid: Tensor<3>| -> Result<RegrView, TrainError> {
         Ok(RegrView { pred: p.pts3d.clone(), conf: p.conf.clone().ok_or_else(no_conf)?, gt, valid })
     };
     let pts_glb = conf_regr3d(regr(p1, g1, m1.clone())?, regr(p2, g2, m2.clone())?, cfg.alpha);
@@ -299,7 +307,7 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
         let (d1, d2) = (p1.desc.clone(), p2.desc.clone());
         let (c1, c2) = (p1.desc_conf.clone(), p2.desc_conf.clone());
         let (Some(d1), Some(d2), Some(c1), Some(c2)) = (d1, d2, c1, c2) else {
-            return Err("stage 1 trains matching: the network needs descriptors".into());
+            return Err(TrainError::invalid("stage 1 trains matching: the network needs descriptors"));
         };
         let matches: Vec<Matches> = t.iter().map(|s| s.matches.clone()).collect();
         if let Some(m) =
@@ -311,7 +319,7 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
     }
     if w_normal > 0.0 {
         let (Some(n1), Some(n2)) = (p1.normal.clone(), p2.normal.clone()) else {
-            return Err("stage 2 trains the normal head: the network needs one".into());
+            return Err(TrainError::invalid("stage 2 trains the normal head: the network needs one"));
         };
         let own = |k: usize| {
             let n: Vec<&[Vec3]> = t.iter().map(|s| s.normals[k].as_slice()).collect();
@@ -338,7 +346,7 @@ pub struct Dataset {
 
 /// Scene folders under `dirs`: each one that holds `cameras.json`, else its sub-folders that
 /// do (sorted by name; e.g. a `dens3r synth` output).
-pub fn scene_dirs(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, String> {
+pub fn scene_dirs(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, TrainError> {
     let mut out = Vec::new();
     for d in dirs {
         if d.join("cameras.json").is_file() {
@@ -346,23 +354,17 @@ pub fn scene_dirs(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, String> {
             continue;
         }
         if !d.is_dir() {
-            return Err(format!(
-                "{}: no such scene folder; give scene folders or a `dens3r synth` output",
-                d.display()
-            ));
+            return Err(TrainError::file(d, "no such scene folder; give scene folders or a `dens3r synth` output"));
         }
         let mut subs: Vec<PathBuf> = std::fs::read_dir(d)
-            .map_err(|e| format!("{}: cannot list ({e})", d.display()))?
+            .map_err(|e| TrainError::file(d, format!("cannot list ({e})")))?
             .filter_map(|e| e.ok().map(|e| e.path()))
             .filter(|p| {
                 p.join("cameras.json").is_file() && !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.'))
             })
             .collect();
         if subs.is_empty() {
-            return Err(format!(
-                "{}: neither a scene folder (no cameras.json) nor a folder of scene folders",
-                d.display()
-            ));
+            return Err(TrainError::file(d, "neither a scene folder (no cameras.json) nor a folder of scene folders"));
         }
         subs.sort();
         out.extend(subs);
@@ -374,11 +376,11 @@ impl Dataset {
     /// Opens scene folders (or folders of them, see [`scene_dirs`]; each frame with depth
     /// and a pose) and lists their pairs; co-visibility without `pairs.json` is measured at
     /// `size`.
-    pub fn load(dirs: &[PathBuf], size: (usize, usize), covis: (f64, f64)) -> Result<Self, String> {
+    pub fn load(dirs: &[PathBuf], size: (usize, usize), covis: (f64, f64)) -> Result<Self, TrainError> {
         let mut scenes = Vec::new();
         let mut pairs = Vec::new();
         for (s, d) in scene_dirs(dirs)?.iter().enumerate() {
-            let scene = Scene::open(d).map_err(|e| e.to_string())?;
+            let scene = Scene::open(d)?;
             for f in scene.frames() {
                 if !scene.has(f, Layer::Depth) {
                     return Err(missing_depth(&scene, f));
@@ -409,26 +411,21 @@ impl Dataset {
             scenes.push(scene);
         }
         if pairs.is_empty() {
-            return Err(format!(
+            return Err(TrainError::invalid(format!(
                 "no training pair: no two frames of {} see each other with co-visibility in [{}, {}]",
                 dirs.iter().map(|d| d.display().to_string()).collect::<Vec<_>>().join(", "),
                 covis.0,
                 covis.1
-            ));
+            )));
         }
         Ok(Self { scenes, pairs })
     }
 
     /// Checks that every frame has normals (stage 2 supervises the normal head with them).
-    pub fn require_normals(&self) -> Result<(), String> {
+    pub fn require_normals(&self) -> Result<(), TrainError> {
         for scene in &self.scenes {
             if let Some(f) = scene.frames().iter().find(|f| !scene.has(f, Layer::Normals)) {
-                return Err(format!(
-                    "{}: frame '{}' has no normals/{}.npy; stage 2 supervises the normal head (render or synthesise the scene, or train stage 1)",
-                    scene.root().display(),
-                    f.name,
-                    f.name
-                ));
+                return Err(TrainError::file(scene.root(), format!("frame '{}' has no normals/{}.npy; stage 2 supervises the normal head (render or synthesise the scene, or train stage 1)", f.name, f.name)));
             }
         }
         Ok(())
@@ -458,7 +455,7 @@ impl Dataset {
     /// The batch of step `step`: pairs drawn, windows cropped and images jittered by
     /// `(seed, step)`, `n_corres` correspondences sampled per pair; `patch` is the network's
     /// patch size.
-    pub fn batch(&self, cfg: &TrainConfig, patch: usize, step: usize, device: &Device) -> Result<Batch, String> {
+    pub fn batch(&self, cfg: &TrainConfig, patch: usize, step: usize, device: &Device) -> Result<Batch, TrainError> {
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ (step as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
         let picks: Vec<(usize, usize, usize)> =
             (0..cfg.batch).map(|_| self.pairs[rng.gen_range(0..self.pairs.len())]).collect();
@@ -562,7 +559,7 @@ pub struct LogLine {
 /// The mean loss terms of `params` on `batches` fixed batches of held-out `data` (no
 /// gradients, the inference device; centre crops at `cfg.size`, no jitter, draws seeded
 /// apart from training's so every validation sees the same pairs).
-pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usize) -> Result<LossTerms, String> {
+pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usize) -> Result<LossTerms, TrainError> {
     let device = Device::flex();
     // Distinct views only, so scores stay comparable between runs with and without self pairs.
     let vcfg =
@@ -596,7 +593,7 @@ pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usi
 
 impl Trainer {
     /// A fresh trainer on `device` (an autodiff device, e.g. `Device::autodiff(Device::flex())`).
-    pub fn new(params: Params, config: TrainConfig, device: Device) -> Result<Self, String> {
+    pub fn new(params: Params, config: TrainConfig, device: Device) -> Result<Self, TrainError> {
         config.check(params.config.patch)?;
         let zeros: Vec<Vec<f32>> = params.values.iter().map(|v| vec![0.0; v.len()]).collect();
         let trains = params.names.iter().map(|n| config.freeze.trains(n, params.config.enc_depth)).collect();
@@ -609,12 +606,15 @@ impl Trainer {
     }
 
     /// One optimiser step on `batch`.
-    pub fn train_step(&mut self, batch: &Batch) -> Result<LogLine, String> {
+    pub fn train_step(&mut self, batch: &Batch) -> Result<LogLine, TrainError> {
         let tensors = self.params.tensors(&self.device, &self.trains);
         let model = self.params.model(&tensors, &self.device);
         let (loss, terms) = batch_loss(&model, batch, &self.config)?;
         if !terms.loss.is_finite() {
-            return Err(format!("step {}: the loss is not finite ({:?}); lower --lr", self.step, terms));
+            return Err(TrainError::invalid(format!(
+                "step {}: the loss is not finite ({:?}); lower --lr",
+                self.step, terms
+            )));
         }
         let lr = self.lr_at(self.step);
         // A batch none of whose weighted terms applies (e.g. only matching trains and no pair
@@ -652,45 +652,48 @@ impl Trainer {
 
     /// Writes the checkpoint into `dir` (parameters with official names, moments, then the
     /// state last; each file atomic).
-    pub fn save(&self, dir: &Path) -> Result<(), String> {
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: cannot create ({e})", dir.display()))?;
-        self.params.save(&dir.join("params.safetensors")).map_err(|e| e.to_string())?;
+    pub fn save(&self, dir: &Path) -> Result<(), TrainError> {
+        std::fs::create_dir_all(dir).map_err(|e| TrainError::file(dir, format!("cannot create ({e})")))?;
+        self.params.save(&dir.join("params.safetensors"))?;
         let mut moments = self.params.clone();
         moments.names =
             ["m", "v"].iter().flat_map(|k| self.params.names.iter().map(move |n| format!("{k}.{n}"))).collect();
         moments.shapes = [&self.params.shapes, &self.params.shapes].into_iter().flatten().cloned().collect();
         moments.values = self.m.iter().chain(&self.v).cloned().collect();
-        moments.save(&dir.join("adam.safetensors")).map_err(|e| e.to_string())?;
+        moments.save(&dir.join("adam.safetensors"))?;
         let state = State { format: STATE_FORMAT.into(), config: self.config.clone(), step: self.step };
-        dens3r_io::tensors::save_json(&dir.join("state.json"), &state).map_err(|e| e.to_string())
+        dens3r_io::tensors::save_json(&dir.join("state.json"), &state)?;
+        Ok(())
     }
 
     /// Resumes from a checkpoint folder written by [`Trainer::save`] for the same network and
     /// settings; `Ok(None)` when the folder holds none.
-    pub fn resume(dir: &Path, fresh: &Params, config: &TrainConfig, device: Device) -> Result<Option<Self>, String> {
+    pub fn resume(
+        dir: &Path,
+        fresh: &Params,
+        config: &TrainConfig,
+        device: Device,
+    ) -> Result<Option<Self>, TrainError> {
         let sp = dir.join("state.json");
         if !sp.is_file() {
             return Ok(None);
         }
-        let text = std::fs::read_to_string(&sp).map_err(|e| format!("{}: {e}", sp.display()))?;
+        let text = std::fs::read_to_string(&sp).map_err(|e| TrainError::file(&sp, format!("{e}")))?;
         let state: State = serde_json::from_str(&text)
-            .map_err(|e| format!("{}: damaged checkpoint ({e}); delete the folder to start over", sp.display()))?;
+            .map_err(|e| TrainError::file(&sp, format!("damaged checkpoint ({e}); delete the folder to start over")))?;
         if state.format != STATE_FORMAT || &state.config != config {
-            return Err(format!(
-                "{}: the checkpoint was made with other settings; rerun with the same options, or delete the folder (or use --restart) to start over",
-                sp.display()
-            ));
+            return Err(TrainError::file(&sp, "the checkpoint was made with other settings; rerun with the same options, or delete the folder (or use --restart) to start over"));
         }
-        let w = Weights::from_safetensors(&dir.join("params.safetensors")).map_err(|e| e.to_string())?;
-        let mut params = Params::from_weights(&w, &fresh.config).map_err(|e| e.to_string())?;
+        let w = Weights::from_safetensors(&dir.join("params.safetensors"))?;
+        let mut params = Params::from_weights(&w, &fresh.config)?;
         params.dinov2 = fresh.dinov2.clone();
-        let a = Weights::from_safetensors(&dir.join("adam.safetensors")).map_err(|e| e.to_string())?;
+        let a = Weights::from_safetensors(&dir.join("adam.safetensors"))?;
         let mut t = Self::new(params, config.clone(), device)?;
         for (i, (n, s)) in fresh.names.iter().zip(&fresh.shapes).enumerate() {
             t.m[i] = a.values(&format!("m.{n}"), s).unwrap_or_default();
             t.v[i] = a.values(&format!("v.{n}"), s).unwrap_or_default();
         }
-        a.finish().map_err(|e| e.to_string())?;
+        a.finish()?;
         t.step = state.step;
         Ok(Some(t))
     }

@@ -403,10 +403,7 @@ pub fn targets() -> Vec<Target> {
                 tiny_network(d);
                 std::fs::read(d.join("arch.toml")).unwrap()
             },
-            read: |d| {
-                let arch = dens3r_train::Arch::read(&d.join("arch.toml"))?;
-                arch.check()
-            },
+            read: |d| ok(dens3r_train::Arch::read(&d.join("arch.toml")).and_then(|a| a.check())),
         },
         Target {
             name: "train-log",

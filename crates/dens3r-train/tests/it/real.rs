@@ -19,7 +19,7 @@ fn data() -> PathBuf {
 fn written(
     sub: &str,
     needs: &str,
-    write: fn(&std::path::Path, &std::path::Path) -> Result<(), String>,
+    write: fn(&std::path::Path, &std::path::Path) -> Result<(), dens3r_train::TrainError>,
 ) -> Option<(tempfile::TempDir, Scene)> {
     let src = data().join(sub);
     if !src.join(needs).is_file() {

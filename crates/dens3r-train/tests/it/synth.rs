@@ -97,7 +97,10 @@ fn synth_is_reproducible_and_resumes() {
     assert_eq!((s.rendered, s.kept), (2, 2));
     assert_eq!(files(&scene_dir(&a, 1)), before);
     assert!(!a.join(".scene_00001.tmp").exists());
-    let e = synthesise(&a, &SynthOptions { size: (80, 60), ..opts(4, 7) }, &assets(), &mut |_, _| {}).err().unwrap();
+    let e = synthesise(&a, &SynthOptions { size: (80, 60), ..opts(4, 7) }, &assets(), &mut |_, _| {})
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("synth.json") && e.contains("other options"), "{e}");
     // Training reads the set's folder directly, with the pairs the tables list.
     let data = Dataset::load(std::slice::from_ref(&a), (32, 32), (0.1, 0.98)).unwrap();
@@ -110,7 +113,7 @@ fn synth_is_reproducible_and_resumes() {
     assert_eq!(data.pairs.len(), want);
     // A damaged table is named.
     std::fs::write(scene_dir(&a, 2).join(PAIRS_FILE), "{").unwrap();
-    let e = Dataset::load(std::slice::from_ref(&a), (32, 32), (0.1, 0.98)).err().unwrap();
+    let e = Dataset::load(std::slice::from_ref(&a), (32, 32), (0.1, 0.98)).err().unwrap().to_string();
     assert!(e.contains("scene_00002") && e.contains(PAIRS_FILE), "{e}");
 }
 
