@@ -7,11 +7,14 @@
 //!   and the sweep of what killed runs left;
 //! * [`hash`]: FNV-1a, a content hash stable across Rust versions, for cache keys;
 //! * [`panics`]: a third-party parser's panic on damaged input turned into a refusal;
+//! * [`file_or_setting_error!`]: the error type of a crate whose failures name a file or a
+//!   setting, defined once;
 //! * [`tensors`]: named f32 tensors as safetensors and JSON beside them, written atomically
 //!   and read back checked (every checkpoint: heads, neural SDF, training state).
 
 mod atomic;
 pub mod cleanup;
+mod error_type;
 pub mod hash;
 pub mod panics;
 pub mod tensors;

@@ -112,14 +112,19 @@ impl<F: Float + Send + Sync> AdamW<F> {
     /// for parameters not updated by subtraction (rotations on their manifold).
     #[allow(clippy::too_many_arguments)]
     pub fn steps(&self, step: usize, lr: F, m: &mut [F], v: &mut [F], grad: &[F], scale: F, out: &mut [F]) {
-        let (b1, b2) = (self.beta1, self.beta2);
-        let (c1, c2) = self.bias_corrections(step);
+        let c = self.bias_corrections(step);
         for j in 0..grad.len() {
-            let g = grad[j] * scale;
-            m[j] = b1 * m[j] + (F::one() - b1) * g;
-            v[j] = b2 * v[j] + (F::one() - b2) * g * g;
-            out[j] = lr * (m[j] / c1) / ((v[j] / c2).sqrt() + self.eps);
+            out[j] = self.moment_step(c, lr, &mut m[j], &mut v[j], grad[j] * scale);
         }
+    }
+
+    /// One coordinate: its moments updated by gradient `g`, and its Adam step.
+    #[inline]
+    fn moment_step(&self, (c1, c2): (F, F), lr: F, m: &mut F, v: &mut F, g: F) -> F {
+        let (b1, b2) = (self.beta1, self.beta2);
+        *m = b1 * *m + (F::one() - b1) * g;
+        *v = b2 * *v + (F::one() - b2) * g * g;
+        lr * (*m / c1) / ((*v / c2).sqrt() + self.eps)
     }
 
     /// One update of `values` (with moments `m`, `v`) by the gradient `grad * scale` at 0-based
@@ -136,17 +141,14 @@ impl<F: Float + Send + Sync> AdamW<F> {
         scale: F,
         decay: bool,
     ) {
-        let (b1, b2) = (self.beta1, self.beta2);
-        let (c1, c2) = self.bias_corrections(step);
+        let c = self.bias_corrections(step);
         let wd = self.weight_decay;
         for j in 0..values.len() {
-            let g = grad[j] * scale;
-            m[j] = b1 * m[j] + (F::one() - b1) * g;
-            v[j] = b2 * v[j] + (F::one() - b2) * g * g;
+            let s = self.moment_step(c, lr, &mut m[j], &mut v[j], grad[j] * scale);
             if decay {
                 values[j] = values[j] - lr * wd * values[j];
             }
-            values[j] = values[j] - lr * (m[j] / c1) / ((v[j] / c2).sqrt() + self.eps);
+            values[j] = values[j] - s;
         }
     }
 
