@@ -424,7 +424,6 @@ struct State {
 
 /// The fixed parts of the problem: where each image is sampled and which pair sides see it.
 struct Problem {
-    n: usize,
     sizes: Vec<(usize, usize)>,
     /// Grid pixel offsets from the principal point, per image.
     offsets: Vec<Vec<(f64, f64)>>,
@@ -522,7 +521,7 @@ impl Problem {
             .collect();
         let total_w: f64 =
             samples.iter().flat_map(|s| s.iter()).flat_map(|s| s.iter()).map(|s| s.2).sum::<f64>().max(1e-300);
-        let mut problem = Self { n, sizes: sizes.to_vec(), offsets, samples, sides_of, total_w, mean_log_s0: 0.0 };
+        let mut problem = Self { sizes: sizes.to_vec(), offsets, samples, sides_of, total_w, mean_log_s0: 0.0 };
         let mut state = State { logd, logf, poses, pair_pose: Vec::with_capacity(pairs.len()), log_s: Vec::new() };
         problem.initial_pair_poses(pairs, &mut state)?;
         // Pair scales with their geometric mean held at the initial one.
@@ -532,7 +531,7 @@ impl Problem {
 
     /// Each pair's similarity onto the initial world points of both its views.
     fn initial_pair_poses(&self, pairs: &[PairPrediction], state: &mut State) -> Result<(), GlobalAlignError> {
-        let cam: Vec<Vec<DVec3>> = (0..self.n).map(|k| self.camera_points(k, state)).collect();
+        let cam: Vec<Vec<DVec3>> = (0..self.sizes.len()).map(|k| self.camera_points(k, state)).collect();
         for (e, p) in pairs.iter().enumerate() {
             let (mut s, mut d, mut ww) = (Vec::new(), Vec::new(), Vec::new());
             for (side, k) in [(0, p.i), (1, p.j)] {
@@ -565,7 +564,7 @@ impl Problem {
     /// Loss and analytic gradients, per image (in parallel): its sides of every pair.
     fn gradients(&self, st: &State) -> Vec<ImageGrad> {
         let s = self.pair_scales(&st.log_s);
-        (0..self.n)
+        (0..self.sizes.len())
             .into_par_iter()
             .map(|k| {
                 let f = st.logf[k].exp();
@@ -613,7 +612,7 @@ impl Problem {
 
     /// Adam over every parameter for `opts.iterations` steps; the loss before and after.
     fn optimise(&self, st: &mut State, opts: &AlignOptions, mut progress: impl FnMut(usize, f64)) -> (f64, f64) {
-        let (n, pairs) = (self.n, self.samples.len());
+        let (n, pairs) = (self.sizes.len(), self.samples.len());
         let mut adam_s = Adam::new(pairs);
         let mut adam_d: Vec<Adam> = st.logd.iter().map(|d| Adam::new(d.len())).collect();
         let mut adam_f = Adam::new(n);

@@ -185,8 +185,14 @@ impl VoxelBlockGrid {
                 block.color.len()
             )));
         }
-        let slot = self.slot_or_insert(key);
-        self.blocks[slot as usize] = block;
+        match self.index.get(&key) {
+            Some(&slot) => self.blocks[slot as usize] = block,
+            None => {
+                self.index.insert(key, self.blocks.len() as u32);
+                self.keys.push(key);
+                self.blocks.push(block);
+            }
+        }
         Ok(())
     }
 

@@ -80,9 +80,9 @@ impl Head {
     pub fn save(&self, path: &Path) -> Result<(), HeadsError> {
         let named: Vec<(String, Vec<usize>, &[f32])> =
             self.param_shapes().into_iter().zip(&self.values).map(|((n, s), v)| (n, s, v.as_slice())).collect();
-        crate::io::save_tensors(&path.with_extension("safetensors"), &named)?;
+        dens3r_io::tensors::save(&path.with_extension("safetensors"), &named)?;
         let meta = serde_json::json!({ "format": FORMAT, "config": self.config });
-        crate::io::save_json(&path.with_extension("json"), &meta)
+        Ok(dens3r_io::tensors::save_json(&path.with_extension("json"), &meta)?)
     }
 
     /// Reads a head written by [`Head::save`] (either file's path, or the stem).

@@ -254,7 +254,7 @@ impl Trainer {
                 shapes.iter().zip(vals).map(move |((n, s), v)| (format!("{k}.{n}"), s.clone(), v.as_slice()))
             })
             .collect();
-        crate::io::save_tensors(&ap, &named)?;
+        dens3r_io::tensors::save(&ap, &named)?;
         let state = State {
             format: STATE_FORMAT.into(),
             options: self.options.clone(),

@@ -13,6 +13,8 @@ use dens3r_optim::{AdamW, Decay, Schedule};
 /// The field's Adam: betas 0.9 and 0.99 with a tiny epsilon, as hash-grid fields are trained
 /// (the MLP's update runs on the device's tensors with these numbers, the table's on the host).
 const ADAM: AdamW<f64> = AdamW { beta1: 0.9, beta2: 0.99, eps: 1e-15, weight_decay: 0.0 };
+/// [`ADAM`] for the host table, in its f32.
+const ADAM_TABLE: AdamW<f32> = AdamW { beta1: 0.9, beta2: 0.99, eps: 1e-15, weight_decay: 0.0 };
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -434,8 +436,7 @@ impl Trainer {
                 field::grid_backward(&self.config, &ev.enc, mask, &field::to_vec(g), gtable);
             }
         }
-        let adam32 = AdamW::<f32> { beta1: b1 as f32, beta2: b2 as f32, eps: eps as f32, weight_decay: 0.0 };
-        adam32.update_par(
+        ADAM_TABLE.update_par(
             self.iter,
             lr as f32,
             &mut self.table,
