@@ -45,10 +45,12 @@ pub fn save_json(path: &Path, value: &impl serde::Serialize) -> Result<(), IoErr
     write_atomic(path, |w| w.write_all(&text))
 }
 
-/// A safetensors file read whole, its tensors handed out checked.
+/// A safetensors file read whole, its header parsed once, its tensors handed out checked.
 pub struct TensorFile {
     path: std::path::PathBuf,
     bytes: Vec<u8>,
+    /// Name -> (dtype, shape, byte range in `bytes`), in the file's order.
+    index: Vec<(String, Dtype, Vec<usize>, std::ops::Range<usize>)>,
 }
 
 impl TensorFile {
@@ -56,15 +58,23 @@ impl TensorFile {
     /// e.g. "delete it and retrain").
     pub fn open(path: &Path, fix: &str) -> Result<Self, IoError> {
         let bytes = std::fs::read(path).map_err(|e| IoError::new(path, format!("cannot read ({e})")))?;
-        SafeTensors::deserialize(&bytes)
+        let st = SafeTensors::deserialize(&bytes)
             .map_err(|e| IoError::new(path, format!("not a valid safetensors file ({e}); {fix}")))?;
-        Ok(Self { path: path.to_path_buf(), bytes })
+        let base = bytes.as_ptr() as usize;
+        let index = st
+            .tensors()
+            .into_iter()
+            .map(|(name, t)| {
+                let start = t.data().as_ptr() as usize - base;
+                (name, t.dtype(), t.shape().to_vec(), start..start + t.data().len())
+            })
+            .collect();
+        Ok(Self { path: path.to_path_buf(), bytes, index })
     }
 
     /// The names of its tensors.
     pub fn names(&self) -> Vec<String> {
-        let st = SafeTensors::deserialize(&self.bytes).expect("checked when opened");
-        st.names().into_iter().map(str::to_string).collect()
+        self.index.iter().map(|t| t.0.clone()).collect()
     }
 
     /// The file's size in bytes.
@@ -75,17 +85,18 @@ impl TensorFile {
     /// Tensor `name`: its shape and values; an error naming the file when it is missing, not
     /// f32, or holds NaN or infinity.
     pub fn get(&self, name: &str) -> Result<(Vec<usize>, Vec<f32>), IoError> {
-        let st = SafeTensors::deserialize(&self.bytes).expect("checked when opened");
         let err = |m: String| IoError::new(&self.path, m);
-        let t = st.tensor(name).map_err(|_| err(format!("tensor {name} is missing")))?;
-        if t.dtype() != Dtype::F32 {
-            return Err(err(format!("tensor {name} is {:?} {:?}, expected F32", t.dtype(), t.shape())));
+        let (_, dtype, shape, range) =
+            self.index.iter().find(|t| t.0 == name).ok_or_else(|| err(format!("tensor {name} is missing")))?;
+        if *dtype != Dtype::F32 {
+            return Err(err(format!("tensor {name} is {dtype:?} {shape:?}, expected F32")));
         }
-        let v: Vec<f32> = t.data().chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        let v: Vec<f32> =
+            self.bytes[range.clone()].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
         if v.iter().any(|x| !x.is_finite()) {
             return Err(err(format!("tensor {name} holds NaN or infinity")));
         }
-        Ok((t.shape().to_vec(), v))
+        Ok((shape.clone(), v))
     }
 
     /// Tensor `name`, which must have `shape`.
