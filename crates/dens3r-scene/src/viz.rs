@@ -6,8 +6,8 @@ use glam::Vec3;
 use image::{Rgb, RgbImage};
 
 /// The official normal visualisation (spec 3.3) of the Dens3R saved convention, from normals in
-/// the OpenCV camera frame: R = (nx+1)/2, G = (ny+1)/2, B = -nz*127+128; a camera-facing wall
-/// is (128, 128, 255).
+/// the OpenCV camera frame: R = (nx+1)/2*255, G = (ny+1)/2*255, B = -nz*127+128, cast to uint8;
+/// a camera-facing wall is (127, 127, 255).
 pub fn normal_viz(n: &Raster<Vec3>) -> RgbImage {
     RgbImage::from_fn(n.width() as u32, n.height() as u32, |x, y| {
         let s = NormalConvention::Dens3rSaved.from_opencv(*n.get(x as usize, y as usize));
@@ -40,8 +40,8 @@ pub fn depth_viz(d: &Raster<f32>) -> RgbImage {
 mod tests {
     use super::*;
 
-    /// The spec's reference colours: a camera-facing normal (OpenCV (0, 0, -1)) is the spec's
-    /// (128, 128, 255) up to truncation of 127.5; depth at the ramp's ends takes its end colours, invalid is
+    /// The spec's formulas (section 3.3, cast to uint8): a camera-facing normal (OpenCV
+    /// (0, 0, -1)) is (127, 127, 255); depth at the ramp's ends takes its end colours, invalid is
     /// black.
     #[test]
     fn colours_follow_the_spec() {
