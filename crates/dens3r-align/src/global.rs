@@ -20,7 +20,7 @@ use dens3r_geom::align::umeyama;
 use dens3r_geom::focal::{focal_or_fallback, FALLBACK_HFOV_DEG};
 use dens3r_geom::transform::{axis_angle, nearest_rotation, Sim3};
 use dens3r_geom::{Intrinsics, PinholeCamera, Raster, Vec3};
-use dens3r_optim::{AdamW, Decay, Schedule};
+use dens3r_optim::{AdamW, At, Decay, Schedule};
 use glam::{DMat3, DMat4, DVec3};
 use rayon::prelude::*;
 
@@ -163,7 +163,7 @@ impl Adam {
     /// Returns the steps (to subtract) for gradient `g` at iteration `t` (1-based).
     fn step(&mut self, g: &[f64], lr: f64, t: i32) -> Vec<f64> {
         let mut out = vec![0.0; g.len()];
-        ADAM.steps(t as usize - 1, lr, &mut self.m, &mut self.v, g, 1.0, &mut out);
+        ADAM.steps(At::new(t as usize - 1, lr), &mut self.m, &mut self.v, g, &mut out);
         out
     }
 }

@@ -77,9 +77,22 @@ impl DptWidths {
 pub fn pts_heads(widths: DptWidths, mlp_hidden: Option<usize>) -> [PtsHeadConfig; 2] {
     ["ptsmatch_local_head", "ptsmatch_global_head"].map(|prefix| PtsHeadConfig {
         prefix: prefix.into(),
-        dpt: widths.dpt(prefix, 4),
+        decoder: PtsDecoder::Dpt(widths.dpt(prefix, 4)),
         mlp_hidden,
     })
+}
+
+/// How a point head turns decoder tokens into per-pixel outputs.
+#[derive(Debug, Clone, PartialEq)]
+pub enum PtsDecoder {
+    /// A DPT over the four hooked layers (Dens3R, MASt3R, DUSt3R `_dpt`).
+    Dpt(DptConfig),
+    /// DUSt3R's linear head (`{prefix}.proj`): the last decoder layer's tokens projected to
+    /// `out_channels` values for each of a token's patch x patch pixels, pixel-shuffled.
+    Linear {
+        /// Outputs per pixel (x, y, z and the confidence).
+        out_channels: usize,
+    },
 }
 
 /// A point (+ descriptor) head.
@@ -87,10 +100,28 @@ pub fn pts_heads(widths: DptWidths, mlp_hidden: Option<usize>) -> [PtsHeadConfig
 pub struct PtsHeadConfig {
     /// Key prefix, e.g. `ptsmatch_local_head`.
     pub prefix: String,
-    /// Its DPT.
-    pub dpt: DptConfig,
+    /// Its decoder to pixels.
+    pub decoder: PtsDecoder,
     /// Descriptor MLP hidden width (`head_local_features.fc1`), if the head has one.
     pub mlp_hidden: Option<usize>,
+}
+
+impl PtsHeadConfig {
+    /// The DPT, when the head has one.
+    pub fn dpt(&self) -> Option<&DptConfig> {
+        match &self.decoder {
+            PtsDecoder::Dpt(d) => Some(d),
+            PtsDecoder::Linear { .. } => None,
+        }
+    }
+
+    /// Outputs per pixel before the activations: 3 (x, y, z) or 4 (with the confidence).
+    pub fn out_channels(&self) -> usize {
+        match &self.decoder {
+            PtsDecoder::Dpt(d) => d.out_channels,
+            PtsDecoder::Linear { out_channels } => *out_channels,
+        }
+    }
 }
 
 /// Everything needed to build the network.
@@ -188,9 +219,9 @@ impl ModelConfig {
         } else {
             ("downstream_head1", "downstream_head2")
         };
-        if !w.contains(&format!("{p1}.dpt.head.4.weight")) {
+        if !w.contains(&format!("{p1}.dpt.head.4.weight")) && !w.contains(&format!("{p1}.proj.weight")) {
             return Err(err(format!(
-                "no DPT head found ({p1}.dpt.*); linear-head DUSt3R checkpoints are not supported yet"
+                "no point head found ({p1}.dpt.* or {p1}.proj.*): not a Dens3R / DUSt3R / MASt3R checkpoint"
             )));
         }
         let dpt = |prefix: &str| -> Result<DptConfig, WeightsError> {
@@ -212,11 +243,17 @@ impl ModelConfig {
         };
         let pts = |prefix: &str| -> Result<PtsHeadConfig, WeightsError> {
             let mlp = w.shape(&format!("{prefix}.head_local_features.fc1.weight")).map(|s| s[0]);
-            Ok(PtsHeadConfig { prefix: prefix.into(), dpt: dpt(prefix)?, mlp_hidden: mlp })
+            let decoder = match w.shape(&format!("{prefix}.proj.weight")) {
+                Some(s) if !w.contains(&format!("{prefix}.dpt.head.4.weight")) => {
+                    PtsDecoder::Linear { out_channels: s[0] / (pe[2] * pe[2]).max(1) }
+                }
+                _ => PtsDecoder::Dpt(dpt(prefix)?),
+            };
+            Ok(PtsHeadConfig { prefix: prefix.into(), decoder, mlp_hidden: mlp })
         };
         let head1 = pts(p1)?;
         let head2 = pts(p2)?;
-        let has_conf = head1.dpt.out_channels == 4;
+        let has_conf = head1.out_channels() == 4;
         let (desc_dim, desc_conf) = match w.shape(&format!("{p1}.head_local_features.fc2.weight")) {
             Some(s) => {
                 let per_pixel = s[0] / (pe[2] * pe[2]);
@@ -256,32 +293,81 @@ impl ModelConfig {
     }
 }
 
+/// One transformer's size: width, blocks, attention heads and MLP hidden width.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Blocks {
+    /// Width.
+    pub dim: usize,
+    /// Blocks.
+    pub depth: usize,
+    /// Attention heads.
+    pub heads: usize,
+    /// MLP hidden width.
+    pub mlp_hidden: usize,
+}
+
+/// The sizes of a Dens3R-family network; the rest is the architecture's (one decoder
+/// shared by both views, RoPE100 with position interpolation, a confidence channel, the two
+/// point heads and the normal head).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Dens3rSizes {
+    /// The encoder kind (a ViT trained with the rest, or a frozen DINOv2 kept apart).
+    pub encoder: EncoderKind,
+    /// Input pixels per token side (16).
+    pub patch: usize,
+    /// Encoder size.
+    pub enc: Blocks,
+    /// Decoder size.
+    pub dec: Blocks,
+    /// The DPT widths of every head.
+    pub dpt: DptWidths,
+    /// Descriptor MLP hidden width (`head_local_features.fc1`).
+    pub desc_hidden: usize,
+    /// Descriptor dimension.
+    pub desc_dim: usize,
+    /// A separate descriptor confidence channel.
+    pub desc_conf: bool,
+}
+
 impl ModelConfig {
-    /// The full-size Dens3R of the paper (ViT-L/16 encoder, 12-block ViT-B decoder shared by
-    /// both views, full DPT widths, conf, 24-d descriptors, normal head): for benchmarks and
-    /// synthetic weights.
-    pub fn dens3r_full() -> Self {
-        let widths = DptWidths { layer_dims: [96, 192, 384, 768], feature_dim: 256, head_dim: 128, last_dim: 128 };
-        let [head1, head2] = pts_heads(widths, Some(4 * (1024 + 768)));
+    /// A Dens3R of the given sizes.
+    pub fn dens3r(s: &Dens3rSizes) -> Self {
+        let [head1, head2] = pts_heads(s.dpt, Some(s.desc_hidden));
         Self {
-            encoder: EncoderKind::Vit,
-            patch: 16,
-            enc_dim: 1024,
-            enc_depth: 24,
-            enc_heads: 16,
-            dec_dim: 768,
-            dec_depth: 12,
-            dec_heads: 12,
-            mlp_hidden: (4096, 3072),
+            encoder: s.encoder,
+            patch: s.patch,
+            enc_dim: s.enc.dim,
+            enc_depth: s.enc.depth,
+            enc_heads: s.enc.heads,
+            dec_dim: s.dec.dim,
+            dec_depth: s.dec.depth,
+            dec_heads: s.dec.heads,
+            mlp_hidden: (s.enc.mlp_hidden, s.dec.mlp_hidden),
             shared_decoder: true,
             rope_base: 100.0,
             rope: RopeScaling::Interpolated,
             head1,
             head2,
-            normal_head: Some(widths.dpt("normal_local_head", 3)),
+            normal_head: Some(s.dpt.dpt("normal_local_head", 3)),
             has_conf: true,
+            desc_dim: s.desc_dim,
+            desc_conf: s.desc_conf,
+        }
+    }
+
+    /// The full-size Dens3R of the paper (ViT-L/16 encoder, 12-block ViT-B decoder shared by
+    /// both views, full DPT widths, conf, 24-d descriptors, normal head): for benchmarks and
+    /// synthetic weights.
+    pub fn dens3r_full() -> Self {
+        Self::dens3r(&Dens3rSizes {
+            encoder: EncoderKind::Vit,
+            patch: 16,
+            enc: Blocks { dim: 1024, depth: 24, heads: 16, mlp_hidden: 4096 },
+            dec: Blocks { dim: 768, depth: 12, heads: 12, mlp_hidden: 3072 },
+            dpt: DptWidths { layer_dims: [96, 192, 384, 768], feature_dim: 256, head_dim: 128, last_dim: 128 },
+            desc_hidden: 4 * (1024 + 768),
             desc_dim: 24,
             desc_conf: false,
-        }
+        })
     }
 }

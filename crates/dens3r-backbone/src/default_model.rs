@@ -4,6 +4,7 @@
 //! under `data-samples/models/dens3r-s/` in the repository. The commands that run the network
 //! use it when no `--weights` is given.
 
+use crate::BackboneError;
 use std::path::{Path, PathBuf};
 
 /// The default model's name.
@@ -27,13 +28,16 @@ pub fn notice(dir: &Path) -> String {
 /// The default model: `$DENS3R_DEFAULT_MODEL` when set, else `data-samples/models/dens3r-s`
 /// of the repository that holds the running executable (`target/release/dens3r`), else that
 /// of the source tree this was built from.
-pub fn locate() -> Result<PathBuf, String> {
+pub fn locate() -> Result<PathBuf, BackboneError> {
     if let Some(p) = std::env::var_os(ENV) {
         let p = PathBuf::from(p);
         return if p.exists() {
             Ok(p)
         } else {
-            Err(format!("{}: ${ENV} names no file or folder; unset it or point it at a model folder", p.display()))
+            Err(BackboneError::file(
+                &p,
+                format!("${ENV} names no file or folder; unset it or point it at a model folder"),
+            ))
         };
     }
     let mut candidates = Vec::new();
@@ -46,10 +50,10 @@ pub fn locate() -> Result<PathBuf, String> {
         .find(|d| d.join("model.safetensors").is_file())
         .map(|d| d.canonicalize().unwrap_or(d))
         .ok_or_else(|| {
-            format!(
+            BackboneError::invalid(format!(
                 "the bundled {NAME} model was not found ({REPO_DIR}/model.safetensors next to the repository's \
                  target/ folder); give --weights, set ${ENV}, or rebuild it with scripts/train-default.sh"
-            )
+            ))
         })
 }
 

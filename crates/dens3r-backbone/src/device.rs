@@ -6,6 +6,7 @@
 //! Commands take the CPU unless asked (`--gpu`): burn's default device is the first GPU
 //! backend compiled in, so nothing here uses `Device::default()`.
 
+use crate::BackboneError;
 use burn::tensor::{Device, Tensor, TensorData};
 
 /// The CPU inference device (flex, with this crate's kernels).
@@ -21,13 +22,15 @@ pub const GPU_BUILD_HINT: &str =
 /// with `cuda`, then wgpu's default adapter, which `CUBECL_WGPU_DEFAULT_DEVICE` can pick).
 /// A GPU is checked by a small upload and read-back, so a missing driver is a one-line error
 /// here rather than a panic in the middle of a run.
-pub fn network_device(gpu: bool) -> Result<Device, String> {
+pub fn network_device(gpu: bool) -> Result<Device, BackboneError> {
     if !gpu {
         return Ok(cpu());
     }
     let candidates = gpu_candidates();
     if candidates.is_empty() {
-        return Err(format!("--gpu: this dens3r was built without GPU support for the network; {GPU_BUILD_HINT}"));
+        return Err(BackboneError::invalid(format!(
+            "--gpu: this dens3r was built without GPU support for the network; {GPU_BUILD_HINT}"
+        )));
     }
     let mut tried = Vec::new();
     for (name, make) in candidates {
@@ -36,14 +39,14 @@ pub fn network_device(gpu: bool) -> Result<Device, String> {
             Err(e) => tried.push(format!("{name}: {e}")),
         }
     }
-    Err(format!(
+    Err(BackboneError::invalid(format!(
         "--gpu: no GPU answered ({}); install a Vulkan / Metal / DX12 driver (or CUDA), or drop --gpu",
         tried.join("; ")
-    ))
+    )))
 }
 
 /// The training device: [`network_device`] with autodiff.
-pub fn training_device(gpu: bool) -> Result<Device, String> {
+pub fn training_device(gpu: bool) -> Result<Device, BackboneError> {
     network_device(gpu).map(Device::autodiff)
 }
 
@@ -76,7 +79,7 @@ fn probe(make: Maker) -> Result<Device, String> {
     match out {
         Ok((d, back)) if back == [2.0, 4.0, 6.0, 8.0] => Ok(d),
         Ok((_, back)) => Err(format!("a test computation gave {back:?}")),
-        Err(e) => Err(e),
+        Err(e) => Err(e.0),
     }
 }
 

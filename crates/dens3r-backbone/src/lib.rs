@@ -13,6 +13,7 @@ pub mod cpu;
 pub mod default_model;
 pub mod device;
 pub mod dinov2;
+mod error;
 pub mod model;
 pub mod onnx;
 pub mod ops;
@@ -24,6 +25,7 @@ pub mod verify;
 pub mod weights;
 
 pub use config::ModelConfig;
+pub use error::BackboneError;
 pub use model::{Dens3r, Features, HeadOutputs, Predictions, ViewFeatures, ViewPrediction};
 pub use params::{Freeze, Params, Precision};
 pub use weights::{Weights, WeightsError};

@@ -1,6 +1,6 @@
 //! The network: config -> loader -> forward, in one file (candle-transformers style).
 
-use crate::config::{DptConfig, EncoderKind, ModelConfig, PtsHeadConfig};
+use crate::config::{DptConfig, EncoderKind, ModelConfig, PtsDecoder, PtsHeadConfig};
 use crate::dinov2::Dinov2;
 use crate::ops::{
     gelu, grid_positions, pixel_shuffle, relu, sdpa, upsample2x, Conv, ConvTranspose, LayerNorm, Linear, Rope,
@@ -332,8 +332,14 @@ pub fn exp_depth_mode(v: Tensor<4>, dim: usize) -> Tensor<4> {
     v / d.clone().clamp_min(1e-8) * d.exp().sub_scalar(1.0)
 }
 
+/// A point head's way to pixels: a DPT, or DUSt3R's linear projection.
+enum ToPixels {
+    Dpt(Box<Dpt>),
+    Linear(Linear),
+}
+
 struct PtsHead {
-    dpt: Dpt,
+    to_pixels: ToPixels,
     mlp: Option<Mlp>,
 }
 
@@ -513,7 +519,14 @@ impl Dens3r {
         };
         let in_dims = [c.enc_dim, c.dec_dim, c.dec_dim, c.dec_dim];
         let pts_head = |h: &PtsHeadConfig| PtsHead {
-            dpt: Dpt::load(l, &h.dpt, in_dims),
+            to_pixels: match &h.decoder {
+                PtsDecoder::Dpt(d) => ToPixels::Dpt(Box::new(Dpt::load(l, d, in_dims))),
+                PtsDecoder::Linear { out_channels } => ToPixels::Linear(l.linear(
+                    &format!("{}.proj", h.prefix),
+                    c.dec_dim,
+                    out_channels * c.patch * c.patch,
+                )),
+            },
             mlp: h.mlp_hidden.map(|hidden| {
                 let out = (c.desc_dim + c.desc_conf as usize) * c.patch * c.patch;
                 Mlp::load(l, &format!("{}.head_local_features", h.prefix), c.enc_dim + c.dec_dim, hidden, out)
@@ -675,7 +688,15 @@ impl Dens3r {
         let c = &self.config;
         let hooks = c.hooks();
         let layers = || hooks.map(|i| v.layer(i));
-        let raw_pts = head.dpt.forward(layers(), v.grid);
+        let raw_pts = match &head.to_pixels {
+            ToPixels::Dpt(d) => d.forward(layers(), v.grid),
+            // DUSt3R's LinearPts3d: the last decoder layer, projected and pixel-shuffled.
+            ToPixels::Linear(proj) => {
+                let t = proj.forward(v.layer(c.dec_depth));
+                let [b, _, ch] = t.dims();
+                pixel_shuffle(t.swap_dims(1, 2).reshape([b, ch, v.grid.0, v.grid.1]), c.patch)
+            }
+        };
         let raw_normal = self.normal_head.as_ref().filter(|_| want.normal).map(|d| d.forward(layers(), v.grid));
         let raw_mlp = head
             .mlp

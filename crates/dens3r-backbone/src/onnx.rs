@@ -69,14 +69,10 @@ pub struct OnnxWeights {
     consumers: HashMap<String, Vec<Consumer>>,
 }
 
-/// A problem with an ONNX file, naming it.
-#[derive(Debug, thiserror::Error)]
-#[error("{path}: {message}")]
-pub struct OnnxError {
-    /// The file.
-    pub path: PathBuf,
-    /// What is wrong.
-    pub message: String,
+dens3r_io::file_error! {
+    /// A problem with an ONNX file, naming it.
+    OnnxError;
+    from: [];
 }
 
 impl OnnxWeights {

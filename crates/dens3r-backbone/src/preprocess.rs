@@ -1,6 +1,7 @@
 //! Input preprocessing exactly as Dens3R's `load_images` (model spec section 2) and the
 //! inverse `rotate_recover` (section 3.2).
 
+use crate::BackboneError;
 use burn::tensor::{Device, Tensor, TensorData};
 use image::{DynamicImage, ImageDecoder, RgbImage};
 use std::path::Path;
@@ -112,32 +113,31 @@ pub fn max_decoded_bytes(file_len: u64) -> u64 {
 }
 
 /// Reads an image file applying its EXIF orientation.
-pub fn open_oriented(path: &Path) -> Result<DynamicImage, String> {
-    let err = |e: image::ImageError| format!("{}: unreadable image ({e}); use PNG or JPEG", path.display());
-    let bytes = std::fs::read(path).map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
+pub fn open_oriented(path: &Path) -> Result<DynamicImage, BackboneError> {
+    let file = |m: String| BackboneError::file(path, m);
+    let err = |e: image::ImageError| file(format!("unreadable image ({e}); use PNG or JPEG"));
+    let bytes = std::fs::read(path).map_err(|e| file(format!("cannot read ({e})")))?;
     let mut decoder = image::ImageReader::new(std::io::Cursor::new(&bytes[..]))
         .with_guessed_format()
-        .map_err(|e| format!("{}: cannot read ({e})", path.display()))?
+        .map_err(|e| file(format!("cannot read ({e})")))?
         .into_decoder()
         .map_err(err)?;
     // A damaged header can claim any size: refuse before the pixels are allocated.
     let (w, h) = image::ImageDecoder::dimensions(&decoder);
     let most = max_decoded_bytes(bytes.len() as u64);
     if u64::from(w) * u64::from(h) > MAX_PIXELS || image::ImageDecoder::total_bytes(&decoder) > most {
-        return Err(format!(
-            "{}: the image claims {w}x{h} pixels, more than this {}-byte file can hold ({} MB decoded at most, {} Mpixels); \
+        return Err(file(format!(
+            "the image claims {w}x{h} pixels, more than this {}-byte file can hold ({} MB decoded at most, {} Mpixels); \
              check that the file is not damaged, or resize it",
-            path.display(),
             bytes.len(),
             most >> 20,
             MAX_PIXELS / 1_000_000
-        ));
+        )));
     }
     // JPEG decoders fill a cut-off file's missing rows with grey without a word.
     if jpeg_truncated(&bytes) {
-        return Err(format!(
-            "{}: the JPEG is truncated (no end of image after its last scan); copy or export it again",
-            path.display()
+        return Err(file(
+            "the JPEG is truncated (no end of image after its last scan); copy or export it again".into(),
         ));
     }
     let orientation = decoder.orientation().map_err(err)?;
@@ -150,13 +150,13 @@ pub fn open_oriented(path: &Path) -> Result<DynamicImage, String> {
 /// portrait -> rotate 90 degrees counter-clockwise; resize (Lanczos3 when shrinking,
 /// Catmull-Rom bicubic otherwise, as PIL's LANCZOS / BICUBIC); centre crop to multiples of 16.
 /// `rotate_portrait = false` keeps portrait images as they are (upstream DUSt3R / MASt3R).
-pub fn preprocess(img: &DynamicImage, size: u32, rotate_portrait: bool) -> Result<Prepared, String> {
+pub fn preprocess(img: &DynamicImage, size: u32, rotate_portrait: bool) -> Result<Prepared, BackboneError> {
     let (w0, h0) = (img.width(), img.height());
     if w0 == 0 || h0 == 0 {
-        return Err("image is empty".into());
+        return Err(BackboneError::invalid("image is empty"));
     }
     if !SIZES.contains(&size) {
-        return Err(format!("size {size} must be in {SIZES:?}"));
+        return Err(BackboneError::invalid(format!("size {size} must be in {SIZES:?}")));
     }
     let rotated = rotate_portrait && w0 < h0;
     let rgb = img.to_rgb8();
@@ -168,7 +168,9 @@ pub fn preprocess(img: &DynamicImage, size: u32, rotate_portrait: bool) -> Resul
     let resized = image::imageops::resize(&rgb, rw.max(1), rh.max(1), filter);
     let crop = crop_box(rw, rh);
     if crop.2 <= crop.0 || crop.3 <= crop.1 {
-        return Err(format!("image of {w0}x{h0} is too small for size {size}: the crop to multiples of 16 is empty"));
+        return Err(BackboneError::invalid(format!(
+            "image of {w0}x{h0} is too small for size {size}: the crop to multiples of 16 is empty"
+        )));
     }
     let cropped = image::imageops::crop_imm(&resized, crop.0, crop.1, crop.2 - crop.0, crop.3 - crop.1).to_image();
     Ok(Prepared { rgb: cropped, info: PrepInfo { original: (w0, h0), rotated, resized: (rw, rh), crop } })
@@ -241,7 +243,7 @@ mod tests {
         bytes[sof + 5..sof + 9].copy_from_slice(&[0xFF, 0xFF, 0xFF, 0xFF]);
         std::fs::write(&path, &bytes).unwrap();
         // It used to allocate 12.9 GB (65535 x 65535 x 3) for a file of a few hundred bytes.
-        let e = open_oriented(&path).unwrap_err();
+        let e = open_oriented(&path).unwrap_err().to_string();
         assert!(e.contains("big.jpg") && e.contains("65535x65535"), "{e}");
         // A 108-Mpixel phone photo (12000 x 9000, 324 MB decoded) of 25 MB passes the bound.
         assert!(max_decoded_bytes(25 << 20) >= 12000 * 9000 * 3);
@@ -258,7 +260,7 @@ mod tests {
         let bytes = std::fs::read(&path).unwrap();
         let cut = dir.path().join("cut.jpg");
         std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
-        let e = open_oriented(&cut).unwrap_err();
+        let e = open_oriented(&cut).unwrap_err().to_string();
         assert!(e.contains("cut.jpg") && e.contains("truncated"), "{e}");
         // Data after the end of the image (camera trailers) is not truncation.
         let mut trailer = bytes.clone();

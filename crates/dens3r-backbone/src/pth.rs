@@ -8,6 +8,7 @@
 //! storage (zip entries are stored uncompressed; legacy storages follow the pickles), read
 //! lazily like safetensors.
 
+use crate::WeightsError;
 use safetensors::Dtype;
 use std::collections::BTreeMap;
 use std::io::Read;
@@ -389,7 +390,11 @@ type StorageAt = (u64, u64);
 /// Reads the index of a `.pth`: its float tensors as byte ranges of the file. Both formats of
 /// `torch.save`: the zip archive (torch >= 1.6) and the legacy stream of pickles followed by
 /// the raw storages.
-pub fn read_index(path: &Path) -> Result<PthIndex, String> {
+pub fn read_index(path: &Path) -> Result<PthIndex, WeightsError> {
+    read_index_at(path).map_err(|m| WeightsError::new(path, m))
+}
+
+fn read_index_at(path: &Path) -> Result<PthIndex, String> {
     let file = std::fs::File::open(path).map_err(|e| format!("cannot read the checkpoint: {e}"))?;
     let mut magic = [0u8; 2];
     (&file).read_exact(&mut magic).map_err(|_| "the file is empty".to_string())?;

@@ -9,6 +9,7 @@ use crate::config::{EncoderKind, ModelConfig};
 use crate::dinov2::Dinov2;
 use crate::model::{Dens3r, Predictions};
 use crate::weights::{Weights, WeightsError};
+use crate::BackboneError;
 use burn::tensor::{Device, Tensor, TensorData};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -39,10 +40,10 @@ fn tensor_values<const D: usize>(t: &Tensor<D>) -> (Vec<usize>, Vec<f32>) {
     (data.shape().to_vec(), data.try_to_vec::<f32>().expect("float tensor"))
 }
 
-fn load_image(path: &Path, device: &Device) -> Result<Tensor<4>, String> {
-    let (shape, v) = dens3r_scene::npy::read_f32(path).map_err(|e| e.to_string())?;
+fn load_image(path: &Path, device: &Device) -> Result<Tensor<4>, BackboneError> {
+    let (shape, v) = dens3r_scene::npy::read_f32(path)?;
     if shape.len() != 4 || shape[1] != 3 {
-        return Err(format!("{}: shape {shape:?}, expected (1, 3, H, W)", path.display()));
+        return Err(BackboneError::file(path, format!("shape {shape:?}, expected (1, 3, H, W)")));
     }
     Ok(Tensor::from_data(TensorData::new(v, [shape[0], shape[1], shape[2], shape[3]]), device))
 }
@@ -215,17 +216,16 @@ fn outputs(model: &Dens3r, img1: Tensor<4>, img2: Tensor<4>) -> BTreeMap<String,
 }
 
 /// Loads the model in `dir`, runs it and compares every reference array present.
-pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, String> {
+pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, BackboneError> {
     let config = dir.join("config.json");
     let (model, _unexpected) =
-        load_model(&dir.join("weights.safetensors"), config.is_file().then_some(config.as_path()), device)
-            .map_err(|e| e.to_string())?;
+        load_model(&dir.join("weights.safetensors"), config.is_file().then_some(config.as_path()), device)?;
     let img1 = load_image(&dir.join("img1.npy"), device)?;
     let img2 = if dir.join("img2.npy").is_file() { load_image(&dir.join("img2.npy"), device)? } else { img1.clone() };
     let ours = outputs(&model, img1, img2);
     let mut results = Vec::new();
     let mut names: Vec<String> = std::fs::read_dir(dir)
-        .map_err(|e| format!("{}: {e}", dir.display()))?
+        .map_err(|e| BackboneError::file(dir, e.to_string()))?
         .filter_map(|e| e.ok()?.file_name().into_string().ok())
         .filter_map(|n| n.strip_suffix(".npy").map(str::to_string))
         .filter(|n| {
@@ -239,15 +239,15 @@ pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, String
     names.sort();
     for name in names {
         let path = dir.join(format!("{name}.npy"));
-        let (shape, reference) = dens3r_scene::npy::read_f32(&path).map_err(|e| e.to_string())?;
+        let (shape, reference) = dens3r_scene::npy::read_f32(&path)?;
         let Some((our_shape, values)) = ours.get(&name) else {
-            return Err(format!(
-                "{}: the model produces no such output (check the checkpoint matches the dump)",
-                path.display()
+            return Err(BackboneError::file(
+                &path,
+                "the model produces no such output (check the checkpoint matches the dump)",
             ));
         };
         if *our_shape != shape {
-            return Err(format!("{}: reference shape {shape:?}, ours {our_shape:?}", path.display()));
+            return Err(BackboneError::file(&path, format!("reference shape {shape:?}, ours {our_shape:?}")));
         }
         let (mut max_abs, mut max_rel) = (0.0f64, 0.0f64);
         for (a, b) in values.iter().zip(&reference) {
@@ -259,9 +259,9 @@ pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, String
         results.push(Comparison { name, shape, max_abs, max_rel, pass });
     }
     if results.is_empty() {
-        return Err(format!(
-            "{}: no reference arrays (enc*.npy, dec*_layers.npy, raw_*.npy, pred*_*.npy) to compare",
-            dir.display()
+        return Err(BackboneError::file(
+            dir,
+            "no reference arrays (enc*.npy, dec*_layers.npy, raw_*.npy, pred*_*.npy) to compare",
         ));
     }
     Ok(results)

@@ -7,27 +7,10 @@ use std::cell::RefCell;
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
-/// A checkpoint problem, naming the file and the keys at fault.
-#[derive(Debug, thiserror::Error)]
-#[error("{path}: {message}")]
-pub struct WeightsError {
-    /// The checkpoint file.
-    pub path: PathBuf,
-    /// What is wrong.
-    pub message: String,
-}
-
-impl From<dens3r_io::IoError> for WeightsError {
-    fn from(e: dens3r_io::IoError) -> Self {
-        Self { path: e.path, message: e.message }
-    }
-}
-
-impl WeightsError {
-    /// A problem with the file `path`.
-    pub fn new(path: &Path, message: impl Into<String>) -> Self {
-        Self { path: path.to_path_buf(), message: message.into() }
-    }
+dens3r_io::file_error! {
+    /// A checkpoint problem, naming the file and the keys at fault.
+    WeightsError;
+    from: [dens3r_io::IoError];
 }
 
 /// A tensor's shape and row-major f32 values.
@@ -143,7 +126,7 @@ impl Weights {
     /// storages; nothing in the file is executed.
     pub fn from_pth(path: &Path) -> Result<Self, WeightsError> {
         let err = |m: String| WeightsError { path: path.to_path_buf(), message: m };
-        let index = crate::pth::read_index(path).map_err(err)?;
+        let index = crate::pth::read_index(path)?;
         let file = std::fs::File::open(path).map_err(|e| err(format!("cannot read the checkpoint: {e}")))?;
         let tensors = index
             .tensors

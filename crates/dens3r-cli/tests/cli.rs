@@ -163,6 +163,54 @@ fn convert_writes_a_weights_folder_and_refuses_to_overwrite() {
     assert!(e.contains("no-such.pth"), "{e}");
 }
 
+#[path = "../../../tests/support/http_server.rs"]
+mod http_server;
+
+/// `dens3r models` lists the known checkpoints; `--weights NAME` fetches one from the hub
+/// (here a local one serving fixture A as `naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt`) into
+/// `$DENS3R_HOME`, prints the download on stderr, and runs it; a second run uses the cache.
+#[test]
+fn known_names_list_download_into_the_cache_and_run() {
+    let list = ok(&["models"]);
+    for name in ["dens3r-s", "dust3r-224-linear", "dust3r-512-dpt", "mast3r-512-metric", "dens3r-unify"] {
+        assert!(list.contains(name), "{name} missing: {list}");
+    }
+    assert!(list.contains("CC BY-NC-SA 4.0") && list.contains("Taobao3D"), "{list}");
+    let (addr, hub) = http_server::start();
+    let a = parity(A);
+    hub.files.lock().unwrap().insert("model.safetensors".into(), std::fs::read(a.join("weights.safetensors")).unwrap());
+    hub.files.lock().unwrap().insert("config.json".into(), std::fs::read(a.join("config.json")).unwrap());
+    let (home, out) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let img = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/room/images/0000.png");
+    let run = |dest: &str| {
+        Command::new(env!("CARGO_BIN_EXE_dens3r"))
+            .args(["predict", "--weights", "DUSt3R_ViTLarge_BaseDecoder_512_dpt", "--size", "64"])
+            .args([img.to_str().unwrap(), "-o", out.path().join(dest).to_str().unwrap()])
+            .env("DENS3R_HOME", home.path())
+            .env("DENS3R_HUB_ENDPOINT", &addr)
+            .output()
+            .unwrap()
+    };
+    let first = run("s1");
+    let err = String::from_utf8_lossy(&first.stderr);
+    assert!(first.status.success(), "{err}");
+    assert!(err.contains("downloading DUSt3R_ViTLarge_BaseDecoder_512_dpt"), "{err}");
+    let cached = home.path().join("models/dust3r-512-dpt");
+    assert_eq!(
+        std::fs::read(cached.join("model.safetensors")).unwrap(),
+        std::fs::read(a.join("weights.safetensors")).unwrap()
+    );
+    assert!(out.path().join("s1/cameras.json").is_file());
+    hub.log.lock().unwrap().clear();
+    let second = run("s2");
+    assert!(second.status.success() && !String::from_utf8_lossy(&second.stderr).contains("downloading"));
+    assert!(hub.log.lock().unwrap().is_empty(), "the cache was not used");
+    let listed =
+        Command::new(env!("CARGO_BIN_EXE_dens3r")).arg("models").env("DENS3R_HOME", home.path()).output().unwrap();
+    let listed = String::from_utf8_lossy(&listed.stdout);
+    assert!(listed.lines().any(|l| l.starts_with("dust3r-512-dpt") && l.contains("cached")), "{listed}");
+}
+
 #[test]
 fn verify_passes_on_fixtures_and_fails_on_a_wrong_dump() {
     let out = ok(&["verify", parity(A).to_str().unwrap()]);

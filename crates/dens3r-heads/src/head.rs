@@ -128,7 +128,9 @@ impl Head {
         let w = Weights::from_safetensors(weights)?;
         // Head counts (1, 1) divide any width; they do not shape the DPT.
         let point = ModelConfig::from_weights(&w, Some((1, 1)))?.head1;
-        let d = &point.dpt;
+        let d = point.dpt().ok_or_else(|| {
+            HeadsError::file(weights, "a linear-head checkpoint: a pointmap head starts only from a DPT point head")
+        })?;
         config.width = d.feature_dim;
         config.widths = d.layer_dims.iter().copied().chain([d.head_dim, d.last_dim]).collect();
         let depth = config.task == Task::Depth;

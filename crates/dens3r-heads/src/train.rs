@@ -327,7 +327,7 @@ impl Trainer {
             let g = to_vec(g);
             let decay = !shapes[i].0.ends_with(".bias");
             let (vals, m, v) = (&mut self.head.values[i], &mut self.m[i], &mut self.v[i]);
-            opt.update(self.step, lr, vals, m, v, &g, 1.0, decay);
+            opt.update(dens3r_optim::At::new(self.step, lr), vals, m, v, &g, decay);
         }
         Some(value)
     }

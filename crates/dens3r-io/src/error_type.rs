@@ -50,3 +50,35 @@ macro_rules! file_or_setting_error {
         })*
     };
 }
+
+/// Defines `pub struct $name { path, message }`, an error about one file displayed as one line
+/// (`PATH: message`), with a `new(path, message)` constructor and `From` for the listed errors
+/// of the same shape (their `path` and `message` are kept). The calling crate depends on
+/// `thiserror`.
+#[macro_export]
+macro_rules! file_error {
+    ($(#[$doc:meta])* $name:ident; from: [$($f:ty),* $(,)?] $(;)?) => {
+        $(#[$doc])*
+        #[derive(Debug, thiserror::Error)]
+        #[error("{}: {message}", path.display())]
+        pub struct $name {
+            /// The file or folder at fault.
+            pub path: std::path::PathBuf,
+            /// What is wrong with it and how to fix it.
+            pub message: String,
+        }
+
+        impl $name {
+            /// A problem with the file or folder `path`.
+            pub fn new(path: &std::path::Path, message: impl Into<String>) -> Self {
+                Self { path: path.to_path_buf(), message: message.into() }
+            }
+        }
+
+        $(impl From<$f> for $name {
+            fn from(e: $f) -> Self {
+                Self { path: e.path, message: e.message }
+            }
+        })*
+    };
+}

@@ -3,13 +3,17 @@
 //! read with the `gltf` crate. Coordinates are written as they are (glTF viewers assume +Y up;
 //! our rendered scenes are +Z up, Dens3R camera frames +Y down).
 
-use crate::TriMesh;
+use crate::{InvalidMesh, TriMesh};
 use glam::Vec3;
 use serde_json::json;
 use std::borrow::Cow;
 
 /// Serialises a mesh as GLB bytes.
-pub fn to_glb(m: &TriMesh) -> Result<Vec<u8>, String> {
+pub fn to_glb(m: &TriMesh) -> Result<Vec<u8>, InvalidMesh> {
+    write_glb(m).map_err(InvalidMesh)
+}
+
+fn write_glb(m: &TriMesh) -> Result<Vec<u8>, String> {
     let n = m.positions.len();
     let mut bin: Vec<u8> = Vec::new();
     let mut views = Vec::new();
@@ -72,12 +76,13 @@ pub fn to_glb(m: &TriMesh) -> Result<Vec<u8>, String> {
 
 /// Reads the triangles of every primitive of every mesh of a GLB / glTF-with-embedded-buffer
 /// file (node transforms are not applied).
-pub fn from_glb(bytes: &[u8]) -> Result<TriMesh, String> {
+pub fn from_glb(bytes: &[u8]) -> Result<TriMesh, InvalidMesh> {
     // The gltf crate (1.4) panics on some damaged files (an accessor index past the list, a
     // GLB length under its header's, an out-of-range component type): such a panic is a
     // refusal of the file, not a crash.
     dens3r_io::panics::catch_quietly(|| read_glb(bytes))
         .unwrap_or_else(|e| Err(format!("the file is damaged (the glTF reader failed: {e})")))
+        .map_err(InvalidMesh)
 }
 
 fn read_glb(bytes: &[u8]) -> Result<TriMesh, String> {

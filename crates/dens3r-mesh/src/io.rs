@@ -6,29 +6,12 @@ use dens3r_io::write_atomic;
 use glam::Vec3;
 use std::fs::File;
 use std::io::{BufReader, Read, Write};
-use std::path::{Path, PathBuf};
-use thiserror::Error;
+use std::path::Path;
 
-/// A mesh file could not be read or written; the message names the file and the fix.
-#[derive(Debug, Error)]
-#[error("{path}: {message}")]
-pub struct MeshError {
-    /// The file concerned.
-    pub path: PathBuf,
-    /// What went wrong and what to do about it.
-    pub message: String,
-}
-
-impl From<dens3r_io::IoError> for MeshError {
-    fn from(e: dens3r_io::IoError) -> Self {
-        Self { path: e.path, message: e.message }
-    }
-}
-
-impl MeshError {
-    fn new(path: &Path, message: impl Into<String>) -> Self {
-        Self { path: path.to_path_buf(), message: message.into() }
-    }
+dens3r_io::file_error! {
+    /// A mesh file could not be read or written; the message names the file and the fix.
+    MeshError;
+    from: [dens3r_io::IoError];
 }
 
 /// Reads a triangle mesh by extension (`.ply`, `.obj`, `.off`, `.glb`). Polygons are fan-triangulated.
@@ -43,7 +26,7 @@ pub fn read_mesh(path: &Path) -> Result<TriMesh, MeshError> {
         "off" => read_off(path)?,
         "glb" | "gltf" => {
             let bytes = std::fs::read(path).map_err(|e| MeshError::new(path, format!("cannot read: {e}")))?;
-            crate::glb::from_glb(&bytes).map_err(|m| MeshError::new(path, m))?
+            crate::glb::from_glb(&bytes).map_err(|m| MeshError::new(path, m.0))?
         }
         _ => return Err(MeshError::new(path, "unknown mesh format: use .ply, .obj or .off")),
     };
@@ -61,7 +44,7 @@ pub fn write_mesh(path: &Path, mesh: &TriMesh) -> Result<(), MeshError> {
         "ply" => Ok(write_atomic(path, |w| write_ply(w, mesh))?),
         "obj" => Ok(write_atomic(path, |w| write_obj(w, mesh))?),
         "glb" => {
-            let bytes = crate::glb::to_glb(mesh).map_err(|m| MeshError::new(path, m))?;
+            let bytes = crate::glb::to_glb(mesh).map_err(|m| MeshError::new(path, m.0))?;
             Ok(write_atomic(path, |w| w.write_all(&bytes))?)
         }
         _ => Err(MeshError::new(path, "unknown output mesh format: use .ply, .obj or .glb")),

@@ -13,6 +13,24 @@ use glam::Vec3;
 pub use io::{read_mesh, write_mesh, MeshError};
 pub use metrics::{mesh_metrics, mesh_metrics_where, MeshMetrics, MeshMetricsOptions};
 
+/// A mesh that cannot be used as it is (an index past the vertices, a non-finite position,
+/// nothing to sample), or a request it cannot answer; one line saying what.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct InvalidMesh(pub String);
+
+impl From<&str> for InvalidMesh {
+    fn from(m: &str) -> Self {
+        Self(m.into())
+    }
+}
+
+impl From<String> for InvalidMesh {
+    fn from(m: String) -> Self {
+        Self(m)
+    }
+}
+
 /// An indexed triangle mesh with optional per-vertex normals and colours.
 /// Triangles are counter-clockwise seen from outside (the normal side).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -34,13 +52,13 @@ impl TriMesh {
     }
 
     /// Checks indices are in range, positions finite and attribute lengths consistent.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), InvalidMesh> {
         let n = self.positions.len();
         if let Some(i) = self.positions.iter().position(|p| !p.is_finite()) {
-            return Err(format!("vertex {i} is not finite"));
+            return Err(format!("vertex {i} is not finite").into());
         }
         if let Some((t, _)) = self.indices.iter().enumerate().find(|(_, f)| f.iter().any(|&v| v as usize >= n)) {
-            return Err(format!("triangle {t} refers to a vertex past the {n} vertices"));
+            return Err(format!("triangle {t} refers to a vertex past the {n} vertices").into());
         }
         if self.normals.as_ref().is_some_and(|v| v.len() != n) {
             return Err("normal count differs from vertex count".into());
@@ -126,8 +144,9 @@ impl TriMesh {
     }
 
     /// A parry3d mesh (with its BVH) for ray casting and point projection.
-    pub fn to_parry(&self) -> Result<parry3d::shape::TriMesh, String> {
+    pub fn to_parry(&self) -> Result<parry3d::shape::TriMesh, InvalidMesh> {
         self.validate()?;
-        parry3d::shape::TriMesh::new(self.positions.clone(), self.indices.clone()).map_err(|e| format!("{e:?}"))
+        parry3d::shape::TriMesh::new(self.positions.clone(), self.indices.clone())
+            .map_err(|e| InvalidMesh(format!("{e:?}")))
     }
 }

@@ -3,7 +3,7 @@
 //! distance through parry3d's BVH, so no sampling noise on the target side).
 
 use crate::sample::sample_surface;
-use crate::TriMesh;
+use crate::{InvalidMesh, TriMesh};
 use glam::Vec3;
 use parry3d::query::PointQuery;
 use rayon::prelude::*;
@@ -55,7 +55,7 @@ pub struct MeshMetrics {
 }
 
 /// Compares a predicted mesh with a ground-truth mesh.
-pub fn mesh_metrics(pred: &TriMesh, gt: &TriMesh, opts: &MeshMetricsOptions) -> Result<MeshMetrics, String> {
+pub fn mesh_metrics(pred: &TriMesh, gt: &TriMesh, opts: &MeshMetricsOptions) -> Result<MeshMetrics, InvalidMesh> {
     mesh_metrics_where(pred, gt, opts, &|_| true)
 }
 
@@ -68,7 +68,7 @@ pub fn mesh_metrics_where(
     gt: &TriMesh,
     opts: &MeshMetricsOptions,
     gt_counts: &(dyn Fn(Vec3) -> bool + Sync),
-) -> Result<MeshMetrics, String> {
+) -> Result<MeshMetrics, InvalidMesh> {
     if opts.samples == 0 {
         return Err("the number of samples must be positive".into());
     }
@@ -77,12 +77,12 @@ pub fn mesh_metrics_where(
                    seed: u64,
                    name: &str,
                    keep: &(dyn Fn(Vec3) -> bool + Sync)|
-     -> Result<(Vec<f64>, f64), String> {
+     -> Result<(Vec<f64>, f64), InvalidMesh> {
         let target = to.to_parry().map_err(|e| format!("{name} target mesh: {e}"))?;
         let (pts, nrm) = sample_surface(from, opts.samples, seed);
         let (pts, nrm): (Vec<_>, Vec<_>) = pts.into_iter().zip(nrm).filter(|(p, _)| keep(*p)).unzip();
         if pts.is_empty() {
-            return Err(format!("{name} mesh has no (selected) surface area to sample"));
+            return Err(format!("{name} mesh has no (selected) surface area to sample").into());
         }
         let res: Vec<(f64, f64)> = pts
             .par_iter()

@@ -9,6 +9,7 @@
 //! gradients with respect to the position are taken numerically (Neuralangelo) by evaluating
 //! offset points.
 
+use crate::OptionError;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -85,27 +86,30 @@ impl FieldConfig {
     }
 
     /// Checks the numbers are usable.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), OptionError> {
         if self.levels == 0 || self.levels > 32 {
-            return Err(format!("levels {} must be in 1..=32", self.levels));
+            return Err(OptionError(format!("levels {} must be in 1..=32", self.levels)));
         }
         if self.features == 0 || self.features > 8 {
-            return Err(format!("features per level {} must be in 1..=8", self.features));
+            return Err(OptionError(format!("features per level {} must be in 1..=8", self.features)));
         }
         if !(8..=24).contains(&self.log2_table) {
-            return Err(format!("log2 table size {} must be in 8..=24", self.log2_table));
+            return Err(OptionError(format!("log2 table size {} must be in 8..=24", self.log2_table)));
         }
         if self.base_res < 2 || self.max_res < self.base_res || self.max_res > 1 << 16 {
-            return Err(format!(
+            return Err(OptionError(format!(
                 "resolutions {}..{} must satisfy 2 <= base <= max <= 65536",
                 self.base_res, self.max_res
-            ));
+            )));
         }
         if self.hidden == 0 || self.hidden > 1024 || self.layers == 0 || self.layers > 8 {
-            return Err(format!("MLP {} x {} must have 1..=8 layers of width 1..=1024", self.layers, self.hidden));
+            return Err(OptionError(format!(
+                "MLP {} x {} must have 1..=8 layers of width 1..=1024",
+                self.layers, self.hidden
+            )));
         }
         if !(self.init_radius > 0.0 && self.init_radius < 1.0) {
-            return Err(format!("initial sphere radius {} must be in (0, 1)", self.init_radius));
+            return Err(OptionError(format!("initial sphere radius {} must be in (0, 1)", self.init_radius)));
         }
         Ok(())
     }

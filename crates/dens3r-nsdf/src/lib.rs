@@ -28,6 +28,11 @@ use dens3r_mesh::TriMesh;
 use std::path::PathBuf;
 use std::time::Instant;
 
+/// A field or training option out of range (one line saying which and the range).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct OptionError(pub String);
+
 /// What can go wrong.
 #[derive(Debug, thiserror::Error)]
 pub enum NsdfError {

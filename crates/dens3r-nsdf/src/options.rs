@@ -1,6 +1,7 @@
 //! What a training run is asked to do: iterations, batch sizes, learning rate, loss weights
 //! and depth supervision (recorded in checkpoints, so a resumed run checks it matches).
 
+use crate::OptionError;
 use serde::{Deserialize, Serialize};
 
 /// How observed depth supervises the rendered distance.
@@ -78,19 +79,19 @@ impl Default for TrainOptions {
 
 impl TrainOptions {
     /// Checks the numbers are usable.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), OptionError> {
         if self.rays == 0 || self.samples < 4 || self.frames_per_batch == 0 {
-            return Err(format!(
+            return Err(OptionError(format!(
                 "need rays > 0, samples >= 4 and frames per batch > 0 (got {}, {}, {})",
                 self.rays, self.samples, self.frames_per_batch
-            ));
+            )));
         }
         if !(self.lr > 0.0 && self.lr < 1.0) {
-            return Err(format!("learning rate {} must be in (0, 1)", self.lr));
+            return Err(OptionError(format!("learning rate {} must be in (0, 1)", self.lr)));
         }
         let w = [self.w_depth, self.w_normal, self.w_eikonal, self.w_opacity, self.w_color];
         if w.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
-            return Err(format!("loss weights must be finite and >= 0, got {w:?}"));
+            return Err(OptionError(format!("loss weights must be finite and >= 0, got {w:?}")));
         }
         Ok(())
     }

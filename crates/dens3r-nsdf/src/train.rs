@@ -8,7 +8,7 @@ use crate::field::{self, encode, Evaluated, FieldConfig, Params};
 pub use crate::options::{DepthMode, TrainOptions};
 use crate::render;
 use crate::NsdfError;
-use dens3r_optim::{AdamW, Decay, Schedule};
+use dens3r_optim::{AdamW, At, Decay, Schedule};
 
 /// The field's Adam: betas 0.9 and 0.99 with a tiny epsilon, as hash-grid fields are trained
 /// (the MLP's update runs on the device's tensors with these numbers, the table's on the host).
@@ -103,8 +103,8 @@ impl Trainer {
         data: &TrainData,
         device: Device,
     ) -> Result<Self, NsdfError> {
-        config.check().map_err(NsdfError::Options)?;
-        options.check().map_err(NsdfError::Options)?;
+        config.check().map_err(|e| NsdfError::Options(e.0))?;
+        options.check().map_err(|e| NsdfError::Options(e.0))?;
         let values = field::init_values(&config, options.seed);
         Ok(Self::from_state(config, options, data, device, &values, None, 0, data.fingerprint()))
     }
@@ -436,16 +436,8 @@ impl Trainer {
                 field::grid_backward(&self.config, &ev.enc, mask, &field::to_vec(g), gtable);
             }
         }
-        ADAM_TABLE.update_par(
-            self.iter,
-            lr as f32,
-            &mut self.table,
-            &mut self.table_m,
-            &mut self.table_v,
-            gtable,
-            1.0,
-            false,
-        );
+        let at = At::new(self.iter, lr as f32);
+        ADAM_TABLE.update_par(at, &mut self.table, &mut self.table_m, &mut self.table_v, gtable, false);
         for (p, mo) in self.params.tensors.iter_mut().zip(self.moments.iter_mut()) {
             let Some(g) = p.grad(&grads) else { continue };
             let g = g.inner();

@@ -77,6 +77,30 @@ impl WarmupCosine {
     }
 }
 
+/// Where one update stands: its 0-based step, its learning rate and the factor the gradient is
+/// multiplied by first (1: none; a loss scale to undo, or a mean over a batch).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct At<F> {
+    /// 0-based step (the bias corrections use `step + 1`).
+    pub step: usize,
+    /// Learning rate.
+    pub lr: F,
+    /// Factor applied to the gradient.
+    pub grad_scale: F,
+}
+
+impl<F: Float> At<F> {
+    /// Step `step` at learning rate `lr`, the gradient as it is.
+    pub fn new(step: usize, lr: F) -> Self {
+        Self { step, lr, grad_scale: F::one() }
+    }
+
+    /// The same with the gradient multiplied by `grad_scale`.
+    pub fn scaled(self, grad_scale: F) -> Self {
+        Self { grad_scale, ..self }
+    }
+}
+
 /// Adam(W): Adam's bias-corrected moments with decoupled weight decay (Loshchilov & Hutter),
 /// as PyTorch's `torch.optim.AdamW` updates (`p -= lr * wd * p`, then the Adam step); with
 /// `weight_decay` 0 it is Adam.
@@ -107,14 +131,13 @@ impl<F: Float + Send + Sync> AdamW<F> {
         (F::one() - self.beta1.powi(t), F::one() - self.beta2.powi(t))
     }
 
-    /// Updates the moments `m`, `v` by the gradient `grad * scale` at 0-based step `step` and
-    /// writes each coordinate's step (to subtract, learning rate `lr` included) into `out`;
-    /// for parameters not updated by subtraction (rotations on their manifold).
-    #[allow(clippy::too_many_arguments)]
-    pub fn steps(&self, step: usize, lr: F, m: &mut [F], v: &mut [F], grad: &[F], scale: F, out: &mut [F]) {
-        let c = self.bias_corrections(step);
+    /// Updates the moments `m`, `v` by the gradient at `at` and writes each coordinate's step
+    /// (to subtract, learning rate included) into `out`; for parameters not updated by
+    /// subtraction (rotations on their manifold).
+    pub fn steps(&self, at: At<F>, m: &mut [F], v: &mut [F], grad: &[F], out: &mut [F]) {
+        let c = self.bias_corrections(at.step);
         for j in 0..grad.len() {
-            out[j] = self.moment_step(c, lr, &mut m[j], &mut v[j], grad[j] * scale);
+            out[j] = self.moment_step(c, at.lr, &mut m[j], &mut v[j], grad[j] * at.grad_scale);
         }
     }
 
@@ -127,26 +150,15 @@ impl<F: Float + Send + Sync> AdamW<F> {
         lr * (*m / c1) / ((*v / c2).sqrt() + self.eps)
     }
 
-    /// One update of `values` (with moments `m`, `v`) by the gradient `grad * scale` at 0-based
-    /// step `step` and learning rate `lr`; `decay` applies the weight decay.
-    #[allow(clippy::too_many_arguments)]
-    pub fn update(
-        &self,
-        step: usize,
-        lr: F,
-        values: &mut [F],
-        m: &mut [F],
-        v: &mut [F],
-        grad: &[F],
-        scale: F,
-        decay: bool,
-    ) {
-        let c = self.bias_corrections(step);
+    /// One update of `values` (with moments `m`, `v`) by the gradient `grad` at `at`; `decay`
+    /// applies the weight decay.
+    pub fn update(&self, at: At<F>, values: &mut [F], m: &mut [F], v: &mut [F], grad: &[F], decay: bool) {
+        let c = self.bias_corrections(at.step);
         let wd = self.weight_decay;
         for j in 0..values.len() {
-            let s = self.moment_step(c, lr, &mut m[j], &mut v[j], grad[j] * scale);
+            let s = self.moment_step(c, at.lr, &mut m[j], &mut v[j], grad[j] * at.grad_scale);
             if decay {
-                values[j] = values[j] - lr * wd * values[j];
+                values[j] = values[j] - at.lr * wd * values[j];
             }
             values[j] = values[j] - s;
         }
@@ -154,25 +166,14 @@ impl<F: Float + Send + Sync> AdamW<F> {
 
     /// [`AdamW::update`] over rayon's threads, in blocks (the same numbers: each coordinate is
     /// updated alone); for large buffers such as a hash-grid table.
-    #[allow(clippy::too_many_arguments)]
-    pub fn update_par(
-        &self,
-        step: usize,
-        lr: F,
-        values: &mut [F],
-        m: &mut [F],
-        v: &mut [F],
-        grad: &[F],
-        scale: F,
-        decay: bool,
-    ) {
+    pub fn update_par(&self, at: At<F>, values: &mut [F], m: &mut [F], v: &mut [F], grad: &[F], decay: bool) {
         const BLOCK: usize = 1 << 14;
         values
             .par_chunks_mut(BLOCK)
             .zip(m.par_chunks_mut(BLOCK))
             .zip(v.par_chunks_mut(BLOCK))
             .zip(grad.par_chunks(BLOCK))
-            .for_each(|(((x, m), v), g)| self.update(step, lr, x, m, v, g, scale, decay));
+            .for_each(|(((x, m), v), g)| self.update(at, x, m, v, g, decay));
     }
 }
 
@@ -200,11 +201,11 @@ mod tests {
     fn adamw_first_step_and_convergence() {
         let opt = AdamW { weight_decay: 0.5, ..Default::default() };
         let (mut x, mut m, mut v) = (vec![1.0f32, 1.0, -2.0], vec![0.0; 3], vec![0.0; 3]);
-        opt.update(0, 0.01, &mut x, &mut m, &mut v, &[1e-3, -50.0, 2.0], 1.0, false);
+        opt.update(At::new(0, 0.01), &mut x, &mut m, &mut v, &[1e-3, -50.0, 2.0], false);
         let want = [0.99, 1.01, -2.01];
         assert!(x.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "{x:?}");
         let (mut y, mut m, mut v) = (vec![2.0f32], vec![0.0], vec![0.0]);
-        opt.update(0, 0.01, &mut y, &mut m, &mut v, &[1.0], 1.0, true);
+        opt.update(At::new(0, 0.01), &mut y, &mut m, &mut v, &[1.0], true);
         assert!((y[0] - (2.0 * (1.0 - 0.01 * 0.5) - 0.01)).abs() < 1e-6, "{y:?}");
         // f(x) = (x - 3)^2 from 0, no decay.
         let opt = AdamW::default();
@@ -212,7 +213,7 @@ mod tests {
         let s = WarmupCosine { lr: 0.1, warmup: 0.0, total: 2000 };
         for k in 0..2000 {
             let g = [2.0 * (x[0] - 3.0)];
-            opt.update(k, s.at(k), &mut x, &mut m, &mut v, &g, 1.0, false);
+            opt.update(At::new(k, s.at(k)), &mut x, &mut m, &mut v, &g, false);
         }
         assert!((x[0] - 3.0).abs() < 1e-3, "{}", x[0]);
     }
@@ -244,9 +245,9 @@ mod tests {
             let (mut x, mut m, mut v) = (x0.clone(), vec![0.1f32; n], vec![0.2f32; n]);
             for step in 0..3 {
                 if par {
-                    opt.update_par(step, 1e-3, &mut x, &mut m, &mut v, &g, 0.5, true);
+                    opt.update_par(At::new(step, 1e-3).scaled(0.5), &mut x, &mut m, &mut v, &g, true);
                 } else {
-                    opt.update(step, 1e-3, &mut x, &mut m, &mut v, &g, 0.5, true);
+                    opt.update(At::new(step, 1e-3).scaled(0.5), &mut x, &mut m, &mut v, &g, true);
                 }
             }
             x
@@ -255,9 +256,9 @@ mod tests {
         let opt = AdamW::<f64>::default();
         let g: Vec<f64> = vec![0.3, -2.0, 1e-4];
         let (mut x, mut m, mut v) = (vec![1.0f64, 2.0, 3.0], vec![0.0; 3], vec![0.0; 3]);
-        opt.update(0, 0.01, &mut x, &mut m, &mut v, &g, 1.0, false);
+        opt.update(At::new(0, 0.01), &mut x, &mut m, &mut v, &g, false);
         let (mut m2, mut v2, mut out) = (vec![0.0; 3], vec![0.0; 3], vec![0.0; 3]);
-        opt.steps(0, 0.01, &mut m2, &mut v2, &g, 1.0, &mut out);
+        opt.steps(At::new(0, 0.01), &mut m2, &mut v2, &g, &mut out);
         assert_eq!(x, vec![1.0 - out[0], 2.0 - out[1], 3.0 - out[2]]);
         assert_eq!((m, v), (m2, v2));
     }

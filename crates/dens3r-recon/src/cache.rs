@@ -8,6 +8,7 @@ use crate::input::{fnv1a, InputImage};
 use crate::predictor::ViewOutput;
 use dens3r_backbone::predict::DescriptorMap;
 use dens3r_geom::{Raster, Vec3};
+use dens3r_io::IoError;
 use dens3r_scene::npy;
 use std::path::{Path, PathBuf};
 
@@ -52,15 +53,15 @@ impl PairCache {
     }
 
     /// Stores `out` under `key` (no-op without a folder).
-    pub fn store(&self, key: &str, out: &[ViewOutput; 2]) -> Result<(), String> {
+    pub fn store(&self, key: &str, out: &[ViewOutput; 2]) -> Result<(), IoError> {
         let Some(root) = &self.dir else { return Ok(()) };
-        std::fs::create_dir_all(root).map_err(|e| format!("{}: cannot create the pair cache ({e})", root.display()))?;
+        std::fs::create_dir_all(root).map_err(|e| IoError::new(root, format!("cannot create the pair cache ({e})")))?;
         // Entries of killed runs are swept; this one is removed if the process is stopped.
         dens3r_io::cleanup::sweep_stale(root);
         let tmp = root.join(format!(".{key}{}d", dens3r_io::cleanup::temp_prefix()));
         let _ = std::fs::remove_dir_all(&tmp);
         let _staged = dens3r_io::cleanup::stage(&tmp);
-        std::fs::create_dir_all(&tmp).map_err(|e| format!("{}: cannot write the pair cache ({e})", tmp.display()))?;
+        std::fs::create_dir_all(&tmp).map_err(|e| IoError::new(&tmp, format!("cannot write the pair cache ({e})")))?;
         let res = out.iter().enumerate().try_for_each(|(v, o)| write_view(&tmp, v, o));
         if let Err(e) = res {
             let _ = std::fs::remove_dir_all(&tmp);
@@ -68,7 +69,7 @@ impl PairCache {
         }
         let dst = root.join(key);
         let _ = std::fs::remove_dir_all(&dst);
-        std::fs::rename(&tmp, &dst).map_err(|e| format!("{}: cannot finish the cache entry ({e})", dst.display()))
+        std::fs::rename(&tmp, &dst).map_err(|e| IoError::new(&dst, format!("cannot finish the cache entry ({e})")))
     }
 }
 
@@ -76,10 +77,10 @@ fn vec3s(r: &Raster<Vec3>) -> Vec<f32> {
     r.data().iter().flat_map(|p| p.to_array()).collect()
 }
 
-fn write_view(dir: &Path, v: usize, o: &ViewOutput) -> Result<(), String> {
+fn write_view(dir: &Path, v: usize, o: &ViewOutput) -> Result<(), IoError> {
     let (w, h) = (o.points.width(), o.points.height());
     let p = |n: &str| dir.join(format!("v{v}_{n}.npy"));
-    let e = |e: dens3r_scene::SceneError| e.to_string();
+    let e = |e: dens3r_scene::SceneError| IoError::new(&e.path, e.message);
     npy::write_f32(&p("points"), &[h, w, 3], &vec3s(&o.points)).map_err(e)?;
     npy::write_f32(&p("conf"), &[h, w], o.conf.data()).map_err(e)?;
     if let Some(n) = &o.normals {
@@ -130,7 +131,7 @@ fn read_view(dir: &Path, v: usize, (w, h): (usize, usize)) -> Result<ViewOutput,
     };
     let desc_conf = read("desc_conf", None)?.map(scalar).transpose()?;
     let out = ViewOutput { points, conf, normals, desc, desc_conf };
-    out.check((w, h))?;
+    out.check((w, h)).map_err(|e| e.0)?;
     Ok(out)
 }
 

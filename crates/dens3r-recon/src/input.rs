@@ -83,8 +83,8 @@ pub fn load_images(paths: &[PathBuf], size: u32, keep_portrait: bool) -> Result<
     let mut out = Vec::with_capacity(paths.len());
     for p in paths {
         let bytes = std::fs::read(p).map_err(|e| ReconError::input(p, format!("cannot read ({e})")))?;
-        let img = open_oriented(p).map_err(|e| ReconError::input(p, e))?;
-        let prep = preprocess(&img, size, !keep_portrait).map_err(|e| ReconError::input(p, e))?;
+        let img = open_oriented(p)?;
+        let prep = preprocess(&img, size, !keep_portrait).map_err(|e| ReconError::input(p, e.to_string()))?;
         out.push(InputImage { name: unique_name(p, &mut names), path: p.clone(), prep, hash: fnv1a(&bytes, 0) });
     }
     Ok(out)

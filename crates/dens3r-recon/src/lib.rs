@@ -57,6 +57,17 @@ pub enum ReconError {
     Other(String),
 }
 
+impl From<dens3r_backbone::BackboneError> for ReconError {
+    fn from(e: dens3r_backbone::BackboneError) -> Self {
+        match e {
+            dens3r_backbone::BackboneError::File { path, message } => {
+                Self::Input { path: path.display().to_string(), msg: message }
+            }
+            dens3r_backbone::BackboneError::Invalid(m) => Self::Other(m),
+        }
+    }
+}
+
 impl ReconError {
     pub(crate) fn input(path: &Path, msg: impl Into<String>) -> Self {
         Self::Input { path: path.display().to_string(), msg: msg.into() }

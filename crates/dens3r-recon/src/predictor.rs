@@ -26,12 +26,17 @@ pub struct ViewOutput {
     pub desc_conf: Option<Raster<f32>>,
 }
 
+/// Maps whose sizes disagree with their image or with each other (one line saying which).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct MapSizeError(pub String);
+
 impl ViewOutput {
     /// Checks sizes against `(w, h)` and that the maps agree with each other.
-    pub fn check(&self, (w, h): (usize, usize)) -> Result<(), String> {
+    pub fn check(&self, (w, h): (usize, usize)) -> Result<(), MapSizeError> {
         let sz = |r: (usize, usize), what: &str| {
             if r != (w, h) {
-                Err(format!("{what} is {}x{}, expected {w}x{h}", r.0, r.1))
+                Err(MapSizeError(format!("{what} is {}x{}, expected {w}x{h}", r.0, r.1)))
             } else {
                 Ok(())
             }
@@ -44,7 +49,7 @@ impl ViewOutput {
         if let Some(d) = &self.desc {
             sz((d.width, d.height), "descriptors")?;
             if d.dim == 0 || d.data.len() != w * h * d.dim {
-                return Err(format!("descriptors hold {} values for {w}x{h}x{}", d.data.len(), d.dim));
+                return Err(MapSizeError(format!("descriptors hold {} values for {w}x{h}x{}", d.data.len(), d.dim)));
             }
         }
         if let Some(c) = &self.desc_conf {

@@ -7,9 +7,10 @@
 
 use crate::material::{Material, Texture};
 use crate::procedural::{blob_mesh, CLASS_OBJECT};
-use crate::world::{Object, Shape, World};
+use crate::world::{Object, Shape, World, WorldError};
 use dens3r_geom::camera::look_at;
 use dens3r_geom::{Intrinsics, PinholeCamera};
+use dens3r_io::IoError;
 use dens3r_mesh::primitives::{quad, torus};
 use dens3r_mesh::TriMesh;
 use glam::{DMat4, DVec3, Quat, Vec3};
@@ -57,11 +58,11 @@ pub struct Assets {
 impl Assets {
     /// Reads every `.png` / `.jpg` of `photos` and `.off` / `.ply` / `.obj` of `meshes`
     /// (folders that do not exist are skipped), in file-name order.
-    pub fn load(photos: Option<&Path>, meshes: Option<&Path>) -> Result<Self, String> {
-        let list = |dir: Option<&Path>, exts: &[&str]| -> Result<Vec<std::path::PathBuf>, String> {
+    pub fn load(photos: Option<&Path>, meshes: Option<&Path>) -> Result<Self, IoError> {
+        let list = |dir: Option<&Path>, exts: &[&str]| -> Result<Vec<std::path::PathBuf>, IoError> {
             let Some(dir) = dir.filter(|d| d.is_dir()) else { return Ok(Vec::new()) };
             let mut v: Vec<_> = std::fs::read_dir(dir)
-                .map_err(|e| format!("{}: cannot list ({e})", dir.display()))?
+                .map_err(|e| IoError::new(dir, format!("cannot list ({e})")))?
                 .filter_map(|e| e.ok().map(|e| e.path()))
                 .filter(|p| {
                     p.extension()
@@ -74,13 +75,13 @@ impl Assets {
         };
         let mut out = Self::default();
         for p in list(photos, &["png", "jpg", "jpeg"])? {
-            let img = image::open(&p).map_err(|e| format!("{}: cannot read the photograph ({e})", p.display()))?;
+            let img = image::open(&p).map_err(|e| IoError::new(&p, format!("cannot read the photograph ({e})")))?;
             out.photos.push(Arc::new(img.to_rgb8()));
             out.names.push(file_name(&p));
         }
         for p in list(meshes, &["off", "ply", "obj"])? {
-            let mut m = dens3r_mesh::io::read_mesh(&p).map_err(|e| format!("{}: {e}", p.display()))?;
-            let (lo, hi) = m.bounds().ok_or_else(|| format!("{}: the mesh is empty", p.display()))?;
+            let mut m = dens3r_mesh::io::read_mesh(&p).map_err(|e| IoError::new(&e.path, e.message))?;
+            let (lo, hi) = m.bounds().ok_or_else(|| IoError::new(&p, "the mesh is empty"))?;
             let s = 1.0 / (hi - lo).max_element().max(1e-9);
             let c = (lo + hi) * 0.5;
             m.transform(&(glam::Mat4::from_scale(Vec3::splat(s)) * glam::Mat4::from_translation(-c)));
@@ -123,7 +124,7 @@ pub fn synth_scene(
     size: (usize, usize),
     views: usize,
     assets: &Assets,
-) -> Result<SynthScene, String> {
+) -> Result<SynthScene, WorldError> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let room = match kind {
         SynthKind::Rooms => true,

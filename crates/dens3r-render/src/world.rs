@@ -89,14 +89,20 @@ pub struct World {
     pub background: [u8; 3],
 }
 
+/// A world that cannot be rendered (no objects, too many, a broken mesh or a non-positive
+/// size), saying which object.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct WorldError(pub String);
+
 impl World {
     /// Builds acceleration structures; fails on an empty world or a broken mesh.
-    pub fn new(objects: Vec<Object>) -> Result<Self, String> {
+    pub fn new(objects: Vec<Object>) -> Result<Self, WorldError> {
         if objects.is_empty() {
-            return Err("the scene has no objects".into());
+            return Err(WorldError("the scene has no objects".into()));
         }
         if objects.len() >= u16::MAX as usize {
-            return Err("too many objects for 16-bit instance ids".into());
+            return Err(WorldError("too many objects for 16-bit instance ids".into()));
         }
         let parts = objects
             .iter()
@@ -112,7 +118,8 @@ impl World {
                 let (lo, hi) = world_bounds(o);
                 Ok(Part { caster, inv_rotation: o.rotation.inverse(), lo, hi })
             })
-            .collect::<Result<Vec<_>, String>>()?;
+            .collect::<Result<Vec<_>, String>>()
+            .map_err(WorldError)?;
         Ok(Self {
             objects,
             parts,

@@ -30,6 +30,12 @@ pub struct Frame {
     pub extra: Map<String, Value>,
 }
 
+/// A frame entry that cannot be used (a bad name, size, intrinsics, pose or image path); one
+/// line saying which frame and what is wrong.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct InvalidFrame(pub String);
+
 impl Frame {
     /// A frame for `name` whose image is `images/<name>.png`.
     pub fn new(name: &str, camera: &PinholeCamera) -> Self {
@@ -60,41 +66,47 @@ impl Frame {
     }
 
     /// Checks name, size, intrinsics and pose; the message says what is wrong.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), InvalidFrame> {
         let name_ok =
             !self.name.is_empty() && self.name != "." && self.name != ".." && !self.name.contains(['/', '\\', '\0']);
         if !name_ok {
-            return Err(format!("frame name {:?} must be a plain file stem (no slashes)", self.name));
+            return Err(InvalidFrame(format!("frame name {:?} must be a plain file stem (no slashes)", self.name)));
         }
         let who = format!("frame '{}'", self.name);
         if self.width == 0 || self.height == 0 || self.width > MAX_IMAGE_SIDE || self.height > MAX_IMAGE_SIDE {
-            return Err(format!("{who}: size {}x{} is outside 1..={MAX_IMAGE_SIDE}", self.width, self.height));
+            return Err(InvalidFrame(format!(
+                "{who}: size {}x{} is outside 1..={MAX_IMAGE_SIDE}",
+                self.width, self.height
+            )));
         }
         if Intrinsics::from_rows(&self.k).is_none() {
-            return Err(format!(
+            return Err(InvalidFrame(format!(
                 "{who}: K must be finite [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {:?}",
                 self.k
-            ));
+            )));
         }
         let p = &self.cam_to_world;
         if p.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(format!("{who}: cam_to_world has a NaN or infinite entry"));
+            return Err(InvalidFrame(format!("{who}: cam_to_world has a NaN or infinite entry")));
         }
         if p[3] != [0.0, 0.0, 0.0, 1.0] {
-            return Err(format!("{who}: cam_to_world's last row must be [0, 0, 0, 1], got {:?}", p[3]));
+            return Err(InvalidFrame(format!("{who}: cam_to_world's last row must be [0, 0, 0, 1], got {:?}", p[3])));
         }
         let r = DMat3::from_mat4(self.pose());
         if !is_rotation(&r, 1e-4) {
-            return Err(format!(
+            return Err(InvalidFrame(format!(
                 "{who}: cam_to_world's 3x3 block is not a rotation (orthonormal, det +1); scale or mirror it out"
-            ));
+            )));
         }
         let img = std::path::Path::new(&self.image);
         if self.image.is_empty()
             || img.is_absolute()
             || img.components().any(|c| matches!(c, std::path::Component::ParentDir))
         {
-            return Err(format!("{who}: image path {:?} must be relative and inside the scene folder", self.image));
+            return Err(InvalidFrame(format!(
+                "{who}: image path {:?} must be relative and inside the scene folder",
+                self.image
+            )));
         }
         Ok(())
     }

@@ -31,7 +31,7 @@ pub mod visibility;
 pub mod viz;
 mod writer;
 
-pub use cameras::{CamerasFile, Frame, MAX_IMAGE_SIDE};
+pub use cameras::{CamerasFile, Frame, InvalidFrame, MAX_IMAGE_SIDE};
 pub use classes::{read_classes, write_classes};
 pub use error::SceneError;
 pub use reader::{Layer, Scene};

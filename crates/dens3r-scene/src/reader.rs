@@ -90,7 +90,7 @@ impl Scene {
         }
         let mut names = HashSet::new();
         for f in &cameras.frames {
-            f.check().map_err(|m| SceneError::new(&cam_path, m))?;
+            f.check().map_err(|m| SceneError::new(&cam_path, m.0))?;
             if !names.insert(f.name.as_str()) {
                 return Err(SceneError::new(
                     &cam_path,

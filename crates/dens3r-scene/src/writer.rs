@@ -75,7 +75,7 @@ impl SceneWriter {
     /// Adds a frame and writes its image (PNG at `frame.image`).
     pub fn add_frame(&mut self, frame: Frame, rgb: &RgbImage) -> Result<(), SceneError> {
         let cam = self.root.join("cameras.json");
-        frame.check().map_err(|m| SceneError::new(&cam, m))?;
+        frame.check().map_err(|m| SceneError::new(&cam, m.0))?;
         if self.frames.iter().any(|f| f.name == frame.name) {
             return Err(SceneError::new(&cam, format!("frame name '{}' added twice", frame.name)));
         }

@@ -2,7 +2,7 @@
 //! small.toml`), turned into the [`ModelConfig`] the backbone builds.
 
 use crate::TrainError;
-use dens3r_backbone::config::{pts_heads, DptWidths, EncoderKind, RopeScaling};
+use dens3r_backbone::config::{Blocks, Dens3rSizes, DptWidths, EncoderKind};
 use dens3r_backbone::ModelConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -111,36 +111,34 @@ impl Arch {
 
     /// The configuration the backbone builds.
     pub fn config(&self) -> ModelConfig {
-        let widths = DptWidths {
-            layer_dims: self.layer_dims,
-            feature_dim: self.feature_dim,
-            head_dim: self.feature_dim / 2,
-            last_dim: self.last_dim,
-        };
-        let [head1, head2] = pts_heads(widths, Some(self.desc_mlp_ratio * (self.enc_embed_dim + self.dec_embed_dim)));
-        ModelConfig {
+        ModelConfig::dens3r(&Dens3rSizes {
             encoder: match self.encoder {
                 ArchEncoder::Vit => EncoderKind::Vit,
                 ArchEncoder::Dinov2 => EncoderKind::Dinov2,
             },
             patch: self.patch_size,
-            enc_dim: self.enc_embed_dim,
-            enc_depth: self.enc_depth,
-            enc_heads: self.enc_num_heads,
-            dec_dim: self.dec_embed_dim,
-            dec_depth: self.dec_depth,
-            dec_heads: self.dec_num_heads,
-            mlp_hidden: (self.mlp_ratio * self.enc_embed_dim, self.mlp_ratio * self.dec_embed_dim),
-            shared_decoder: self.symmetrize_dec,
-            rope_base: 100.0,
-            rope: RopeScaling::Interpolated,
-            head1,
-            head2,
-            normal_head: Some(widths.dpt("normal_local_head", 3)),
-            has_conf: true,
+            enc: Blocks {
+                dim: self.enc_embed_dim,
+                depth: self.enc_depth,
+                heads: self.enc_num_heads,
+                mlp_hidden: self.mlp_ratio * self.enc_embed_dim,
+            },
+            dec: Blocks {
+                dim: self.dec_embed_dim,
+                depth: self.dec_depth,
+                heads: self.dec_num_heads,
+                mlp_hidden: self.mlp_ratio * self.dec_embed_dim,
+            },
+            dpt: DptWidths {
+                layer_dims: self.layer_dims,
+                feature_dim: self.feature_dim,
+                head_dim: self.feature_dim / 2,
+                last_dim: self.last_dim,
+            },
+            desc_hidden: self.desc_mlp_ratio * (self.enc_embed_dim + self.dec_embed_dim),
             desc_dim: self.desc_dim,
             desc_conf: self.desc_conf,
-        }
+        })
     }
 }
 

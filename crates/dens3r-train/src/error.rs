@@ -11,5 +11,5 @@ dens3r_io::file_or_setting_error! {
         dens3r_backbone::weights::WeightsError,
         dens3r_io::IoError,
     ];
-    plain: [std::io::Error, serde_json::Error, dens3r_geom::RasterError];
+    plain: [std::io::Error, serde_json::Error, dens3r_geom::RasterError, dens3r_render::WorldError];
 }

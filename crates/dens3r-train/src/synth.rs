@@ -139,8 +139,7 @@ pub fn synthesise(
                 }
             }
             let _staged = dens3r_io::cleanup::stage(&tmp);
-            let scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)
-                .map_err(TrainError::Invalid)?;
+            let scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;
             render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})?;
             write_pairs(&tmp)?;
             std::fs::rename(&tmp, &dir).map_err(|e| TrainError::file(&dir, format!("cannot rename ({e})")))?;

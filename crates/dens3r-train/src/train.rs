@@ -8,7 +8,7 @@ use crate::pair::{covisibility, crop_window, missing_depth, pair_target, PairTar
 use crate::TrainError;
 use burn::tensor::{Device, Tensor, TensorData};
 use dens3r_backbone::{Dens3r, Freeze, HeadOutputs, Params, Weights};
-use dens3r_optim::{AdamW, WarmupCosine};
+use dens3r_optim::{AdamW, At, WarmupCosine};
 use dens3r_scene::{Layer, Scene};
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
@@ -641,7 +641,7 @@ impl Trainer {
             |(vals, m, v, gi, shape)| {
                 // Weight matrices decay; biases and norms do not.
                 if let Some(gi) = gi {
-                    opt.update(step, lr, vals, m, v, gi, scale, shape.len() >= 2);
+                    opt.update(At::new(step, lr).scaled(scale), vals, m, v, gi, shape.len() >= 2);
                 }
             },
         );

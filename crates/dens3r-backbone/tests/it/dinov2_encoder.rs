@@ -1,7 +1,7 @@
 //! A Dens3R whose encoder is a frozen DINOv2 (`EncoderKind::Dinov2`): the image the DINOv2
 //! sees, the checkpoint without the encoder, and loading it back beside its `.onnx`.
 
-use dens3r_backbone::config::{pts_heads, DptWidths, EncoderKind, RopeScaling};
+use dens3r_backbone::config::{Blocks, Dens3rSizes, DptWidths, EncoderKind};
 use dens3r_backbone::dinov2::{resize_bilinear, Dinov2, IMAGENET_MEAN, IMAGENET_STD};
 use dens3r_backbone::verify::{load_dinov2, load_model};
 use dens3r_backbone::{Device, ModelConfig, Params, Tensor, TensorData};
@@ -11,28 +11,16 @@ use crate::fetched::fetched;
 
 /// A small decoder and heads on DINOv2-S's 384-wide tokens.
 fn config() -> ModelConfig {
-    let widths = DptWidths { layer_dims: [8, 16, 32, 64], feature_dim: 16, head_dim: 8, last_dim: 8 };
-    let [head1, head2] = pts_heads(widths, Some(64));
-    ModelConfig {
+    ModelConfig::dens3r(&Dens3rSizes {
         encoder: EncoderKind::Dinov2,
         patch: 16,
-        enc_dim: 384,
-        enc_depth: 12,
-        enc_heads: 6,
-        dec_dim: 64,
-        dec_depth: 4,
-        dec_heads: 2,
-        mlp_hidden: (1536, 128),
-        shared_decoder: true,
-        rope_base: 100.0,
-        rope: RopeScaling::Interpolated,
-        head1,
-        head2,
-        normal_head: Some(widths.dpt("normal_local_head", 3)),
-        has_conf: true,
+        enc: Blocks { dim: 384, depth: 12, heads: 6, mlp_hidden: 1536 },
+        dec: Blocks { dim: 64, depth: 4, heads: 2, mlp_hidden: 128 },
+        dpt: DptWidths { layer_dims: [8, 16, 32, 64], feature_dim: 16, head_dim: 8, last_dim: 8 },
+        desc_hidden: 64,
         desc_dim: 24,
         desc_conf: false,
-    }
+    })
 }
 
 fn image(h: usize, w: usize, device: &Device) -> Tensor<4> {

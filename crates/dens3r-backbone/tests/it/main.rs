@@ -8,6 +8,7 @@ mod fetched;
 #[path = "../../../../tests/support/fixtures.rs"]
 mod fixtures;
 mod gpu;
+mod linear_head;
 mod parity;
 mod predict;
 mod pth;

@@ -171,13 +171,17 @@ fn full_size_key_listings_give_the_official_architectures() {
         assert_eq!(c.rope, RopeScaling::Plain, "{file}: upstream RoPE");
         assert!(!c.shared_decoder && c.has_conf && c.normal_head.is_none(), "{file}");
         assert_eq!((c.head1.prefix.as_str(), c.head2.prefix.as_str()), ("downstream_head1", "downstream_head2"));
-        assert_eq!(c.head1.dpt.layer_dims, [96, 192, 384, 768], "{file}");
+        assert_eq!(c.head1.dpt().unwrap().layer_dims, [96, 192, 384, 768], "{file}");
         assert_eq!(
             (c.desc_dim, c.desc_conf, c.head1.mlp_hidden.is_some()),
             if mast3r { (24, true, true) } else { (0, false, false) }
         );
     }
-    let e =
-        config("keys_DUSt3R_ViTLarge_BaseDecoder_512_linear.txt").expect_err("linear heads are refused").to_string();
-    assert!(e.contains("linear-head DUSt3R checkpoints are not supported"), "{e}");
+    // DUSt3R's linear heads: `downstream_headK.proj` of (4 x 16 x 16, 768), spec section 4.
+    let c = config("keys_DUSt3R_ViTLarge_BaseDecoder_512_linear.txt").unwrap();
+    for h in [&c.head1, &c.head2] {
+        assert_eq!(h.decoder, dens3r_backbone::config::PtsDecoder::Linear { out_channels: 4 });
+        assert!(h.mlp_hidden.is_none());
+    }
+    assert!(c.has_conf && c.desc_dim == 0 && c.normal_head.is_none() && !c.shared_decoder);
 }

@@ -660,14 +660,7 @@ fn resumed_run_is_bit_identical() {
     let direct = dens3r_train::train::validate(&a.params, &data, &cfg, 1).unwrap();
     assert_eq!(Some(direct), whole_log[3].val);
     // The final weights load as a checkpoint with their config.
-    let (m, unexpected) = dens3r_backbone::verify::load_model(
-        &whole.join("model.safetensors"),
-        Some(&whole.join("model.json")),
-        &Device::flex(),
-    )
-    .unwrap();
-    assert!(unexpected.is_empty(), "{unexpected:?}");
-    assert_eq!(m.config, arch.config());
+    load_final(&whole, &arch);
     assert!(whole.join("loss.png").is_file());
     // Other settings refuse to resume.
     let other = TrainConfig { lr: 5e-4, ..cfg.clone() };
@@ -751,14 +744,7 @@ fn a_dinov2_encoder_network_trains_resumes_and_reloads() {
     let json = std::fs::read_to_string(whole.join("model.json")).unwrap();
     assert!(json.contains("\"dinov2_onnx\"") && json.contains("\"encoder\": \"dinov2\""), "{json}");
     std::fs::copy(&onnx, whole.join("vit_s_focus.onnx")).unwrap();
-    let (m, unexpected) = dens3r_backbone::verify::load_model(
-        &whole.join("model.safetensors"),
-        Some(&whole.join("model.json")),
-        &Device::flex(),
-    )
-    .unwrap();
-    assert!(unexpected.is_empty(), "{unexpected:?}");
-    assert_eq!(m.config, arch.config());
+    let m = load_final(&whole, &arch);
     assert!(m.dinov2().is_some());
 }
 
@@ -819,4 +805,18 @@ fn own_frame_regresses_view_2_in_its_own_frame() {
     assert_eq!(local.pts_glb, reference.pts_glb);
     assert_eq!(local.pts_n, reference.pts_n);
     assert!((local.pts_glb - global.pts_glb).abs() > 1e-4 * global.pts_glb.abs(), "{local:?} vs {global:?}");
+}
+
+/// The final weights of the run folder `dir`, loaded as a checkpoint with their config: every
+/// key used, the architecture `arch`.
+fn load_final(dir: &std::path::Path, arch: &Arch) -> Dens3r {
+    let (m, unexpected) = dens3r_backbone::verify::load_model(
+        &dir.join("model.safetensors"),
+        Some(&dir.join("model.json")),
+        &Device::flex(),
+    )
+    .unwrap();
+    assert!(unexpected.is_empty(), "{unexpected:?}");
+    assert_eq!(m.config, arch.config());
+    m
 }

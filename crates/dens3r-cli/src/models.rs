@@ -1,0 +1,75 @@
+//! `dens3r models`: the official checkpoints dens3r knows by name, where they are cached, and
+//! their download (`--fetch NAME`, or any `--weights NAME`).
+
+use anyhow::{anyhow, Result};
+use clap::Args;
+use dens3r_hub::{Known, Source};
+use std::path::PathBuf;
+
+#[derive(Args)]
+pub struct ModelsArgs {
+    /// Download this checkpoint into the cache now (otherwise the first `--weights NAME` does).
+    #[arg(long)]
+    fetch: Option<String>,
+}
+
+pub fn run(a: ModelsArgs) -> Result<()> {
+    if let Some(name) = &a.fetch {
+        let dir = fetch(name)?;
+        println!("{name}: {}", dir.display());
+        return Ok(());
+    }
+    println!("{:<19} {:<7} {:>7}  {:<10}  predicts", "name", "family", "size", "where");
+    for k in dens3r_hub::KNOWN {
+        let place = match k.source {
+            Source::Bundled => "bundled",
+            Source::Manual { .. } => "by hand",
+            Source::Hub { .. } if dens3r_hub::is_cached(k) => "cached",
+            Source::Hub { .. } => "download",
+        };
+        println!("{:<19} {:<7} {:>5}MB  {:<10}  {}", k.name, k.family, k.size_mb, place, k.predicts);
+        println!("{:<19} official name {}; licence {}; {}", "", k.official, k.licence, k.page);
+    }
+    println!(
+        "`--weights NAME` (short or official name) downloads into {} ($DENS3R_HOME) from {} ($DENS3R_HUB_ENDPOINT), \
+         resuming a cut download and checking the SHA-256 the hub publishes",
+        dens3r_hub::home().join("models").display(),
+        dens3r_hub::endpoint()
+    );
+    Ok(())
+}
+
+/// The cache folder of the known checkpoint `name`, downloaded first when missing, with a
+/// progress bar on stderr.
+pub fn fetch(name: &str) -> Result<PathBuf> {
+    let k: &Known =
+        dens3r_hub::find(name).ok_or_else(|| anyhow!("{name}: not a known checkpoint; `dens3r models` lists them"))?;
+    if let Source::Bundled = k.source {
+        return Ok(dens3r_backbone::default_model::locate()?);
+    }
+    if dens3r_hub::is_cached(k) {
+        return Ok(dens3r_hub::model_dir(k));
+    }
+    eprintln!(
+        "downloading {} ({} MB, licence {}) into {}",
+        k.official,
+        k.size_mb,
+        k.licence,
+        dens3r_hub::model_dir(k).display()
+    );
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{msg} {bar:30} {bytes}/{total_bytes} [{elapsed} < {eta}, {bytes_per_sec}]",
+        )
+        .expect("a valid template"),
+    );
+    let dir = dens3r_hub::fetch_model(k, &mut |file, p| {
+        bar.set_message(file.to_string());
+        if let Some(t) = p.total {
+            bar.set_length(t);
+        }
+        bar.set_position(p.done);
+    });
+    bar.finish_and_clear();
+    Ok(dir?)
+}
