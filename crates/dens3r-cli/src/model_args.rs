@@ -43,11 +43,9 @@ pub fn check_size(size: u32) -> Result<()> {
 /// (dens3r-s), saying so in one line on stderr.
 pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(PathBuf, Option<PathBuf>)> {
     // A known name (not a path that exists): its folder in the cache, fetched when missing.
-    let named = match weights {
-        Some(w) if !w.exists() && w.to_str().and_then(dens3r_hub::find).is_some() => {
-            Some(crate::models::fetch(&w.to_string_lossy())?)
-        }
-        _ => None,
+    let named = match weights.filter(|w| !w.exists()).and_then(|w| w.to_str()).and_then(dens3r_hub::find) {
+        Some(k) => Some(crate::models::fetch(k)?),
+        None => None,
     };
     match named.as_deref().or(weights) {
         Some(w) if !w.exists() => bail!(

@@ -15,7 +15,9 @@ pub struct ModelsArgs {
 
 pub fn run(a: ModelsArgs) -> Result<()> {
     if let Some(name) = &a.fetch {
-        let dir = fetch(name)?;
+        let k = dens3r_hub::find(name)
+            .ok_or_else(|| anyhow!("{name}: not a known checkpoint; `dens3r models` lists them"))?;
+        let dir = fetch(k)?;
         println!("{name}: {}", dir.display());
         return Ok(());
     }
@@ -39,11 +41,9 @@ pub fn run(a: ModelsArgs) -> Result<()> {
     Ok(())
 }
 
-/// The cache folder of the known checkpoint `name`, downloaded first when missing, with a
-/// progress bar on stderr.
-pub fn fetch(name: &str) -> Result<PathBuf> {
-    let k: &Known =
-        dens3r_hub::find(name).ok_or_else(|| anyhow!("{name}: not a known checkpoint; `dens3r models` lists them"))?;
+/// The folder of the known checkpoint `k` (the bundled one's, or its cache folder, downloaded
+/// first when missing, with a progress bar on stderr).
+pub fn fetch(k: &Known) -> Result<PathBuf> {
     if let Source::Bundled = k.source {
         return Ok(dens3r_backbone::default_model::locate()?);
     }
@@ -63,8 +63,13 @@ pub fn fetch(name: &str) -> Result<PathBuf> {
         )
         .expect("a valid template"),
     );
+    // The message changes once per file, not at every block.
+    let mut current = String::new();
     let dir = dens3r_hub::fetch_model(k, &mut |file, p| {
-        bar.set_message(file.to_string());
+        if file != current {
+            current = file.to_string();
+            bar.set_message(current.clone());
+        }
         if let Some(t) = p.total {
             bar.set_length(t);
         }

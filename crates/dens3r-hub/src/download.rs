@@ -80,13 +80,17 @@ fn head(url: &str) -> Result<Head, HubError> {
     let header = |n: &str| resp.headers().get(n).and_then(|v| v.to_str().ok()).map(str::to_string);
     let status = resp.status().as_u16();
     let sha256 = header("x-linked-etag").and_then(|v| sha_in(&v)).or_else(|| header("etag").and_then(|v| sha_in(&v)));
-    let size = header("x-linked-size").or_else(|| header("content-length")).and_then(|v| v.trim().parse().ok());
+    let linked_size = header("x-linked-size").and_then(|v| v.trim().parse().ok());
     match status {
-        200..=299 => Ok(Head { location: url.to_string(), sha256, size }),
+        200..=299 => {
+            let size = linked_size.or_else(|| header("content-length").and_then(|v| v.trim().parse().ok()));
+            Ok(Head { location: url.to_string(), sha256, size })
+        }
         300..=399 => {
             let loc = header("location")
                 .ok_or_else(|| HubError::invalid(format!("{url}: a redirect ({status}) without a Location")))?;
-            Ok(Head { location: absolute(url, &loc), sha256, size: header("x-linked-size").and_then(|v| v.parse().ok()) })
+            // A redirect's own Content-Length is its empty body's, not the file's.
+            Ok(Head { location: absolute(url, &loc), sha256, size: linked_size })
         }
         401 | 403 => Err(HubError::invalid(format!(
             "{url}: the server refused access ({status}); the model may need an account or a licence acceptance on its page"
@@ -98,17 +102,26 @@ fn head(url: &str) -> Result<Head, HubError> {
 
 /// SHA-256 of a file, read in 1 MB blocks.
 pub fn sha256_file(path: &Path) -> Result<String, HubError> {
-    let mut f = std::fs::File::open(path).map_err(|e| HubError::file(path, format!("cannot read ({e})")))?;
     let mut h = Sha256::new();
+    hash_file_into(path, &mut h)?;
+    Ok(hex(h))
+}
+
+/// Feeds the bytes of `path` to `h`.
+fn hash_file_into(path: &Path, h: &mut Sha256) -> Result<(), HubError> {
+    let mut f = std::fs::File::open(path).map_err(|e| HubError::file(path, format!("cannot read ({e})")))?;
     let mut buf = vec![0u8; 1 << 20];
     loop {
         let n = f.read(&mut buf).map_err(|e| HubError::file(path, format!("cannot read ({e})")))?;
         if n == 0 {
-            break;
+            return Ok(());
         }
         h.update(&buf[..n]);
     }
-    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+}
+
+fn hex(h: Sha256) -> String {
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// The partial file of `dest`.
@@ -139,11 +152,16 @@ pub fn download(
         have = 0;
     }
     let resumed_from = have;
-    let mut fetched = 0u64;
-    if head.size != Some(have) || have == 0 {
-        fetched = fetch_into(&head.location, &part, &mut have, head.size, progress)?;
-    }
-    let got = sha256_file(&part)?;
+    // The hash follows the bytes as they are written; only a part already whole is read back.
+    let (fetched, hashed) = if head.size != Some(have) || have == 0 {
+        fetch_into(&head.location, &part, &mut have, head.size, progress)?
+    } else {
+        (0, None)
+    };
+    let got = match hashed {
+        Some(h) => hex(h),
+        None => sha256_file(&part)?,
+    };
     if let Some(want) = &expected {
         if *want != got {
             let _ = std::fs::remove_file(&part);
@@ -160,15 +178,16 @@ pub fn download(
     Ok(Fetched { path: dest.to_path_buf(), sha256: got, checked_against, fetched, resumed_from })
 }
 
-/// Streams `location` into `part` from byte `*have` on; returns the bytes fetched. A cut
-/// connection leaves what arrived in `part` and says so.
+/// Streams `location` into `part` from byte `*have` on; returns the bytes fetched and the
+/// SHA-256 state of the whole part (`None`: nothing was fetched, the part is to be hashed). A
+/// cut connection leaves what arrived in `part` and says so.
 fn fetch_into(
     location: &str,
     part: &Path,
     have: &mut u64,
     total: Option<u64>,
     progress: &mut dyn FnMut(Progress),
-) -> Result<u64, HubError> {
+) -> Result<(u64, Option<Sha256>), HubError> {
     let net = |e: ureq::Error| {
         HubError::invalid(format!("{location}: cannot reach the server ({e}); check the connection and run again"))
     };
@@ -195,10 +214,13 @@ fn fetch_into(
         }
         200 => false,
         // Nothing past the part's end: it is whole already (its checksum decides).
-        416 if *have > 0 => return Ok(0),
+        416 if *have > 0 => return Ok((0, None)),
         _ => return Err(HubError::invalid(format!("{location}: the server answered {status}; try again later"))),
     };
-    if !append {
+    let mut hash = Sha256::new();
+    if append {
+        hash_file_into(part, &mut hash)?;
+    } else {
         *have = 0;
     }
     let mut file =
@@ -226,6 +248,7 @@ fn fetch_into(
         };
         file.write_all(&buf[..n])
             .map_err(|e| HubError::file(part, format!("cannot write ({e}); check the cache folder's space")))?;
+        hash.update(&buf[..n]);
         *have += n as u64;
         fetched += n as u64;
         progress(Progress { done: *have, total });
@@ -239,5 +262,5 @@ fn fetch_into(
             )));
         }
     }
-    Ok(fetched)
+    Ok((fetched, Some(hash)))
 }
