@@ -338,6 +338,13 @@ enum ToPixels {
     Linear(Linear),
 }
 
+/// Per-token outputs `(B, N, C p^2)` on a `grid` of tokens as pixel maps `(B, C, H, W)`: the
+/// official `transpose`, `view` to the grid, then `pixel_shuffle` by the patch size `p`.
+fn tokens_to_pixels(t: Tensor<3>, (h, w): (usize, usize), p: usize) -> Tensor<4> {
+    let [b, _, ch] = t.dims();
+    pixel_shuffle(t.swap_dims(1, 2).reshape([b, ch, h, w]), p)
+}
+
 struct PtsHead {
     to_pixels: ToPixels,
     mlp: Option<Mlp>,
@@ -691,11 +698,7 @@ impl Dens3r {
         let raw_pts = match &head.to_pixels {
             ToPixels::Dpt(d) => d.forward(layers(), v.grid),
             // DUSt3R's LinearPts3d: the last decoder layer, projected and pixel-shuffled.
-            ToPixels::Linear(proj) => {
-                let t = proj.forward(v.layer(c.dec_depth));
-                let [b, _, ch] = t.dims();
-                pixel_shuffle(t.swap_dims(1, 2).reshape([b, ch, v.grid.0, v.grid.1]), c.patch)
-            }
+            ToPixels::Linear(proj) => tokens_to_pixels(proj.forward(v.layer(c.dec_depth)), v.grid, c.patch),
         };
         let raw_normal = self.normal_head.as_ref().filter(|_| want.normal).map(|d| d.forward(layers(), v.grid));
         let raw_mlp = head
@@ -712,7 +715,7 @@ impl Dens3r {
             Some(m) => {
                 let [_, n, ch] = m.dims();
                 let per = ch / (c.patch * c.patch);
-                let maps = pixel_shuffle(m.clone().swap_dims(1, 2).reshape([b, ch, v.grid.0, v.grid.1]), c.patch);
+                let maps = tokens_to_pixels(m.clone(), v.grid, c.patch);
                 let maps = maps.permute([0, 2, 3, 1]); // (B, H, W, per)
                 debug_assert_eq!(n, v.grid.0 * v.grid.1);
                 let raw = maps.clone().narrow(3, 0, c.desc_dim);
