@@ -1,4 +1,4 @@
-//! `dens3r eval depth|normals|mesh`.
+//! `dens3r eval depth|normals|mesh|cameras|baselines` (and `head`, in `eval_head`).
 
 use anyhow::{bail, Result};
 use clap::{Args, Subcommand, ValueEnum};
@@ -25,6 +25,10 @@ pub enum EvalCommand {
     /// Scores of two image-blind baselines fitted to scene GT itself: the median depth with
     /// camera-facing normals, and the best-fit plane (what a predictor must beat).
     Baselines(BaselineArgs),
+    /// Scores of a trained head (`train-head`'s OUTPUT.json) on folders it never saw:
+    /// segmentation mIoU and per-class IoU, or depth AbsRel and delta1 beside the image-blind
+    /// constant.
+    Head(crate::eval_head::HeadArgs),
 }
 
 #[derive(Args)]
@@ -132,10 +136,11 @@ pub fn run(c: EvalCommand) -> Result<()> {
         EvalCommand::Mesh(a) => mesh(a),
         EvalCommand::Cameras(a) => cameras(a),
         EvalCommand::Baselines(a) => baselines(a),
+        EvalCommand::Head(a) => crate::eval_head::run(a),
     }
 }
 
-fn depth_align(a: Align) -> DepthAlign {
+pub fn depth_align(a: Align) -> DepthAlign {
     match a {
         Align::None => DepthAlign::None,
         Align::Median => DepthAlign::MedianScale,

@@ -8,6 +8,7 @@ mod bench_peer;
 mod bench_train;
 mod convert;
 mod eval;
+mod eval_head;
 mod fuse;
 mod info;
 mod model_args;

@@ -8,7 +8,7 @@ use dens3r_heads::plan;
 use dens3r_heads::train::{evaluate_confusion, DepthLoss, Progress};
 use dens3r_heads::{Backbone, Example, Head, HeadConfig, Task, TrainOptions, Trainer};
 use indicatif::{ProgressBar, ProgressStyle};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// What the head predicts.
 #[derive(Clone, Copy, Debug, ValueEnum, PartialEq)]
@@ -165,40 +165,34 @@ fn train_options(a: &TrainHeadArgs) -> Result<TrainOptions> {
     Ok(options)
 }
 
-/// The samples' features, from the cache or computed (and stored).
-fn features(
-    a: &TrainHeadArgs,
+/// The samples' features, from the cache in `cache_dir` or computed (and stored there); one
+/// line says how many came from where.
+pub fn features(
+    cache_dir: &Path,
+    precision: Precision,
     backbone: &dyn Backbone,
-    train: Vec<Sample>,
-    val: Vec<Sample>,
-) -> Result<(Vec<Example>, Vec<Example>)> {
-    // Features, cached on disk.
-    let cache_dir = a.cache.clone().unwrap_or_else(|| a.output.with_extension("features"));
-    let mut cache = FeatureCache::new(&cache_dir, if a.f16 { Precision::F16 } else { Precision::F32 });
-    let bar = ProgressBar::new((train.len() + val.len()) as u64)
+    sets: Vec<Vec<Sample>>,
+) -> Result<Vec<Vec<Example>>> {
+    let mut cache = FeatureCache::new(cache_dir, precision);
+    let n: usize = sets.iter().map(Vec::len).sum();
+    let bar = ProgressBar::new(n as u64)
         .with_style(ProgressStyle::with_template("features {bar:30} {pos}/{len} {elapsed}<{eta}").expect("template"));
-    let mut examples = |samples: Vec<Sample>| -> Result<Vec<Example>> {
-        samples
-            .into_iter()
-            .map(|s| {
-                let f = cache.get(backbone, &s.image).map_err(|e| anyhow!(e))?;
-                bar.inc(1);
-                Ok(Example { sample: s, features: f })
-            })
-            .collect()
-    };
-    let train = examples(train)?;
-    let val = examples(val)?;
+    let out = sets
+        .into_iter()
+        .map(|samples| {
+            samples
+                .into_iter()
+                .map(|s| {
+                    let f = cache.get(backbone, &s.image).map_err(|e| anyhow!(e))?;
+                    bar.inc(1);
+                    Ok(Example { sample: s, features: f })
+                })
+                .collect::<Result<Vec<_>>>()
+        })
+        .collect::<Result<Vec<_>>>()?;
     bar.finish_and_clear();
-    eprintln!(
-        "{} training / {} validation images; features: {} from the cache, {} computed ({})",
-        train.len(),
-        val.len(),
-        cache.stats.0,
-        cache.stats.1,
-        cache_dir.display()
-    );
-    Ok((train, val))
+    eprintln!("features: {} from the cache, {} computed ({})", cache.stats.0, cache.stats.1, cache_dir.display());
+    Ok(out)
 }
 
 /// One epoch's line: the training loss and the validation scores of the task.
@@ -232,7 +226,7 @@ fn summary(a: &TrainHeadArgs, trainer: &mut Trainer, train: usize, val: &[Exampl
         // The last epoch's, unless this call resumed a finished run and validated nothing.
         let conf = match trainer.confusion.take() {
             Some(c) => c,
-            None => evaluate_confusion(&trainer.head, val, trainer.options.depth_loss).1,
+            None => evaluate_confusion(&trainer.head, val, trainer.options.depth_loss.align()).1,
         };
         let ious: serde_json::Map<String, serde_json::Value> =
             (0..conf.k).filter_map(|c| conf.iou(c).map(|v| (classes[c].clone(), v.into()))).collect();
@@ -330,7 +324,11 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
     options.class_weights =
         (a.balance && a.kind == Kind::Seg).then(|| plan::inverse_frequency(&train, task.channels()));
 
-    let (train, val) = features(&a, backbone.as_ref(), train, val)?;
+    let cache_dir = a.cache.clone().unwrap_or_else(|| a.output.with_extension("features"));
+    let precision = if a.f16 { Precision::F16 } else { Precision::F32 };
+    let [train, val]: [Vec<Example>; 2] =
+        features(&cache_dir, precision, backbone.as_ref(), vec![train, val])?.try_into().expect("two sets in, two out");
+    eprintln!("{} training / {} validation images", train.len(), val.len());
 
     let head = new_head(&a, backbone.as_ref(), task)?;
     let device = burn::tensor::Device::autodiff(burn::tensor::Device::flex());

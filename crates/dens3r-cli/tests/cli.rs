@@ -734,6 +734,21 @@ fn predict_runs_trained_heads_on_the_backbone_pass() {
         let reported = ious[&names[&(c as u16)]].as_f64().unwrap();
         assert!((iou - reported).abs() < 1e-9, "class {c}: {iou} here, {reported} from train-head");
     }
+    // `eval head` on a folder of just the held-out views: the same scores.
+    let held = dir.path().join("held");
+    for sub in ["images", "labels"] {
+        std::fs::create_dir_all(held.join(sub)).unwrap();
+        for name in ["0003", "0007"] {
+            std::fs::copy(room.join(format!("{sub}/{name}.png")), held.join(format!("{sub}/{name}.png"))).unwrap();
+        }
+    }
+    std::fs::copy(room.join("classes.json"), held.join("classes.json")).unwrap();
+    let eval = json(&["eval", "head", &head, "--backbone", "pixels", "--data", &p(&held), "--cache", &cache, "--json"]);
+    assert_eq!(eval["images"], 2, "{eval}");
+    assert!((eval["pixel_accuracy"].as_f64().unwrap() - val_acc).abs() < 1e-9, "{eval}");
+    assert_eq!(eval["class_iou"], summary["class_iou"], "{eval}");
+    let e = fails(&["eval", "head", &head, "--backbone", "dinov2:/no/model.onnx", "--data", &p(&held)]);
+    assert!(e.contains("/no/model.onnx"), "{e}");
     let classes: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("heads/lin/classes.json")).unwrap()).unwrap();
     assert_eq!(classes["1"], "floor");

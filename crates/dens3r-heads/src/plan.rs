@@ -168,6 +168,39 @@ pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Spli
     Ok(Split { train, val, classes, dropped, held_out })
 }
 
+/// Samples of `folders` (scene folders, or `dens3r synth` sets standing for theirs) to score a
+/// trained head on, at long side `size`: labels when `classes` (the head's) is given,
+/// renumbered onto them by name (pixels of a class the head does not know get an id past them,
+/// which scoring skips), else depth. The second value names those unknown classes.
+pub fn load_eval(
+    folders: &[PathBuf],
+    classes: Option<&[String]>,
+    size: u32,
+    patch: u32,
+) -> Result<(Vec<Sample>, Vec<String>), HeadsError> {
+    if folders.is_empty() {
+        return Err(HeadsError::invalid("nothing to score: give --data FOLDER..."));
+    }
+    let want = if classes.is_some() { Want::Labels } else { Want::Depth };
+    let mut union = data::ClassUnion::default();
+    if let Some(c) = classes {
+        union.add(c);
+    }
+    let known = union.names.len();
+    let mut out = Vec::new();
+    for d in &scene_folders(folders)? {
+        let mut s = data::load_folder(d, want, size, patch)?;
+        if classes.is_some() {
+            if let Some(names) = data::class_names(d)? {
+                let map = union.add(&names);
+                s.iter_mut().for_each(|x| data::remap_labels(x, &map));
+            }
+        }
+        out.extend(s);
+    }
+    Ok((out, union.names.split_off(known)))
+}
+
 /// The segmentation task of `split`: one output channel per class id up to the largest one
 /// present in training, named from the merged class list (`classN` past it). Ids of
 /// [`MAX_CLASSES`] and above are refused, naming the image.
@@ -299,5 +332,28 @@ mod tests {
         let one = Sources { data: vec![dir.path().join("scene_00000")], ..Default::default() };
         assert!(load(&one, Want::Labels, 32, 16).unwrap().val.is_empty());
         assert_eq!((default_val_scenes(1), default_val_scenes(2), default_val_scenes(25)), (0, 1, 3));
+    }
+    /// Scoring folders are renumbered onto the head's classes by name; a class the head does
+    /// not know gets an id past them (which scoring skips) and is named.
+    #[test]
+    fn scoring_data_takes_the_heads_class_ids() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = dir.path().join("scene");
+        for sub in ["images", "labels"] {
+            std::fs::create_dir_all(s.join(sub)).unwrap();
+        }
+        RgbImage::new(4, 1).save(s.join("images/0000.png")).unwrap();
+        // Folder ids: 0 = wall, 1 = lamp (unknown to the head), 2 = floor.
+        let ids: Vec<u8> = vec![0, 1, 2, 255];
+        image::GrayImage::from_raw(4, 1, ids).unwrap().save(s.join("labels/0000.png")).unwrap();
+        std::fs::write(s.join("classes.json"), r#"{"0": "wall", "1": "lamp", "2": "_floor_"}"#).unwrap();
+        let head: Vec<String> = ["background", "floor", "wall"].map(String::from).to_vec();
+        let (samples, unknown) = load_eval(&[dir.path().to_path_buf()], Some(&head), 4, 1).unwrap();
+        assert_eq!(unknown, ["lamp"]);
+        match &samples[0].target {
+            data::Target::Labels(l) => assert_eq!(l, &[2, 3, 1, IGNORE]),
+            t => panic!("{t:?}"),
+        }
+        assert!(load_eval(&[], Some(&head), 4, 1).is_err());
     }
 }

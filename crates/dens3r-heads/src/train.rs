@@ -33,6 +33,17 @@ pub enum DepthLoss {
     AffineInvariant,
 }
 
+impl DepthLoss {
+    /// How a head trained with this loss is scored: as predicted (SILog), or after the
+    /// per-image least-squares scale and shift (affine-invariant).
+    pub fn align(self) -> DepthAlign {
+        match self {
+            DepthLoss::Silog => DepthAlign::None,
+            DepthLoss::AffineInvariant => DepthAlign::ScaleShift,
+        }
+    }
+}
+
 /// Training settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainOptions {
@@ -408,7 +419,7 @@ impl Trainer {
             self.step += 1;
             let mut validation = None;
             if self.step.is_multiple_of(per_epoch) {
-                let (mut v, confusion) = evaluate_confusion(&self.head, val, self.options.depth_loss);
+                let (mut v, confusion) = evaluate_confusion(&self.head, val, self.options.depth_loss.align());
                 self.confusion = Some(confusion);
                 v.epoch = self.step / per_epoch;
                 self.history.push(v);
@@ -429,12 +440,12 @@ impl Trainer {
 /// Depth is scored as predicted for SILog heads, and after the per-image least-squares scale
 /// and shift for affine-invariant ones.
 pub fn evaluate(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> Validation {
-    evaluate_confusion(head, examples, depth_loss).0
+    evaluate_confusion(head, examples, depth_loss.align()).0
 }
 
-/// [`evaluate`], with the segmentation confusion matrix (rows = ground truth) for per-class
-/// IoU.
-pub fn evaluate_confusion(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> (Validation, Confusion) {
+/// [`evaluate`] with depth aligned by `align` before scoring, and the segmentation confusion
+/// matrix (rows = ground truth) for per-class IoU.
+pub fn evaluate_confusion(head: &Head, examples: &[Example], align: DepthAlign) -> (Validation, Confusion) {
     let device = Device::flex();
     let params = head.tensors(&device);
     let mut conf = Confusion::new(head.config.task.channels());
@@ -445,13 +456,7 @@ pub fn evaluate_confusion(head: &Head, examples: &[Example], depth_loss: DepthLo
         let out = head.forward_with(&params, &feats, (h, w));
         match &ex.sample.target {
             Target::Labels(l) => conf.add(&argmax_channels(&to_vec(out), conf.k, h * w), l),
-            Target::Depth(d) => {
-                let align = match depth_loss {
-                    DepthLoss::Silog => DepthAlign::None,
-                    DepthLoss::AffineInvariant => DepthAlign::ScaleShift,
-                };
-                depth.add(to_vec(out.exp()), d, w, h, align);
-            }
+            Target::Depth(d) => depth.add(to_vec(out.exp()), d, w, h, align),
         }
     }
     let v = Validation {
