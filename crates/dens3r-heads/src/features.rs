@@ -2,7 +2,8 @@
 //! [`FeatureMaps`] (token grids of one or more layers). Three backbones: Dens3R / DUSt3R /
 //! MASt3R ([`Dens3rBackbone`], encoder + decoder layers of the self-pair), DINOv2
 //! ([`Dinov2Backbone`], hooked blocks) and raw pixels ([`PixelBackbone`], each token is its
-//! patch's pixels: the baseline a head must beat).
+//! patch's pixels: the baseline a head must beat), and any of them side by side
+//! ([`StackedBackbone`]).
 
 use crate::HeadsError;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -70,6 +71,66 @@ pub trait Backbone: Send + Sync {
     /// Features of an RGB image whose sides are multiples of [`Backbone::patch`]. The
     /// backbone's weights are never changed.
     fn extract(&self, image: &RgbImage) -> FeatureMaps;
+    /// The backbones a [`StackedBackbone`] is made of (each cached on its own); none for the
+    /// others.
+    fn parts(&self) -> &[Box<dyn Backbone>] {
+        &[]
+    }
+}
+
+/// Several backbones' layers side by side on one token grid (`dinov2:MODEL.onnx+pixels`): the
+/// first part's layers, then the next part's, and so on.
+pub struct StackedBackbone {
+    parts: Vec<Box<dyn Backbone>>,
+}
+
+impl StackedBackbone {
+    /// Stacks `parts`, which must share a patch size (so their token grids match).
+    pub fn new(parts: Vec<Box<dyn Backbone>>) -> Result<Self, HeadsError> {
+        let Some(first) = parts.first() else {
+            return Err(HeadsError::invalid("a stacked backbone needs at least one part"));
+        };
+        if let Some(other) = parts.iter().find(|b| b.patch() != first.patch()) {
+            return Err(HeadsError::invalid(format!(
+                "{} has {}-pixel patches and {} {}-pixel ones: stacked backbones share one token grid",
+                first.id(),
+                first.patch(),
+                other.id(),
+                other.patch()
+            )));
+        }
+        Ok(Self { parts })
+    }
+
+    /// The layers of the parts' features, in order.
+    pub fn stack(maps: Vec<FeatureMaps>) -> FeatureMaps {
+        let grid = maps.first().map_or((0, 0), |m| m.grid);
+        debug_assert!(maps.iter().all(|m| m.grid == grid), "parts on one token grid");
+        let (mut dims, mut layers) = (Vec::new(), Vec::new());
+        for m in maps {
+            dims.extend(m.dims);
+            layers.extend(m.layers);
+        }
+        FeatureMaps { grid, dims, layers }
+    }
+}
+
+impl Backbone for StackedBackbone {
+    fn id(&self) -> String {
+        self.parts.iter().map(|b| b.id()).collect::<Vec<_>>().join("+")
+    }
+    fn patch(&self) -> usize {
+        self.parts[0].patch()
+    }
+    fn dims(&self) -> Vec<usize> {
+        self.parts.iter().flat_map(|b| b.dims()).collect()
+    }
+    fn extract(&self, image: &RgbImage) -> FeatureMaps {
+        Self::stack(self.parts.iter().map(|b| b.extract(image)).collect())
+    }
+    fn parts(&self) -> &[Box<dyn Backbone>] {
+        &self.parts
+    }
 }
 
 /// [`fnv1a`] of a file's bytes, read in chunks (checkpoints are gigabytes).
