@@ -4,8 +4,8 @@
 //! Key: the image's pixels and size (FNV-1a), the backbone id (kind, weights hash, hooked
 //! layers) and the storage precision; a change of any gives a new entry. A file is a JSON
 //! header line padded to 64 bytes, then the layers' values (f32 or f16, little endian); it is
-//! written to a temporary file and renamed, and an entry that does not parse or has the wrong
-//! length is recomputed.
+//! written to a temporary file and renamed, and an entry that does not parse, has the wrong
+//! length or does not say which layers are pixels as its backbone does is recomputed.
 
 use crate::features::{fnv1a, Backbone, FeatureMaps};
 use crate::HeadsError;
@@ -29,6 +29,8 @@ struct Header {
     grid: (usize, usize),
     dims: Vec<usize>,
     f16: bool,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pixel_layers: Vec<usize>,
 }
 
 const FORMAT: &str = "dens3r-features/1";
@@ -64,7 +66,7 @@ impl FeatureCache {
             return Ok(crate::features::StackedBackbone::stack(maps));
         }
         let path = self.entry(backbone, image);
-        if let Some(f) = read_entry(&path, &backbone.id()) {
+        if let Some(f) = read_entry(&path, &backbone.id()).filter(|f| f.pixel_layers == backbone.pixel_layers()) {
             self.stats.0 += 1;
             return Ok(f);
         }
@@ -85,6 +87,7 @@ fn write_entry(path: &Path, backbone: &str, f: &FeatureMaps, p: Precision) -> Re
         grid: f.grid,
         dims: f.dims.clone(),
         f16: p == Precision::F16,
+        pixel_layers: f.pixel_layers.clone(),
     };
     let mut bytes = serde_json::to_vec(&header).map_err(|e| HeadsError::file(path, e.to_string()))?;
     bytes.push(b'\n');
@@ -128,5 +131,5 @@ fn read_entry(path: &Path, backbone: &str) -> Option<FeatureMaps> {
         };
         layers.push(v);
     }
-    Some(FeatureMaps { grid: header.grid, dims: header.dims, layers })
+    Some(FeatureMaps { grid: header.grid, dims: header.dims, layers, pixel_layers: header.pixel_layers })
 }

@@ -15,7 +15,7 @@ use image::RgbImage;
 use std::path::Path;
 
 /// Token grids of one image: layer `l` is `(dims[l], grid.0, grid.1)` row-major f32.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct FeatureMaps {
     /// Token grid `(rows, cols)`.
     pub grid: (usize, usize),
@@ -23,10 +23,14 @@ pub struct FeatureMaps {
     pub dims: Vec<usize>,
     /// Channel-major values per layer.
     pub layers: Vec<Vec<f32>>,
+    /// Layers that are raw pixel patches (channel `(c * p + dy) * p + dx` of a `p x p` patch,
+    /// as [`PixelBackbone`] gives): a flip mirrors the pixels inside each token too.
+    pub pixel_layers: Vec<usize>,
 }
 
 impl FeatureMaps {
-    /// Tokens `(rows, cols)` starting at `(r0, c0)`, optionally mirrored left-right.
+    /// Tokens `(rows, cols)` starting at `(r0, c0)`, optionally mirrored left-right (tokens,
+    /// and the pixels inside the tokens of [`FeatureMaps::pixel_layers`]).
     pub fn crop(&self, r0: usize, c0: usize, rows: usize, cols: usize, flip: bool) -> FeatureMaps {
         let (gh, gw) = self.grid;
         assert!(r0 + rows <= gh && c0 + cols <= gw, "crop outside the token grid");
@@ -34,11 +38,17 @@ impl FeatureMaps {
             .layers
             .iter()
             .zip(&self.dims)
-            .map(|(l, &d)| {
+            .enumerate()
+            .map(|(i, (l, &d))| {
                 let mut out = Vec::with_capacity(d * rows * cols);
+                // Channel read for output channel `ch`: pixel dx -> p - 1 - dx when mirrored.
+                let p = (d / 3).isqrt();
+                let mirror = flip && self.pixel_layers.contains(&i) && 3 * p * p == d;
+                let source = |ch: usize| if mirror { ch - ch % p + (p - 1 - ch % p) } else { ch };
                 for ch in 0..d {
+                    let src = source(ch);
                     for r in 0..rows {
-                        let row = &l[ch * gh * gw + (r0 + r) * gw + c0..][..cols];
+                        let row = &l[src * gh * gw + (r0 + r) * gw + c0..][..cols];
                         if flip {
                             out.extend(row.iter().rev());
                         } else {
@@ -49,7 +59,7 @@ impl FeatureMaps {
                 out
             })
             .collect();
-        FeatureMaps { grid: (rows, cols), dims: self.dims.clone(), layers }
+        FeatureMaps { grid: (rows, cols), dims: self.dims.clone(), layers, pixel_layers: self.pixel_layers.clone() }
     }
 
     /// Layer `l` as a `(1, C, rows, cols)` tensor.
@@ -75,6 +85,10 @@ pub trait Backbone: Send + Sync {
     /// others.
     fn parts(&self) -> &[Box<dyn Backbone>] {
         &[]
+    }
+    /// Which of its layers are raw pixel patches ([`FeatureMaps::pixel_layers`]).
+    fn pixel_layers(&self) -> Vec<usize> {
+        Vec::new()
     }
 }
 
@@ -106,12 +120,13 @@ impl StackedBackbone {
     pub fn stack(maps: Vec<FeatureMaps>) -> FeatureMaps {
         let grid = maps.first().map_or((0, 0), |m| m.grid);
         debug_assert!(maps.iter().all(|m| m.grid == grid), "parts on one token grid");
-        let (mut dims, mut layers) = (Vec::new(), Vec::new());
+        let (mut dims, mut layers, mut pixel_layers) = (Vec::new(), Vec::new(), Vec::new());
         for m in maps {
+            pixel_layers.extend(m.pixel_layers.iter().map(|&l| l + layers.len()));
             dims.extend(m.dims);
             layers.extend(m.layers);
         }
-        FeatureMaps { grid, dims, layers }
+        FeatureMaps { grid, dims, layers, pixel_layers }
     }
 }
 
@@ -130,6 +145,15 @@ impl Backbone for StackedBackbone {
     }
     fn parts(&self) -> &[Box<dyn Backbone>] {
         &self.parts
+    }
+    fn pixel_layers(&self) -> Vec<usize> {
+        let mut offset = 0;
+        let mut out = Vec::new();
+        for b in &self.parts {
+            out.extend(b.pixel_layers().into_iter().map(|l| l + offset));
+            offset += b.dims().len();
+        }
+        out
     }
 }
 
@@ -187,7 +211,7 @@ impl Backbone for Dinov2Backbone {
         let (hooks, grid) = self.model.forward(x, &self.hooks);
         let d = self.model.config.dim;
         let layers = hooks.into_iter().map(|t| planes_from_tokens(&to_vec(t), d)).collect();
-        FeatureMaps { grid, dims: self.dims(), layers }
+        FeatureMaps { grid, dims: self.dims(), layers, pixel_layers: Vec::new() }
     }
 }
 
@@ -207,6 +231,9 @@ impl Backbone for PixelBackbone {
     }
     fn dims(&self) -> Vec<usize> {
         vec![3 * self.patch * self.patch]
+    }
+    fn pixel_layers(&self) -> Vec<usize> {
+        vec![0]
     }
     fn extract(&self, image: &RgbImage) -> FeatureMaps {
         let p = self.patch;
@@ -228,7 +255,7 @@ impl Backbone for PixelBackbone {
                 }
             }
         }
-        FeatureMaps { grid: (gh, gw), dims: vec![d], layers: vec![out] }
+        FeatureMaps { grid: (gh, gw), dims: vec![d], layers: vec![out], pixel_layers: vec![0] }
     }
 }
 
@@ -278,7 +305,7 @@ impl Dens3rBackbone {
                 planes_from_tokens(&to_vec(t), d)
             })
             .collect();
-        FeatureMaps { grid: v.grid, dims: self.dims(), layers }
+        FeatureMaps { grid: v.grid, dims: self.dims(), layers, pixel_layers: Vec::new() }
     }
 }
 

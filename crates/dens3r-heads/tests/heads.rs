@@ -31,6 +31,7 @@ fn random_features(rng: &mut ChaCha8Rng, grid: (usize, usize), dims: &[usize]) -
         grid,
         dims: dims.to_vec(),
         layers: dims.iter().map(|d| (0..d * n).map(|_| rng.gen_range(-1.0..1.0)).collect()).collect(),
+        pixel_layers: Vec::new(),
     }
 }
 
@@ -262,7 +263,7 @@ fn stripe_examples(n: usize, seed: u64) -> Vec<Example> {
 #[test]
 fn the_guide_resolves_detail_inside_tokens() {
     let (train, val) = (stripe_examples(32, 1), stripe_examples(8, 2));
-    let options = TrainOptions { epochs: 10, batch: 4, lr: 3e-3, flip: false, ..Default::default() };
+    let options = TrainOptions { epochs: 10, batch: 4, lr: 3e-3, ..Default::default() };
     let mut acc = Vec::new();
     for (kind, layers) in [("dpt", vec![0; 4]), ("dpt-guided", vec![0; 5])] {
         let head = Head::new(config(kind, seg(2), &[192], layers, 16, 8), 0).unwrap();
@@ -398,6 +399,7 @@ fn crops_carry_unlabelled_context() {
         grid: (gh, gw),
         dims: vec![2],
         layers: vec![tokens.iter().map(|t| t.0 as f32).chain(tokens.iter().map(|t| t.1 as f32)).collect()],
+        ..Default::default()
     };
     let (h, w) = (gh * p, gw * p);
     let id = |i: usize| (1 + (i / w / p) * gw + (i % w) / p) as u16;
@@ -565,6 +567,16 @@ fn feature_cache_hits_and_invalidates() {
     cache.get(&bb, &img2).unwrap();
     cache.get(&PixelBackbone { patch: 7 }, &img).unwrap();
     assert_eq!(cache.stats, (1, 3));
+    // A flip of pixel features is the features of the flipped image (pixels inside each token
+    // mirrored too), alone and stacked behind another layer.
+    let flipped = bb.extract(&image::imageops::flip_horizontal(&img));
+    assert_eq!(direct.crop(0, 0, 3, 2, true), flipped);
+    let two = dens3r_heads::StackedBackbone::stack(vec![
+        random_features(&mut ChaCha8Rng::seed_from_u64(1), (3, 2), &[4]),
+        direct.clone(),
+    ]);
+    assert_eq!(two.crop(0, 0, 3, 2, true).layers[1], flipped.layers[0]);
+    assert_eq!(two.pixel_layers, [1]);
     // Stacked backbones: the parts' layers in order, each part served from its own entry
     // (patch 14 is cached above, patch 7 too); parts of different patch sizes are refused.
     let seven = PixelBackbone { patch: 7 };
@@ -581,12 +593,22 @@ fn feature_cache_hits_and_invalidates() {
     assert_eq!(cache.stats, (3, 3));
     assert_eq!((both.grid, &both.layers[0], &both.layers[1]), (direct.grid, &direct.layers[0], &direct.layers[0]));
     assert_eq!(stacked.extract(&img), both);
-    // A truncated entry is recomputed.
+    // An entry that does not record its pixel layers (written before they were) is recomputed.
     let entry = cache.entry(&bb, &img);
+    let bytes = std::fs::read(&entry).unwrap();
+    let key = b",\"pixel_layers\":[0]";
+    let at = bytes.windows(key.len()).position(|w| w == key).expect("the header records pixel layers");
+    let mut old = bytes.clone();
+    old[at..at + key.len()].fill(b' ');
+    std::fs::write(&entry, &old).unwrap();
+    assert_eq!(cache.get(&bb, &img).unwrap(), direct);
+    assert_eq!(cache.stats, (3, 4));
+    assert_eq!(std::fs::read(&entry).unwrap(), bytes);
+    // A truncated entry is recomputed.
     let len = std::fs::metadata(&entry).unwrap().len();
     std::fs::OpenOptions::new().write(true).open(&entry).unwrap().set_len(len - 10).unwrap();
     assert_eq!(cache.get(&bb, &img).unwrap(), direct);
-    assert_eq!(cache.stats, (3, 4));
+    assert_eq!(cache.stats, (3, 5));
     // f16: half the bytes, values within f16 rounding.
     let mut c16 = FeatureCache::new(dir.path(), Precision::F16);
     let h = c16.get(&bb, &img).unwrap();

@@ -207,7 +207,12 @@ impl Backbone for FixedBackbone {
         vec![3, 2]
     }
     fn extract(&self, _: &RgbImage) -> FeatureMaps {
-        FeatureMaps { grid: (2, 3), dims: vec![3, 2], layers: vec![vec![0.5; 18], vec![-0.5; 12]] }
+        FeatureMaps {
+            grid: (2, 3),
+            dims: vec![3, 2],
+            layers: vec![vec![0.5; 18], vec![-0.5; 12]],
+            ..Default::default()
+        }
     }
 }
 
