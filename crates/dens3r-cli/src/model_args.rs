@@ -91,22 +91,6 @@ pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<
 
 /// Opens the backbone named by a `--backbone` value (`config`: head counts of a Dens3R one).
 pub fn open_backbone(spec: &str, config: Option<&Path>) -> Result<Box<dyn Backbone>> {
-    if spec.contains('+') {
-        // Raw pixels take the patch size of the network they are stacked with.
-        let specs: Vec<&str> = spec.split('+').collect();
-        let mut parts: Vec<Option<Box<dyn Backbone>>> = specs
-            .iter()
-            .map(|p| (*p != "pixels").then(|| open_backbone(p, config)).transpose())
-            .collect::<Result<_>>()?;
-        let patch = parts.iter().flatten().next().map_or(14, |b| b.patch());
-        let parts: Vec<Box<dyn Backbone>> = parts
-            .iter_mut()
-            .map(|p| p.take().unwrap_or_else(|| Box::new(dens3r_heads::PixelBackbone { patch })))
-            .collect();
-        return Ok(Box::new(
-            dens3r_heads::StackedBackbone::new(parts).map_err(|e| anyhow!("--backbone {spec:?}: {e}"))?,
-        ));
-    }
     let (kind, path) = spec.split_once(':').unwrap_or((spec, ""));
     Ok(match kind {
         "pixels" => Box::new(dens3r_heads::PixelBackbone { patch: 14 }),

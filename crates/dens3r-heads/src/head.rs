@@ -1,5 +1,5 @@
 //! A head: a [`HeadConfig`] plus named parameters, its architecture found by name in the
-//! registry ([`arch`]). Four are registered: `linear`, `dpt` and `dpt-guided` ([`crate::arch`]) and
+//! registry ([`arch`]). Three are registered: `linear` and `dpt` ([`crate::arch`]) and
 //! `pointmap` (the network's own DPT, which can start from a checkpoint's pointmap head:
 //! [`Head::from_pointmap`]). A head saves as safetensors (parameters) + JSON (config).
 
@@ -10,10 +10,10 @@ use rand::{Rng, SeedableRng};
 use serde::Deserialize;
 use std::path::Path;
 
-pub use crate::arch::{resize, Dpt, GuidedDpt, HeadArch, HeadConfig, LinearProbe, Task};
+pub use crate::arch::{resize, Dpt, HeadArch, HeadConfig, LinearProbe, Task};
 
 /// The registered architectures.
-pub static ARCHS: &[&dyn HeadArch] = &[&LinearProbe, &Dpt, &GuidedDpt, &crate::pointmap::PointmapDpt];
+pub static ARCHS: &[&dyn HeadArch] = &[&LinearProbe, &Dpt, &crate::pointmap::PointmapDpt];
 
 /// Looks an architecture up by name.
 pub fn arch(name: &str) -> Result<&'static dyn HeadArch, HeadsError> {

@@ -25,6 +25,6 @@ pub mod pointmap;
 pub mod train;
 
 pub use error::HeadsError;
-pub use features::{Backbone, Dens3rBackbone, Dinov2Backbone, FeatureMaps, PixelBackbone, StackedBackbone};
+pub use features::{Backbone, Dens3rBackbone, Dinov2Backbone, FeatureMaps, PixelBackbone};
 pub use head::{Head, HeadConfig, Task};
 pub use train::{Example, TrainOptions, Trainer};

@@ -228,13 +228,10 @@ pub fn seg_task(split: &Split) -> Result<Task, HeadsError> {
 }
 
 /// The backbone layers an architecture reads out of `n_layers`: four evenly spaced for the
-/// DPT heads (`dpt`, `pointmap`; of all but the last, then the last, for `dpt-guided`), every
-/// one for the others.
+/// DPT heads (`dpt`, `pointmap`), every one for the others.
 pub fn default_layers(kind: &str, n_layers: usize) -> Vec<usize> {
     match kind {
         "dpt" | "pointmap" => (0..4).map(|i| i * n_layers / 4).collect(),
-        // Four of the backbone's layers, then its last (the guide: the pixels of `...+pixels`).
-        "dpt-guided" if n_layers > 1 => (0..4).map(|i| i * (n_layers - 1) / 4).chain([n_layers - 1]).collect(),
         _ => (0..n_layers).collect(),
     }
 }
