@@ -132,117 +132,88 @@ pub struct Dpt;
 
 const DPT_SCALES: [f32; 4] = [4.0, 2.0, 1.0, 0.5];
 
-/// Checks the four DPT layers and the width.
-fn check_dpt(c: &HeadConfig) -> Result<(), HeadsError> {
-    if c.layers.len() != 4 || c.in_dims.len() != 4 {
-        return Err(HeadsError::invalid(format!("the DPT head reads 4 layers (repeats allowed), got {:?}", c.layers)));
-    }
-    if c.width < 2 {
-        return Err(HeadsError::invalid("the DPT width must be at least 2"));
-    }
-    Ok(())
-}
-
-/// Parameters of the DPT's reassembly and fusion.
-fn trunk_shapes(c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
-    let w = c.width;
-    let mut s: Vec<(String, Vec<usize>)> = Vec::new();
-    for (l, &d) in c.in_dims.iter().enumerate() {
-        s.push((format!("reassemble.{l}.proj.weight"), vec![w, d, 1, 1]));
-        s.push((format!("reassemble.{l}.proj.bias"), vec![w]));
-        if l == 3 {
-            s.push(("reassemble.3.down.weight".into(), vec![w, w, 3, 3]));
-            s.push(("reassemble.3.down.bias".into(), vec![w]));
-        }
-        s.push((format!("reassemble.{l}.rn.weight"), vec![w, w, 3, 3]));
-    }
-    for l in 0..4 {
-        s.push((format!("fusion.{l}.rcu1.weight"), vec![w, w, 3, 3]));
-        s.push((format!("fusion.{l}.rcu1.bias"), vec![w]));
-        s.push((format!("fusion.{l}.rcu2.weight"), vec![w, w, 3, 3]));
-        s.push((format!("fusion.{l}.rcu2.bias"), vec![w]));
-    }
-    s
-}
-
-/// Parameters of the DPT's output convolutions.
-fn out_shapes(c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
-    let (w, h) = (c.width, (c.width / 2).max(1));
-    vec![
-        ("head.conv.weight".into(), vec![h, w, 3, 3]),
-        ("head.conv.bias".into(), vec![h]),
-        ("head.out.weight".into(), vec![c.task.channels(), h, 1, 1]),
-        ("head.out.bias".into(), vec![c.task.channels()]),
-    ]
-}
-
-/// Residual conv unit `x + conv3x3(relu(x))`.
-fn rcu(x: Tensor<4>, wt: &Tensor<1>, b: &Tensor<1>, w: usize) -> Tensor<4> {
-    x.clone() + conv(relu(x), wt, Some(b), w, 3, 1)
-}
-
-/// Reassembly and coarse-to-fine fusion of four layers: the finest map, at 4x the token grid.
-fn dpt_trunk<'a>(c: &HeadConfig, p: &mut impl Iterator<Item = &'a Tensor<1>>, feats: &[Tensor<4>]) -> Tensor<4> {
-    let w = c.width;
-    let mut next = || p.next().expect("parameters in param_shapes order");
-    let [_, _, gh, gw] = feats[0].dims();
-    let mut levels = Vec::with_capacity(4);
-    for (l, f) in feats.iter().enumerate() {
-        let (pw, pb) = (next(), next());
-        let mut x = conv(f.clone(), pw, Some(pb), w, 1, 1);
-        if l == 3 {
-            let (dw, db) = (next(), next());
-            x = conv(x, dw, Some(db), w, 3, 2);
-        } else {
-            let s = DPT_SCALES[l];
-            x = resize(x, ((gh as f32 * s) as usize, (gw as f32 * s) as usize));
-        }
-        levels.push(conv(x, next(), None, w, 3, 1));
-    }
-    let fusion: Vec<[&Tensor<1>; 4]> = (0..4).map(|_| [next(), next(), next(), next()]).collect();
-    // Coarse to fine: level 3 (1/2x) up to level 2's size, and so on to level 0 (4x).
-    let mut path: Option<Tensor<4>> = None;
-    for l in (0..4).rev() {
-        let [w1, b1, w2, b2] = fusion[l];
-        let x = levels[l].clone();
-        let [_, _, h, wd] = x.dims();
-        let x = match path.take() {
-            Some(prev) => resize(prev, (h, wd)) + rcu(x, w1, b1, w),
-            None => rcu(x, w1, b1, w),
-        };
-        path = Some(rcu(x, w2, b2, w));
-    }
-    path.expect("four levels")
-}
-
-/// The output convolutions on the finest map, upsampled to `out`.
-fn dpt_out<'a>(
-    c: &HeadConfig,
-    p: &mut impl Iterator<Item = &'a Tensor<1>>,
-    x: Tensor<4>,
-    out: (usize, usize),
-) -> Tensor<4> {
-    let mut next = || p.next().expect("parameters in param_shapes order");
-    let (hw, hb, ow, ob) = (next(), next(), next(), next());
-    let x = relu(conv(x, hw, Some(hb), (c.width / 2).max(1), 3, 1));
-    resize(conv(x, ow, Some(ob), c.task.channels(), 1, 1), out)
-}
-
 impl HeadArch for Dpt {
     fn name(&self) -> &'static str {
         "dpt"
     }
     fn check(&self, c: &HeadConfig) -> Result<(), HeadsError> {
-        check_dpt(c)
+        if c.layers.len() != 4 || c.in_dims.len() != 4 {
+            return Err(HeadsError::invalid(format!(
+                "the DPT head reads 4 layers (repeats allowed), got {:?}",
+                c.layers
+            )));
+        }
+        if c.width < 2 {
+            return Err(HeadsError::invalid("the DPT width must be at least 2"));
+        }
+        Ok(())
     }
     fn param_shapes(&self, c: &HeadConfig) -> Vec<(String, Vec<usize>)> {
-        let mut s = trunk_shapes(c);
-        s.extend(out_shapes(c));
+        let w = c.width;
+        let mut s: Vec<(String, Vec<usize>)> = Vec::new();
+        for (l, &d) in c.in_dims.iter().enumerate() {
+            s.push((format!("reassemble.{l}.proj.weight"), vec![w, d, 1, 1]));
+            s.push((format!("reassemble.{l}.proj.bias"), vec![w]));
+            if l == 3 {
+                s.push(("reassemble.3.down.weight".into(), vec![w, w, 3, 3]));
+                s.push(("reassemble.3.down.bias".into(), vec![w]));
+            }
+            s.push((format!("reassemble.{l}.rn.weight"), vec![w, w, 3, 3]));
+        }
+        for l in 0..4 {
+            s.push((format!("fusion.{l}.rcu1.weight"), vec![w, w, 3, 3]));
+            s.push((format!("fusion.{l}.rcu1.bias"), vec![w]));
+            s.push((format!("fusion.{l}.rcu2.weight"), vec![w, w, 3, 3]));
+            s.push((format!("fusion.{l}.rcu2.bias"), vec![w]));
+        }
+        let h = (w / 2).max(1);
+        s.push(("head.conv.weight".into(), vec![h, w, 3, 3]));
+        s.push(("head.conv.bias".into(), vec![h]));
+        s.push(("head.out.weight".into(), vec![c.task.channels(), h, 1, 1]));
+        s.push(("head.out.bias".into(), vec![c.task.channels()]));
         s
     }
     fn forward(&self, c: &HeadConfig, p: &[Tensor<1>], feats: &[Tensor<4>], out: (usize, usize)) -> Tensor<4> {
-        let mut p = p.iter();
-        let x = dpt_trunk(c, &mut p, feats);
-        dpt_out(c, &mut p, x, out)
+        let w = c.width;
+        let mut i = 0;
+        let mut next = || {
+            i += 1;
+            &p[i - 1]
+        };
+        let [_, _, gh, gw] = feats[0].dims();
+        let mut levels = Vec::with_capacity(4);
+        for (l, f) in feats.iter().enumerate() {
+            let (pw, pb) = (next(), next());
+            let mut x = conv(f.clone(), pw, Some(pb), w, 1, 1);
+            if l == 3 {
+                let (dw, db) = (next(), next());
+                x = conv(x, dw, Some(db), w, 3, 2);
+            } else {
+                let s = DPT_SCALES[l];
+                x = resize(x, ((gh as f32 * s) as usize, (gw as f32 * s) as usize));
+            }
+            levels.push(conv(x, next(), None, w, 3, 1));
+        }
+        let rcu = |x: Tensor<4>, wt: &Tensor<1>, b: &Tensor<1>| x.clone() + conv(relu(x), wt, Some(b), w, 3, 1);
+        let mut fusion = Vec::with_capacity(4);
+        for _ in 0..4 {
+            fusion.push((next().clone(), next().clone(), next().clone(), next().clone()));
+        }
+        // Coarse to fine: level 3 (1/2x) up to level 2's size, and so on to level 0 (4x).
+        let mut path: Option<Tensor<4>> = None;
+        for l in (0..4).rev() {
+            let (w1, b1, w2, b2) = &fusion[l];
+            let x = levels[l].clone();
+            let [_, _, h, wd] = x.dims();
+            let x = match path.take() {
+                Some(prev) => resize(prev, (h, wd)) + rcu(x, w1, b1),
+                None => rcu(x, w1, b1),
+            };
+            path = Some(rcu(x, w2, b2));
+        }
+        let x = path.expect("four levels");
+        let (hw, hb, ow, ob) = (next(), next(), next(), next());
+        let x = relu(conv(x, hw, Some(hb), (w / 2).max(1), 3, 1));
+        resize(conv(x, ow, Some(ob), c.task.channels(), 1, 1), out)
     }
 }
