@@ -4,8 +4,8 @@
 //! Key: the image's pixels and size (FNV-1a), the backbone id (kind, weights hash, hooked
 //! layers) and the storage precision; a change of any gives a new entry. A file is a JSON
 //! header line padded to 64 bytes, then the layers' values (f32 or f16, little endian); it is
-//! written to a temporary file and renamed, and an entry that does not parse, has the wrong
-//! length or does not say which layers are pixels as its backbone does is recomputed.
+//! written to a temporary file and renamed, and an entry that does not parse or has the wrong
+//! length is recomputed. Which layers are raw pixels is the backbone's to say, not the file's.
 
 use crate::features::{fnv1a, Backbone, FeatureMaps};
 use crate::HeadsError;
@@ -29,8 +29,6 @@ struct Header {
     grid: (usize, usize),
     dims: Vec<usize>,
     f16: bool,
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pixel_layers: Vec<usize>,
 }
 
 const FORMAT: &str = "dens3r-features/1";
@@ -61,7 +59,7 @@ impl FeatureCache {
     /// The features of `image`: read from the cache, or computed and stored.
     pub fn get(&mut self, backbone: &dyn Backbone, image: &RgbImage) -> Result<FeatureMaps, HeadsError> {
         let path = self.entry(backbone, image);
-        if let Some(f) = read_entry(&path, &backbone.id()).filter(|f| f.pixel_layers == backbone.pixel_layers()) {
+        if let Some(f) = read_entry(&path, backbone) {
             self.stats.0 += 1;
             return Ok(f);
         }
@@ -71,7 +69,7 @@ impl FeatureCache {
             .map_err(|e| HeadsError::file(&self.dir, format!("cannot create the cache ({e})")))?;
         write_entry(&path, &backbone.id(), &f, self.precision)?;
         // Served from what was stored, so a cached and a fresh run see the same values.
-        Ok(if self.precision == Precision::F16 { read_entry(&path, &backbone.id()).unwrap_or(f) } else { f })
+        Ok(if self.precision == Precision::F16 { read_entry(&path, backbone).unwrap_or(f) } else { f })
     }
 }
 
@@ -82,7 +80,6 @@ fn write_entry(path: &Path, backbone: &str, f: &FeatureMaps, p: Precision) -> Re
         grid: f.grid,
         dims: f.dims.clone(),
         f16: p == Precision::F16,
-        pixel_layers: f.pixel_layers.clone(),
     };
     let mut bytes = serde_json::to_vec(&header).map_err(|e| HeadsError::file(path, e.to_string()))?;
     bytes.push(b'\n');
@@ -97,14 +94,14 @@ fn write_entry(path: &Path, backbone: &str, f: &FeatureMaps, p: Precision) -> Re
 }
 
 /// Reads an entry; `None` when absent, damaged or of another backbone.
-fn read_entry(path: &Path, backbone: &str) -> Option<FeatureMaps> {
+fn read_entry(path: &Path, backbone: &dyn Backbone) -> Option<FeatureMaps> {
     let file = std::fs::File::open(path).ok()?;
     // SAFETY: cache entries are only ever replaced by rename, never written in place, so the
     // mapped file does not change under us.
     let map = unsafe { memmap2::Mmap::map(&file) }.ok()?;
     let nl = map.iter().position(|&b| b == b'\n')?;
     let header: Header = serde_json::from_slice(&map[..nl]).ok()?;
-    if header.format != FORMAT || header.backbone != backbone {
+    if header.format != FORMAT || header.backbone != backbone.id() {
         return None;
     }
     let start = (nl + 1).div_ceil(64) * 64;
@@ -126,5 +123,5 @@ fn read_entry(path: &Path, backbone: &str) -> Option<FeatureMaps> {
         };
         layers.push(v);
     }
-    Some(FeatureMaps { grid: header.grid, dims: header.dims, layers, pixel_layers: header.pixel_layers })
+    Some(FeatureMaps { grid: header.grid, dims: header.dims, layers, pixel_layers: backbone.pixel_layers() })
 }
