@@ -2,7 +2,7 @@
 //! images), with the image-blind constant beside depth scores.
 
 use crate::eval::{depth_align, Align};
-use crate::train_head::features;
+use crate::train_head::{class_iou_json, features};
 use anyhow::{anyhow, Result};
 use clap::Args;
 use dens3r_geom::metrics::DepthAlign;
@@ -35,6 +35,9 @@ pub struct HeadArgs {
     /// Feature cache folder (default: HEAD.features/, as train-head's).
     #[arg(long)]
     cache: Option<PathBuf>,
+    /// The cache holds f16 features (as `train-head --f16` stored them).
+    #[arg(long)]
+    f16: bool,
     /// Print JSON instead of text.
     #[arg(long)]
     json: bool,
@@ -54,17 +57,21 @@ pub fn run(a: HeadArgs) -> Result<()> {
         eprintln!("classes the head does not know, left out of the scores: {}", unknown.join(", "));
     }
     let cache_dir = a.cache.clone().unwrap_or_else(|| a.head.with_extension("features"));
-    let examples = features(&cache_dir, Precision::F32, backbone.as_ref(), vec![samples])?.remove(0);
+    let precision = if a.f16 { Precision::F16 } else { Precision::F32 };
+    let examples = features(&cache_dir, precision, backbone.as_ref(), vec![samples])?.remove(0);
     let align = depth_align(a.align);
     let (v, conf) = evaluate_confusion(&head, &examples, align);
     let mut out = json!({ "head": a.head, "images": examples.len(), "data": a.data });
+    let mut text = vec![format!("{}: {} images", a.head.display(), examples.len())];
     match &head.config.task {
         Task::Seg { classes } => {
-            let ious: serde_json::Map<String, serde_json::Value> =
-                (0..conf.k).filter_map(|c| conf.iou(c).map(|v| (classes[c].clone(), v.into()))).collect();
+            let ious = conf.class_ious(classes);
             out["miou"] = v.miou.into();
             out["pixel_accuracy"] = v.pixel_accuracy.into();
-            out["class_iou"] = ious.into();
+            out["class_iou"] = class_iou_json(&ious);
+            text.push(format!("mIoU {:.4}  pixel accuracy {:.4}", v.miou, v.pixel_accuracy));
+            let per: Vec<String> = ious.iter().map(|(k, v)| format!("{k} {v:.3}")).collect();
+            text.push(format!("class IoU: {}", per.join(", ")));
         }
         Task::Depth => {
             // The image-blind constant: each image's ground-truth median everywhere.
@@ -75,36 +82,19 @@ pub fn run(a: HeadArgs) -> Result<()> {
                     constant.add(vec![1.0; w * h], d, w, h, DepthAlign::MedianScale);
                 }
             }
+            let (c_abs, c_d1) = (constant.abs_rel(), constant.delta1());
             out["align"] = format!("{align:?}").into();
             out["abs_rel"] = v.abs_rel.into();
             out["delta1"] = v.delta1.into();
-            out["constant"] = json!({ "abs_rel": constant.abs_rel(), "delta1": constant.delta1() });
+            out["constant"] = json!({ "abs_rel": c_abs, "delta1": c_d1 });
+            text.push(format!("AbsRel {:.4}  delta1 {:.4}  (alignment {align:?})", v.abs_rel, v.delta1));
+            text.push(format!("constant (each image's median depth): AbsRel {c_abs:.4}  delta1 {c_d1:.4}"));
         }
     }
     if a.json {
         println!("{out}");
-        return Ok(());
-    }
-    println!("{}: {} images", a.head.display(), examples.len());
-    match &head.config.task {
-        Task::Seg { .. } => {
-            println!("mIoU {:.4}  pixel accuracy {:.4}", v.miou, v.pixel_accuracy);
-            let per: Vec<String> = out["class_iou"]
-                .as_object()
-                .expect("set above")
-                .iter()
-                .map(|(k, v)| format!("{k} {:.3}", v.as_f64().unwrap_or(f64::NAN)))
-                .collect();
-            println!("class IoU: {}", per.join(", "));
-        }
-        Task::Depth => {
-            println!("AbsRel {:.4}  delta1 {:.4}  (alignment {align:?})", v.abs_rel, v.delta1);
-            println!(
-                "constant (each image's median depth): AbsRel {:.4}  delta1 {:.4}",
-                out["constant"]["abs_rel"].as_f64().unwrap_or(f64::NAN),
-                out["constant"]["delta1"].as_f64().unwrap_or(f64::NAN)
-            );
-        }
+    } else {
+        println!("{}", text.join("\n"));
     }
     Ok(())
 }

@@ -228,11 +228,14 @@ fn summary(a: &TrainHeadArgs, trainer: &mut Trainer, train: usize, val: &[Exampl
             Some(c) => c,
             None => evaluate_confusion(&trainer.head, val, trainer.options.depth_loss.align()).1,
         };
-        let ious: serde_json::Map<String, serde_json::Value> =
-            (0..conf.k).filter_map(|c| conf.iou(c).map(|v| (classes[c].clone(), v.into()))).collect();
-        summary["class_iou"] = ious.into();
+        summary["class_iou"] = class_iou_json(&conf.class_ious(classes));
     }
     summary
+}
+
+/// Per-class IoU as a JSON object (name -> IoU).
+pub fn class_iou_json(ious: &[(String, f64)]) -> serde_json::Value {
+    ious.iter().map(|(k, v)| (k.clone(), serde_json::Value::from(*v))).collect::<serde_json::Map<_, _>>().into()
 }
 
 /// A fresh head for the backbone's layers (the pointmap head from the checkpoint's).

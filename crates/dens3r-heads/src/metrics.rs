@@ -33,6 +33,10 @@ impl Confusion {
         let col: u64 = (0..self.k).map(|r| self.counts[r * self.k + c]).sum();
         (row > 0).then(|| tp / (row as f64 + col as f64 - tp))
     }
+    /// `(name, IoU)` of each class present in the ground truth, in id order (`names` by id).
+    pub fn class_ious(&self, names: &[String]) -> Vec<(String, f64)> {
+        (0..self.k).filter_map(|c| self.iou(c).map(|v| (names[c].clone(), v))).collect()
+    }
     /// Mean IoU over the classes present in the ground truth.
     pub fn miou(&self) -> f64 {
         let ious: Vec<f64> = (0..self.k).filter_map(|c| self.iou(c)).collect();
