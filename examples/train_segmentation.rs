@@ -27,7 +27,8 @@ fn main() -> Result<(), dens3r_heads::HeadsError> {
         for scene in ["orbit", "room"] {
             let samples = data::load_folder(&root.join("data-samples").join(scene), Want::Labels, 224, 14)?;
             for (i, s) in samples.into_iter().enumerate() {
-                let features = cache.get(bb.as_ref(), &s.image)?;
+                // A cache entry, read at each use: the features are not held in memory.
+                let features = cache.store(bb.as_ref(), &s.image)?.into();
                 let ex = Example { sample: s, features };
                 if i % 4 == 3 {
                     val.push(ex)

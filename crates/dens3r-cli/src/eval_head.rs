@@ -60,7 +60,7 @@ pub fn run(a: HeadArgs) -> Result<()> {
     let precision = if a.f16 { Precision::F16 } else { Precision::F32 };
     let examples = features(&cache_dir, precision, backbone.as_ref(), vec![samples])?.remove(0);
     let align = depth_align(a.align);
-    let (v, conf) = evaluate_confusion(&head, &examples, align);
+    let (v, conf) = evaluate_confusion(&head, &examples, align).map_err(|e| anyhow!(e))?;
     let mut out = json!({ "head": a.head, "images": examples.len(), "data": a.data });
     let mut text = vec![format!("{}: {} images", a.head.display(), examples.len())];
     match &head.config.task {

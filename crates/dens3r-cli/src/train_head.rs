@@ -165,8 +165,9 @@ fn train_options(a: &TrainHeadArgs) -> Result<TrainOptions> {
     Ok(options)
 }
 
-/// The samples' features, from the cache in `cache_dir` or computed (and stored there); one
-/// line says how many came from where.
+/// The samples' features as cache entries in `cache_dir` (computed and stored where missing),
+/// read at each use, so no set's features are held in memory; one line says how many came
+/// from where.
 pub fn features(
     cache_dir: &Path,
     precision: Precision,
@@ -183,9 +184,9 @@ pub fn features(
             samples
                 .into_iter()
                 .map(|s| {
-                    let f = cache.get(backbone, &s.image).map_err(|e| anyhow!(e))?;
+                    let f = cache.store(backbone, &s.image).map_err(|e| anyhow!(e))?;
                     bar.inc(1);
-                    Ok(Example { sample: s, features: f })
+                    Ok(Example { sample: s, features: f.into() })
                 })
                 .collect::<Result<Vec<_>>>()
         })
@@ -208,7 +209,7 @@ fn epoch_line(v: &dens3r_heads::train::Validation, train: f64, seg: bool, no_val
 
 /// The run's summary (JSON): where the head is, the data, the last validation scores (null
 /// without validation images) and, for segmentation, per-class IoU.
-fn summary(a: &TrainHeadArgs, trainer: &mut Trainer, train: usize, val: &[Example]) -> serde_json::Value {
+fn summary(a: &TrainHeadArgs, trainer: &mut Trainer, train: usize, val: &[Example]) -> Result<serde_json::Value> {
     let no_val = val.is_empty();
     let last = trainer.history.last().copied().unwrap_or_default();
     let mut summary = serde_json::json!({
@@ -226,11 +227,13 @@ fn summary(a: &TrainHeadArgs, trainer: &mut Trainer, train: usize, val: &[Exampl
         // The last epoch's, unless this call resumed a finished run and validated nothing.
         let conf = match trainer.confusion.take() {
             Some(c) => c,
-            None => evaluate_confusion(&trainer.head, val, trainer.options.depth_loss.align()).1,
+            None => {
+                evaluate_confusion(&trainer.head, val, trainer.options.depth_loss.align()).map_err(|e| anyhow!(e))?.1
+            }
         };
         summary["class_iou"] = class_iou_json(&conf.class_ious(classes));
     }
-    summary
+    Ok(summary)
 }
 
 /// Per-class IoU as a JSON object (name -> IoU).
@@ -379,7 +382,7 @@ pub fn run(a: TrainHeadArgs) -> Result<()> {
         return Ok(());
     }
     trainer.head.save(&a.output).map_err(|e| anyhow!(e))?;
-    println!("{}", summary(&a, &mut trainer, train.len(), &val));
+    println!("{}", summary(&a, &mut trainer, train.len(), &val)?);
     Ok(())
 }
 

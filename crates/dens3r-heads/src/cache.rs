@@ -1,5 +1,7 @@
 //! On-disk feature cache: each image's frozen features are computed once and memory-mapped
-//! afterwards, so training epochs never re-run the backbone.
+//! afterwards, so training epochs never re-run the backbone. [`FeatureCache::store`] hands out
+//! [`StoredFeatures`], a complete entry read at each use, so a training set's features need
+//! not fit in memory.
 //!
 //! Key: the image's pixels and size (FNV-1a), the backbone id (kind, weights hash, hooked
 //! layers) and the storage precision; a change of any gives a new entry. A file is a JSON
@@ -58,18 +60,63 @@ impl FeatureCache {
 
     /// The features of `image`: read from the cache, or computed and stored.
     pub fn get(&mut self, backbone: &dyn Backbone, image: &RgbImage) -> Result<FeatureMaps, HeadsError> {
+        self.store(backbone, image)?.read()
+    }
+
+    /// Makes sure `image` has a complete entry (computing and storing its features when it has
+    /// none, or a damaged one) and returns it without holding its values.
+    pub fn store(&mut self, backbone: &dyn Backbone, image: &RgbImage) -> Result<StoredFeatures, HeadsError> {
         let path = self.entry(backbone, image);
-        if let Some(f) = read_entry(&path, backbone) {
-            self.stats.0 += 1;
-            return Ok(f);
-        }
-        let f = backbone.extract(image);
-        self.stats.1 += 1;
-        std::fs::create_dir_all(&self.dir)
-            .map_err(|e| HeadsError::file(&self.dir, format!("cannot create the cache ({e})")))?;
-        write_entry(&path, &backbone.id(), &f, self.precision)?;
+        let id = backbone.id();
+        let header = match check_entry(&path, &id) {
+            Some(h) => {
+                self.stats.0 += 1;
+                h
+            }
+            None => {
+                let f = backbone.extract(image);
+                self.stats.1 += 1;
+                std::fs::create_dir_all(&self.dir)
+                    .map_err(|e| HeadsError::file(&self.dir, format!("cannot create the cache ({e})")))?;
+                write_entry(&path, &id, &f, self.precision)?;
+                check_entry(&path, &id).ok_or_else(|| {
+                    HeadsError::file(&path, "the entry just written does not read back; check the disk")
+                })?
+            }
+        };
         // Served from what was stored, so a cached and a fresh run see the same values.
-        Ok(if self.precision == Precision::F16 { read_entry(&path, backbone).unwrap_or(f) } else { f })
+        Ok(StoredFeatures { path, backbone: id, grid: header.grid, pixel_layers: backbone.pixel_layers() })
+    }
+}
+
+/// A complete cache entry: one image's features, read from disk at each [`StoredFeatures::read`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredFeatures {
+    path: PathBuf,
+    backbone: String,
+    grid: (usize, usize),
+    pixel_layers: Vec<usize>,
+}
+
+impl StoredFeatures {
+    /// Token grid `(rows, cols)`.
+    pub fn grid(&self) -> (usize, usize) {
+        self.grid
+    }
+
+    /// The entry's file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The features, read from the entry.
+    pub fn read(&self) -> Result<FeatureMaps, HeadsError> {
+        read_entry(&self.path, &self.backbone, &self.pixel_layers).filter(|f| f.grid == self.grid).ok_or_else(|| {
+            HeadsError::file(
+                &self.path,
+                "this feature-cache entry vanished or changed while in use; rerun, which recomputes it",
+            )
+        })
     }
 }
 
@@ -93,24 +140,40 @@ fn write_entry(path: &Path, backbone: &str, f: &FeatureMaps, p: Precision) -> Re
     Ok(dens3r_io::write_atomic(path, |w| std::io::Write::write_all(w, &bytes))?)
 }
 
-/// Reads an entry; `None` when absent, damaged or of another backbone.
-fn read_entry(path: &Path, backbone: &dyn Backbone) -> Option<FeatureMaps> {
-    let file = std::fs::File::open(path).ok()?;
-    // SAFETY: cache entries are only ever replaced by rename, never written in place, so the
-    // mapped file does not change under us.
-    let map = unsafe { memmap2::Mmap::map(&file) }.ok()?;
+/// The header and data offset of a complete entry of backbone `id` in `map`.
+fn parse_header(map: &[u8], id: &str) -> Option<(Header, usize)> {
     let nl = map.iter().position(|&b| b == b'\n')?;
     let header: Header = serde_json::from_slice(&map[..nl]).ok()?;
-    if header.format != FORMAT || header.backbone != backbone.id() {
+    if header.format != FORMAT || header.backbone != id {
         return None;
     }
     let start = (nl + 1).div_ceil(64) * 64;
     let n = header.grid.0.checked_mul(header.grid.1)?;
     let size = if header.f16 { 2 } else { 4 };
     let total = header.dims.iter().try_fold(0usize, |t, d| t.checked_add(d.checked_mul(n)?))?;
-    if Some(map.len()) != total.checked_mul(size).and_then(|b| b.checked_add(start)) {
-        return None;
-    }
+    (Some(map.len()) == total.checked_mul(size).and_then(|b| b.checked_add(start))).then_some((header, start))
+}
+
+/// Maps an entry file.
+fn map_entry(path: &Path) -> Option<memmap2::Mmap> {
+    let file = std::fs::File::open(path).ok()?;
+    // SAFETY: cache entries are only ever replaced by rename, never written in place, so the
+    // mapped file does not change under us.
+    unsafe { memmap2::Mmap::map(&file) }.ok()
+}
+
+/// The header of a complete entry of backbone `id`; `None` when absent, damaged or of another
+/// backbone. Reads no values.
+fn check_entry(path: &Path, id: &str) -> Option<Header> {
+    parse_header(&map_entry(path)?, id).map(|(h, _)| h)
+}
+
+/// Reads an entry; `None` when absent, damaged or of another backbone.
+fn read_entry(path: &Path, id: &str, pixel_layers: &[usize]) -> Option<FeatureMaps> {
+    let map = map_entry(path)?;
+    let (header, start) = parse_header(&map, id)?;
+    let n = header.grid.0 * header.grid.1;
+    let size = if header.f16 { 2 } else { 4 };
     let mut at = start;
     let mut layers = Vec::with_capacity(header.dims.len());
     for d in &header.dims {
@@ -123,5 +186,5 @@ fn read_entry(path: &Path, backbone: &dyn Backbone) -> Option<FeatureMaps> {
         };
         layers.push(v);
     }
-    Some(FeatureMaps { grid: header.grid, dims: header.dims, layers, pixel_layers: backbone.pixel_layers() })
+    Some(FeatureMaps { grid: header.grid, dims: header.dims, layers, pixel_layers: pixel_layers.to_vec() })
 }

@@ -27,4 +27,4 @@ pub mod train;
 pub use error::HeadsError;
 pub use features::{Backbone, Dens3rBackbone, Dinov2Backbone, FeatureMaps, PixelBackbone};
 pub use head::{Head, HeadConfig, Task};
-pub use train::{Example, TrainOptions, Trainer};
+pub use train::{Example, Features, TrainOptions, Trainer};

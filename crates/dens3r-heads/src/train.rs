@@ -9,6 +9,7 @@
 //! augmentation from `(seed, step)`, so a run resumed from a checkpoint takes the same steps as
 //! one never interrupted.
 
+use crate::cache::StoredFeatures;
 use crate::data::{Sample, Target};
 use crate::features::{to_vec, Backbone, FeatureMaps};
 use crate::head::{Head, Task};
@@ -21,6 +22,7 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 /// Depth loss.
@@ -133,7 +135,47 @@ pub struct Example {
     /// The sample (image and full-resolution target).
     pub sample: Sample,
     /// Its frozen features.
-    pub features: FeatureMaps,
+    pub features: Features,
+}
+
+/// Where an example's features are.
+#[derive(Debug, Clone)]
+pub enum Features {
+    /// In memory.
+    Held(FeatureMaps),
+    /// A feature-cache entry, read at each use: what `train-head` gives, so a set of any size
+    /// trains without its features in memory.
+    Stored(StoredFeatures),
+}
+
+impl From<FeatureMaps> for Features {
+    fn from(f: FeatureMaps) -> Self {
+        Features::Held(f)
+    }
+}
+
+impl From<StoredFeatures> for Features {
+    fn from(f: StoredFeatures) -> Self {
+        Features::Stored(f)
+    }
+}
+
+impl Features {
+    /// Token grid `(rows, cols)`.
+    pub fn grid(&self) -> (usize, usize) {
+        match self {
+            Features::Held(f) => f.grid,
+            Features::Stored(s) => s.grid(),
+        }
+    }
+
+    /// The values (read from the cache entry when stored).
+    pub fn load(&self) -> Result<Cow<'_, FeatureMaps>, HeadsError> {
+        Ok(match self {
+            Features::Held(f) => Cow::Borrowed(f),
+            Features::Stored(s) => Cow::Owned(s.read()?),
+        })
+    }
 }
 
 /// One augmented training draw: cropped (and flipped) features and target.
@@ -277,7 +319,7 @@ impl Trainer {
 
     /// Crops drawn from an example per epoch (see [`TrainOptions::crops_per_image`]).
     pub fn crops_per_epoch(&self, ex: &Example) -> usize {
-        let (gh, gw) = ex.features.grid;
+        let (gh, gw) = ex.features.grid();
         match (self.options.crops_per_image, self.options.crop) {
             (Some(k), _) => k,
             (None, Some((r, c))) => gh.div_ceil(r.min(gh)) * gw.div_ceil(c.min(gw)),
@@ -344,11 +386,16 @@ impl Trainer {
     }
 
     /// An augmented copy of an example (crop with its context band, flip, jitter), drawn
-    /// from `rng`.
-    pub fn augment(&self, ex: &Example, rng: &mut ChaCha8Rng, backbone: Option<&dyn Backbone>) -> Draw {
+    /// from `rng`; fails only when a stored example's cache entry cannot be read.
+    pub fn augment(
+        &self,
+        ex: &Example,
+        rng: &mut ChaCha8Rng,
+        backbone: Option<&dyn Backbone>,
+    ) -> Result<Draw, HeadsError> {
         let o = &self.options;
         let p = self.head.config.patch;
-        let (gh, gw) = ex.features.grid;
+        let (gh, gw) = ex.features.grid();
         let (rows, cols) = o.crop.map_or((gh, gw), |(r, c)| (r.min(gh), c.min(gw)));
         let r0 = rng.gen_range(0..=gh - rows);
         let c0 = rng.gen_range(0..=gw - cols);
@@ -365,7 +412,7 @@ impl Trainer {
             Some(bb) if o.jitter > 0.0 => {
                 bb.extract(&jitter(&ex.sample.image, o.jitter, rng)).crop(r0, c0, rows, cols, flip)
             }
-            _ => ex.features.crop(r0, c0, rows, cols, flip),
+            _ => ex.features.load()?.crop(r0, c0, rows, cols, flip),
         };
         let w = ex.sample.image.width() as usize;
         let (ph, pw) = (rows * p, cols * p);
@@ -378,7 +425,7 @@ impl Trainer {
             Target::Labels(l) => Target::Labels((0..ph * pw).map(|i| pick(i).map_or(IGNORE, |j| l[j])).collect()),
             Target::Depth(d) => Target::Depth((0..ph * pw).map(|i| pick(i).map_or(0.0, |j| d[j])).collect()),
         };
-        Draw { features, target, size: (ph, pw) }
+        Ok(Draw { features, target, size: (ph, pw) })
     }
 
     /// Trains to the end of `options.epochs`, validating after every epoch, checkpointing to
@@ -413,13 +460,14 @@ impl Trainer {
             let idx = &order[within * self.options.batch..((within + 1) * self.options.batch).min(order.len())];
             let mut rng =
                 ChaCha8Rng::seed_from_u64(self.options.seed.wrapping_mul(6364136223846793005) ^ self.step as u64);
-            let batch: Vec<_> = idx.iter().map(|&i| self.augment(&train[i], &mut rng, backbone)).collect();
+            let batch =
+                idx.iter().map(|&i| self.augment(&train[i], &mut rng, backbone)).collect::<Result<Vec<_>, _>>()?;
             let lr = self.lr_at(self.step, total);
             let loss = self.train_step(&batch, lr);
             self.step += 1;
             let mut validation = None;
             if self.step.is_multiple_of(per_epoch) {
-                let (mut v, confusion) = evaluate_confusion(&self.head, val, self.options.depth_loss.align());
+                let (mut v, confusion) = evaluate_confusion(&self.head, val, self.options.depth_loss.align())?;
                 self.confusion = Some(confusion);
                 v.epoch = self.step / per_epoch;
                 self.history.push(v);
@@ -439,20 +487,25 @@ impl Trainer {
 /// Segmentation or depth metrics of a head on examples (whole images, plain CPU device).
 /// Depth is scored as predicted for SILog heads, and after the per-image least-squares scale
 /// and shift for affine-invariant ones.
-pub fn evaluate(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> Validation {
-    evaluate_confusion(head, examples, depth_loss.align()).0
+pub fn evaluate(head: &Head, examples: &[Example], depth_loss: DepthLoss) -> Result<Validation, HeadsError> {
+    Ok(evaluate_confusion(head, examples, depth_loss.align())?.0)
 }
 
 /// [`evaluate`] with depth aligned by `align` before scoring, and the segmentation confusion
 /// matrix (rows = ground truth) for per-class IoU.
-pub fn evaluate_confusion(head: &Head, examples: &[Example], align: DepthAlign) -> (Validation, Confusion) {
+pub fn evaluate_confusion(
+    head: &Head,
+    examples: &[Example],
+    align: DepthAlign,
+) -> Result<(Validation, Confusion), HeadsError> {
     let device = Device::flex();
     let params = head.tensors(&device);
     let mut conf = Confusion::new(head.config.task.channels());
     let mut depth = DepthStats::default();
     for ex in examples {
         let (w, h) = (ex.sample.image.width() as usize, ex.sample.image.height() as usize);
-        let feats: Vec<Tensor<4>> = head.config.layers.iter().map(|&l| ex.features.tensor(l, &device)).collect();
+        let f = ex.features.load()?;
+        let feats: Vec<Tensor<4>> = head.config.layers.iter().map(|&l| f.tensor(l, &device)).collect();
         let out = head.forward_with(&params, &feats, (h, w));
         match &ex.sample.target {
             Target::Labels(l) => conf.add(&argmax_channels(&to_vec(out), conf.k, h * w), l),
@@ -466,7 +519,7 @@ pub fn evaluate_confusion(head: &Head, examples: &[Example], align: DepthAlign) 
         abs_rel: depth.abs_rel(),
         delta1: depth.delta1(),
     };
-    (v, conf)
+    Ok((v, conf))
 }
 
 /// Per-pixel argmax over `k` channel planes of `n` pixels.

@@ -10,7 +10,7 @@ use dens3r_heads::loss::{affine_invariant, cross_entropy, silog, IGNORE};
 use dens3r_heads::metrics::Confusion;
 use dens3r_heads::train::{evaluate, DepthLoss};
 use dens3r_heads::{
-    Backbone, Example, FeatureMaps, Head, HeadConfig, HeadsError, PixelBackbone, Task, TrainOptions, Trainer,
+    Backbone, Example, FeatureMaps, Features, Head, HeadConfig, HeadsError, PixelBackbone, Task, TrainOptions, Trainer,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -212,14 +212,17 @@ fn depth_heads_learn_a_known_rule() {
                 let depth: Vec<f32> =
                     (0..t).map(|k| (0.8 * f.layers[0][k] - 0.4 * f.layers[0][2 * t + k] + 1.0).exp()).collect();
                 let image = image::RgbImage::new(grid.1 as u32, grid.0 as u32);
-                Example { sample: Sample { name: format!("d{i}"), image, target: Target::Depth(depth) }, features: f }
+                Example {
+                    sample: Sample { name: format!("d{i}"), image, target: Target::Depth(depth) },
+                    features: f.into(),
+                }
             })
             .collect()
     };
     let (train, val) = (make(12), make(4));
     for loss in [DepthLoss::Silog, DepthLoss::AffineInvariant] {
         let head = Head::new(config("linear", Task::Depth, &[6], vec![0], 4, 1), 5).unwrap();
-        let before = evaluate(&head, &val, loss);
+        let before = evaluate(&head, &val, loss).unwrap();
         let options = TrainOptions { epochs: 60, batch: 3, lr: 0.05, depth_loss: loss, ..TrainOptions::default() };
         let mut t = Trainer::new(head, options, ad()).unwrap();
         t.fit(&train, &val, None, None, None, &mut |_| {}).unwrap();
@@ -258,7 +261,10 @@ fn linear_rule_examples(n: usize, seed: u64) -> Vec<Example> {
                 };
             }
             let image = image::RgbImage::new((grid.1 * patch) as u32, (grid.0 * patch) as u32);
-            Example { sample: Sample { name: format!("s{i}"), image, target: Target::Labels(labels) }, features: f }
+            Example {
+                sample: Sample { name: format!("s{i}"), image, target: Target::Labels(labels) },
+                features: f.into(),
+            }
         })
         .collect()
 }
@@ -276,7 +282,7 @@ fn training_learns_and_resume_repeats_the_uninterrupted_run() {
         checkpoint_every: 5,
         ..TrainOptions::default()
     };
-    let before = evaluate(&head, &val, DepthLoss::Silog).miou;
+    let before = evaluate(&head, &val, DepthLoss::Silog).unwrap().miou;
     let mut full = Trainer::new(head.clone(), options.clone(), ad()).unwrap();
     full.fit(&train, &val, None, None, None, &mut |_| {}).unwrap();
     let after = full.history.last().unwrap().miou;
@@ -313,6 +319,49 @@ fn training_learns_and_resume_repeats_the_uninterrupted_run() {
     std::fs::write(ck.join("head.safetensors"), b"garbage").unwrap();
     let e = Trainer::resume(&ck, &head, &options, ad()).err().unwrap().to_string();
     assert!(e.contains("head.safetensors"), "{e}");
+}
+
+/// Features streamed from the cache (read at each draw) train the same head as the same
+/// features held in memory, flips of pixel layers included; an entry that vanishes mid-run is
+/// an error naming it, never a panic.
+#[test]
+fn stored_features_train_as_held_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let bb = PixelBackbone { patch: 2 };
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut cache = FeatureCache::new(dir.path(), Precision::F32);
+    let (mut held, mut stored) = (Vec::new(), Vec::new());
+    for i in 0..8 {
+        let image = image::RgbImage::from_fn(10, 8, |_, _| image::Rgb([rng.gen(), rng.gen(), rng.gen()]));
+        // Label: is the red channel bright (a rule the pixel features carry).
+        let labels: Vec<u16> = image.pixels().map(|p| (p[0] > 128) as u16).collect();
+        let sample = Sample { name: format!("s{i}"), image, target: Target::Labels(labels) };
+        let entry = cache.store(&bb, &sample.image).unwrap();
+        assert_eq!(entry.grid(), (4, 5));
+        held.push(Example { sample: sample.clone(), features: bb.extract(&sample.image).into() });
+        stored.push(Example { sample, features: entry.into() });
+    }
+    assert_eq!(cache.stats, (0, 8));
+    let head = Head::new(config("linear", seg(2), &[12], vec![0], 4, 2), 3).unwrap();
+    let options = TrainOptions { epochs: 3, batch: 2, lr: 0.05, crop: Some((3, 3)), ..TrainOptions::default() };
+    let mut a = Trainer::new(head.clone(), options.clone(), ad()).unwrap();
+    a.fit(&held[..6], &held[6..], None, None, None, &mut |_| {}).unwrap();
+    let mut b = Trainer::new(head.clone(), options.clone(), ad()).unwrap();
+    b.fit(&stored[..6], &stored[6..], None, None, None, &mut |_| {}).unwrap();
+    assert!(a.history.last().unwrap().pixel_accuracy > 0.6, "{:?}", a.history);
+    assert_eq!((&a.head.values, &a.history), (&b.head.values, &b.history));
+    // The same entries are hits now.
+    cache.store(&bb, &held[0].sample.image).unwrap();
+    assert_eq!(cache.stats, (1, 8));
+
+    let Features::Stored(gone) = &stored[3].features else { panic!("stored") };
+    std::fs::remove_file(gone.path()).unwrap();
+    let mut c = Trainer::new(head, options, ad()).unwrap();
+    let e = c.fit(&stored[..6], &stored[6..], None, None, None, &mut |_| {}).unwrap_err();
+    assert!(
+        matches!(&e, HeadsError::File { path, message } if path == gone.path() && message.contains("rerun")),
+        "{e}"
+    );
 }
 
 /// An epoch draws enough crops of each image to tile its token grid once (so its meaning does
@@ -369,9 +418,10 @@ fn crops_carry_unlabelled_context() {
     let image = image::RgbImage::new(w as u32, h as u32);
     let seg_ex = Example {
         sample: Sample { name: "s".into(), image: image.clone(), target: Target::Labels(labels) },
-        features: features.clone(),
+        features: features.clone().into(),
     };
-    let depth_ex = Example { sample: Sample { name: "d".into(), image, target: Target::Depth(depth) }, features };
+    let depth_ex =
+        Example { sample: Sample { name: "d".into(), image, target: Target::Depth(depth) }, features: features.into() };
     for (context, ex) in [(0, &seg_ex), (2, &seg_ex), (2, &depth_ex), (7, &seg_ex)] {
         let task = if matches!(ex.sample.target, Target::Depth(_)) { Task::Depth } else { seg(3) };
         let head = Head::new(config("linear", task, &[2], vec![0], 4, p), 0).unwrap();
@@ -380,7 +430,7 @@ fn crops_carry_unlabelled_context() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let (mut flips, mut edges) = (0, 0);
         for _ in 0..60 {
-            let d = t.augment(ex, &mut rng, None);
+            let d = t.augment(ex, &mut rng, None).unwrap();
             let (rows, cols) = d.features.grid;
             let at = |r: usize, c: usize, ch: usize| d.features.layers[0][ch * rows * cols + r * cols + c] as usize;
             let (r0, c_first, c_last) = (at(0, 0, 0), at(0, 0, 1), at(0, cols - 1, 1));
@@ -625,7 +675,7 @@ fn dinov2_stays_frozen_while_a_head_trains() {
     let head = Head::new(config("linear", Task::Seg { classes: names }, &dims, vec![3], 4, 14), 1).unwrap();
     let options = TrainOptions { epochs: 2, batch: 1, jitter: 0.3, ..TrainOptions::default() };
     let mut t = Trainer::new(head, options, ad()).unwrap();
-    let ex = vec![Example { sample, features }];
+    let ex = vec![Example { sample, features: features.into() }];
     t.fit(&ex, &ex, Some(&bb), None, None, &mut |_| {}).unwrap();
     let again = bb.extract(&ex[0].sample.image);
     assert!(probe
