@@ -10,3 +10,5 @@ if bash scripts/gpu-setup.sh; then
   export DENS3R_REQUIRE_GPU="${DENS3R_REQUIRE_GPU:-1}"
 fi
 cargo test --workspace --locked
+# The Python package (python/): its extension linked from the same test build, then pytest.
+bash scripts/python-test.sh

@@ -4,9 +4,9 @@
 use anyhow::{anyhow, bail, Result};
 use clap::Args;
 use dens3r_backbone::default_model;
-use dens3r_backbone::verify::load_model;
 use dens3r_backbone::Dens3r;
 use dens3r_heads::Backbone;
+use dens3r_recon::model::ModelFiles;
 use std::path::{Path, PathBuf};
 
 #[derive(Args)]
@@ -39,36 +39,16 @@ pub fn check_size(size: u32) -> Result<()> {
     Ok(())
 }
 
-/// The checkpoint and its config: `weights` / `config` as given, or the bundled default model
-/// (dens3r-s), saying so in one line on stderr.
+/// The checkpoint and its config: `weights` / `config` as given, a known name fetched with a
+/// progress bar, or the bundled default model (dens3r-s), saying so in one line on stderr.
 pub fn resolve_model(weights: Option<&Path>, config: Option<&Path>) -> Result<(PathBuf, Option<PathBuf>)> {
-    // A known name (not a path that exists): its folder in the cache, fetched when missing.
-    let named = match weights.filter(|w| !w.exists()).and_then(|w| w.to_str()).and_then(dens3r_hub::find) {
-        Some(k) => Some(crate::models::fetch(k)?),
-        None => None,
-    };
-    match named.as_deref().or(weights) {
-        Some(w) if !w.exists() => bail!(
-            "{}: weights not found (a .safetensors / .pth checkpoint, a Hugging Face folder or a name `dens3r models` lists; leave --weights out for the bundled {})",
-            w.display(),
-            default_model::NAME
-        ),
-        // A Hugging Face style folder: its files, so that callers reading the weights see one.
-        Some(w) if w.is_dir() => {
-            let (file, cfg) = dens3r_backbone::verify::model_folder_files(w).map_err(anyhow::Error::msg)?;
-            Ok((file, config.map(Path::to_path_buf).or(cfg)))
-        }
-        Some(w) => Ok((w.to_path_buf(), config.map(Path::to_path_buf))),
-        None => {
-            let dir = default_model::locate()?;
-            eprintln!("{}", default_model::notice(&dir));
-            if dir.is_file() {
-                return Ok((dir, config.map(Path::to_path_buf)));
-            }
-            let (file, cfg) = dens3r_backbone::verify::model_folder_files(&dir).map_err(anyhow::Error::msg)?;
-            Ok((file, config.map(Path::to_path_buf).or(cfg)))
-        }
+    let files = dens3r_recon::model::resolve(weights, config, &mut |k| {
+        crate::models::fetch(k).map_err(|e| dens3r_recon::ReconError::Other(e.to_string()))
+    })?;
+    if let Some(n) = &files.default_notice {
+        eprintln!("{n}");
     }
+    Ok((files.weights, files.config))
 }
 
 impl ModelArgs {
@@ -81,8 +61,9 @@ impl ModelArgs {
 /// Loads the network of [`resolve_model`]'s files on the CPU, or with `gpu` on the GPU
 /// ([`dens3r_backbone::device::network_device`]), warning about unused checkpoint keys.
 pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<Dens3r> {
-    let device = dens3r_backbone::device::network_device(gpu)?;
-    let (model, unexpected) = load_model(weights, config, &device).map_err(anyhow::Error::msg)?;
+    let files =
+        ModelFiles { weights: weights.to_path_buf(), config: config.map(Path::to_path_buf), default_notice: None };
+    let (model, unexpected) = dens3r_recon::model::load_network(&files, gpu)?;
     if !unexpected.is_empty() {
         eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);
     }

@@ -44,19 +44,6 @@ pub fn run(a: ModelsArgs) -> Result<()> {
 /// The folder of the known checkpoint `k` (the bundled one's, or its cache folder, downloaded
 /// first when missing, with a progress bar on stderr).
 pub fn fetch(k: &Known) -> Result<PathBuf> {
-    if let Source::Bundled = k.source {
-        return Ok(dens3r_backbone::default_model::locate()?);
-    }
-    if dens3r_hub::is_cached(k) {
-        return Ok(dens3r_hub::model_dir(k));
-    }
-    eprintln!(
-        "downloading {} ({} MB, licence {}) into {}",
-        k.official,
-        k.size_mb,
-        k.licence,
-        dens3r_hub::model_dir(k).display()
-    );
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template(
             "{msg} {bar:30} {bytes}/{total_bytes} [{elapsed} < {eta}, {bytes_per_sec}]",
@@ -65,7 +52,7 @@ pub fn fetch(k: &Known) -> Result<PathBuf> {
     );
     // The message changes once per file, not at every block.
     let mut current = String::new();
-    let dir = dens3r_hub::fetch_model(k, &mut |file, p| {
+    let dir = dens3r_recon::model::fetch_known(k, &mut |line| eprintln!("{line}"), &mut |file, p| {
         if file != current {
             current = file.to_string();
             bar.set_message(current.clone());

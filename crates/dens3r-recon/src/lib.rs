@@ -7,10 +7,12 @@
 //! 3. [`output`]: the scene folder (aligned depth, normals, confidence, cameras), COLMAP text
 //!    model and nerfstudio `transforms.json`, match pictures ([`viz`]), and the TSDF mesh.
 //!
-//! [`mono`] writes one image's self-pair prediction as a scene frame (`dens3r predict`).
+//! [`mono`] writes one image's self-pair prediction as a scene frame (`dens3r predict`);
+//! [`model`] resolves which network runs (a file, a folder, a known name, the bundled default).
 
 pub mod cache;
 pub mod input;
+pub mod model;
 pub mod mono;
 pub mod output;
 pub mod pipeline;
