@@ -596,28 +596,14 @@ fn read_mesh<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDict>
     mesh_dict(py, m)
 }
 
-/// Options of [`reconstruct`], as `dens3r reconstruct` takes them.
-struct ReconArgs {
-    graph: String,
-    window: usize,
-    cyclic: bool,
-    iterations: usize,
-    fixed_focal: bool,
-    voxel: Option<f32>,
-    min_conf: f32,
-    mesh: bool,
-    cache: bool,
-    match_pictures: usize,
-    gpu: bool,
-}
-
-fn pair_graph(a: &ReconArgs) -> PyResult<dens3r_align::PairGraph> {
+/// The pair graph named as `dens3r reconstruct --graph` names it.
+fn pair_graph(graph: &str, window: usize, cyclic: bool) -> PyResult<dens3r_align::PairGraph> {
     use dens3r_align::PairGraph;
-    let k = a.window.max(1);
-    Ok(match a.graph.as_str() {
+    let k = window.max(1);
+    Ok(match graph {
         "complete" => PairGraph::Complete,
-        "swin" => PairGraph::SlidingWindow { k, cyclic: a.cyclic },
-        "logwin" => PairGraph::LogWindow { k, cyclic: a.cyclic },
+        "swin" => PairGraph::SlidingWindow { k, cyclic },
+        "logwin" => PairGraph::LogWindow { k, cyclic },
         "oneref" => PairGraph::OneReference { reference: 0 },
         g => {
             return Err(PyValueError::new_err(format!("graph={g:?}: expected complete, swin, logwin or oneref")));
@@ -651,10 +637,8 @@ fn reconstruct<'py>(
     gpu: bool,
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let a =
-        ReconArgs { graph, window, cyclic, iterations, fixed_focal, voxel, min_conf, mesh, cache, match_pictures, gpu };
-    let graph = pair_graph(&a)?;
-    if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
+    let graph = pair_graph(&graph, window, cyclic)?;
+    if voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         return Err(PyValueError::new_err("voxel: must be positive"));
     }
     let loaded;
@@ -683,12 +667,12 @@ fn reconstruct<'py>(
         }
         let id = format!("{} size {}", dens3r_recon::predictor::weights_id(&model.weights), model.size);
         let predictor = NetworkPredictor::new(model.net.model(), id);
-        let cache = PairCache::new(a.cache.then(|| output.join("cache")));
+        let cache = PairCache::new(cache.then(|| output.join("cache")));
         let opts = dens3r_recon::ReconOptions {
             graph,
             align: dens3r_align::AlignOptions {
-                iterations: a.iterations,
-                optimize_focal: !a.fixed_focal,
+                iterations: iterations,
+                optimize_focal: !fixed_focal,
                 ..Default::default()
             },
             matching: dens3r_align::matching::MatchOptions::default(),
@@ -697,15 +681,15 @@ fn reconstruct<'py>(
         };
         let rec = dens3r_recon::reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
             dens3r_recon::Stage::Predict => report("predict", done, total),
-            dens3r_recon::Stage::Align => report("align", done, a.iterations.max(total)),
+            dens3r_recon::Stage::Align => report("align", done, iterations.max(total)),
         })
         .map_err(err)?;
         let out_opts = OutputOptions {
-            voxel: a.voxel,
-            min_conf: a.min_conf,
-            gpu: a.gpu,
-            mesh: a.mesh,
-            match_pictures: a.match_pictures,
+            voxel: voxel,
+            min_conf: min_conf,
+            gpu: gpu,
+            mesh: mesh,
+            match_pictures: match_pictures,
             ..Default::default()
         };
         let summary =
