@@ -1,6 +1,6 @@
 //! `dens3r._native`: the Python module behind the `dens3r` package (python/dens3r). Arrays go
-//! out as NumPy arrays that own the Rust buffers (no copy); arrays in are read in place when
-//! C-contiguous. Long calls release the GIL. Every error is a `dens3r.Dens3rError` (or a
+//! out as NumPy arrays that own the Rust buffers (no copy); arrays in are copied once into the
+//! Rust types that own their pixels (images, rasters). Long calls release the GIL. Every error is a `dens3r.Dens3rError` (or a
 //! `ValueError` / `TypeError` for arrays of the wrong shape or type) with the one-line message
 //! the CLI prints.
 
@@ -57,7 +57,7 @@ fn k_array<'py>(py: Python<'py>, i: &Intrinsics) -> PyResult<Bound<'py, PyAny>> 
     array(py, vec![i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0], &[3, 3])
 }
 
-/// A C-contiguous copy-free view of an array's values with its shape; `what` names the
+/// An array's values (copied once, in C order) with its shape; `what` names the
 /// argument in errors.
 fn values<T: numpy::Element + Copy>(a: &Bound<'_, PyAny>, what: &str, want: &str) -> PyResult<(Vec<T>, Vec<usize>)> {
     let arr: PyReadonlyArrayDyn<T> = a.extract().map_err(|_| {
