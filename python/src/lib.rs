@@ -1,8 +1,8 @@
 //! `dens3r._native`: the Python module behind the `dens3r` package (python/dens3r). Arrays go
 //! out as NumPy arrays that own the Rust buffers (no copy); arrays in are copied once into the
-//! Rust types that own their pixels (images, rasters). Long calls release the GIL. Every error is a `dens3r.Dens3rError` (or a
-//! `ValueError` / `TypeError` for arrays of the wrong shape or type) with the one-line message
-//! the CLI prints.
+//! Rust types that own their pixels (images, rasters). Long calls release the GIL. Every error
+//! is a `dens3r.Dens3rError` (or a `ValueError` / `TypeError` for arrays of the wrong shape or
+//! type) with the one-line message the CLI prints.
 
 use dens3r_backbone::predict::{predict_mono, predict_pair, Resolution, ViewMaps};
 use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
