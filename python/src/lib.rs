@@ -670,11 +670,7 @@ fn reconstruct<'py>(
         let cache = PairCache::new(cache.then(|| output.join("cache")));
         let opts = dens3r_recon::ReconOptions {
             graph,
-            align: dens3r_align::AlignOptions {
-                iterations: iterations,
-                optimize_focal: !fixed_focal,
-                ..Default::default()
-            },
+            align: dens3r_align::AlignOptions { iterations, optimize_focal: !fixed_focal, ..Default::default() },
             matching: dens3r_align::matching::MatchOptions::default(),
             min_track: 2,
             match_pose: Some(dens3r_align::match_pose::MatchPoseOptions::default()),
@@ -684,14 +680,7 @@ fn reconstruct<'py>(
             dens3r_recon::Stage::Align => report("align", done, iterations.max(total)),
         })
         .map_err(err)?;
-        let out_opts = OutputOptions {
-            voxel: voxel,
-            min_conf: min_conf,
-            gpu: gpu,
-            mesh: mesh,
-            match_pictures: match_pictures,
-            ..Default::default()
-        };
+        let out_opts = OutputOptions { voxel, min_conf, gpu, mesh, match_pictures, ..Default::default() };
         let summary =
             write_outputs(&rec, &paths, &output, &out_opts, |done, total| report("fuse", done, total)).map_err(err)?;
         let stats = serde_json::json!({
