@@ -68,10 +68,10 @@ impl FeatureCache {
     pub fn store(&mut self, backbone: &dyn Backbone, image: &RgbImage) -> Result<StoredFeatures, HeadsError> {
         let path = self.entry(backbone, image);
         let id = backbone.id();
-        let header = match check_entry(&path, &id) {
+        let grid = match check_entry(&path, &id) {
             Some(h) => {
                 self.stats.0 += 1;
-                h
+                h.grid
             }
             None => {
                 let f = backbone.extract(image);
@@ -79,13 +79,11 @@ impl FeatureCache {
                 std::fs::create_dir_all(&self.dir)
                     .map_err(|e| HeadsError::file(&self.dir, format!("cannot create the cache ({e})")))?;
                 write_entry(&path, &id, &f, self.precision)?;
-                check_entry(&path, &id).ok_or_else(|| {
-                    HeadsError::file(&path, "the entry just written does not read back; check the disk")
-                })?
+                f.grid
             }
         };
-        // Served from what was stored, so a cached and a fresh run see the same values.
-        Ok(StoredFeatures { path, backbone: id, grid: header.grid, pixel_layers: backbone.pixel_layers() })
+        // Values are always served from what was stored, so a cached and a fresh run see the same.
+        Ok(StoredFeatures { path, backbone: id, grid, pixel_layers: backbone.pixel_layers() })
     }
 }
 
