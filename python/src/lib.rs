@@ -173,7 +173,8 @@ impl Model {
                 dens3r_recon::model::fetch_known(k, &mut |line| eprintln!("{line}"), &mut |_, _| {})
             })
             .map_err(err)?;
-            let (model, _) = dens3r_recon::model::load_network(&files, gpu).map_err(err)?;
+            let (model, _) =
+                dens3r_recon::model::load_network(&files.weights, files.config.as_deref(), gpu).map_err(err)?;
             let hash = dens3r_heads::features::file_hash(&files.weights).map_err(err)?;
             let net = Dens3rBackbone::new(model, None, hash).map_err(err)?;
             Ok(Model { net: Box::new(net), weights: files.weights, size, keep_portrait, notice: files.default_notice })

@@ -6,7 +6,6 @@ use clap::Args;
 use dens3r_backbone::default_model;
 use dens3r_backbone::Dens3r;
 use dens3r_heads::Backbone;
-use dens3r_recon::model::ModelFiles;
 use std::path::{Path, PathBuf};
 
 #[derive(Args)]
@@ -61,9 +60,7 @@ impl ModelArgs {
 /// Loads the network of [`resolve_model`]'s files on the CPU, or with `gpu` on the GPU
 /// ([`dens3r_backbone::device::network_device`]), warning about unused checkpoint keys.
 pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<Dens3r> {
-    let files =
-        ModelFiles { weights: weights.to_path_buf(), config: config.map(Path::to_path_buf), default_notice: None };
-    let (model, unexpected) = dens3r_recon::model::load_network(&files, gpu)?;
+    let (model, unexpected) = dens3r_recon::model::load_network(weights, config, gpu)?;
     if !unexpected.is_empty() {
         eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);
     }

@@ -82,11 +82,10 @@ pub fn resolve(
     }
 }
 
-/// Loads the network of `files` on the CPU, or with `gpu` on the GPU
+/// Loads the network of `weights` (and its `config`) on the CPU, or with `gpu` on the GPU
 /// ([`dens3r_backbone::device::network_device`]); also returns the checkpoint keys the model
 /// does not use.
-pub fn load_network(files: &ModelFiles, gpu: bool) -> Result<(Dens3r, Vec<String>), ReconError> {
+pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<(Dens3r, Vec<String>), ReconError> {
     let device = dens3r_backbone::device::network_device(gpu)?;
-    dens3r_backbone::verify::load_model(&files.weights, files.config.as_deref(), &device)
-        .map_err(|e| ReconError::Other(e.to_string()))
+    dens3r_backbone::verify::load_model(weights, config, &device).map_err(|e| ReconError::Other(e.to_string()))
 }
