@@ -106,9 +106,16 @@ struct Model {
     /// Boxed: the network holds over-aligned (cache-line) values, and Python allocates objects
     /// at 16 bytes.
     net: Box<Dens3rBackbone>,
+    /// The checkpoint file.
+    #[pyo3(get)]
     weights: PathBuf,
+    /// Long side of the network input.
+    #[pyo3(get)]
     size: u32,
     keep_portrait: bool,
+    /// The line shown when this is the bundled default model (how to use the official
+    /// checkpoints instead); None for other weights.
+    #[pyo3(get)]
     notice: Option<String>,
 }
 
@@ -179,25 +186,6 @@ impl Model {
             let net = Dens3rBackbone::new(model, None, hash).map_err(err)?;
             Ok(Model { net: Box::new(net), weights: files.weights, size, keep_portrait, notice: files.default_notice })
         })
-    }
-
-    /// The checkpoint file.
-    #[getter]
-    fn weights(&self) -> PathBuf {
-        self.weights.clone()
-    }
-
-    /// Long side of the network input.
-    #[getter]
-    fn size(&self) -> u32 {
-        self.size
-    }
-
-    /// The line shown when this is the bundled default model (how to use the official
-    /// checkpoints instead); None for other weights.
-    #[getter]
-    fn notice(&self) -> Option<String> {
-        self.notice.clone()
     }
 
     /// Pixels per feature token.
