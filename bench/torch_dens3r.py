@@ -126,9 +126,8 @@ class Dens3r:
         x = F.interpolate(self.conv(p1, f"{p}.head.0"), scale_factor=2, mode="bilinear", align_corners=True)
         return self.conv(F.relu(self.conv(x, f"{p}.head.2")), f"{p}.head.4")
 
-    def forward(self, img1, img2, normal=True, desc=True):
-        """Both views' (pts, conf, desc, normal, desc_conf); normal / desc False skip those heads (None)."""
-        (e1, g1), (e2, g2) = self.encode(img1), self.encode(img2)
+    def decode(self, e1, g1, e2, g2):
+        """Both views' decoder outputs (every block; the last through dec_norm)."""
         dd = self.w["decoder_embed.weight"].shape[0]
         t1, t2 = rope_tables(*g1, dd // self.dh), rope_tables(*g2, dd // self.dh)
         f1, f2 = self.lin(e1, "decoder_embed"), self.lin(e2, "decoder_embed")
@@ -139,28 +138,90 @@ class Dens3r:
             out1.append(f1)
             out2.append(f2)
         out1[-1], out2[-1] = self.ln(out1[-1], "dec_norm"), self.ln(out2[-1], "dec_norm")
+        return out1, out2
+
+    def hooked(self, e, outs):
         L = self.dec_depth
-        hooks = [0, L * 2 // 4, L * 3 // 4, L]
+        lay = [e] + outs
+        return [lay[i] for i in [0, L * 2 // 4, L * 3 // 4, L]]
+
+    def pointmap(self, e, outs, g, head):
+        raw = self.dpt(self.hooked(e, outs), g, head + ".dpt").permute(0, 2, 3, 1)
+        v = raw[..., :3]
+        d = v.norm(dim=-1, keepdim=True)
+        return v / d.clamp(min=1e-8) * torch.expm1(d), 1 + raw[..., 3].exp()
+
+    def descriptors(self, e, outs, g, head, conf):
+        feat = self.mlp(torch.cat([e, outs[-1]], dim=-1), head + ".head_local_features")
+        feat = F.pixel_shuffle(feat.transpose(1, 2).reshape(feat.shape[0], -1, *g), self.patch).permute(0, 2, 3, 1)
+        desc_t = feat[..., :24] / feat[..., :24].norm(dim=-1, keepdim=True)
+        # desc_conf: exp of the 25th channel (MASt3R), else a copy of conf.
+        return desc_t, feat[..., 24].exp() if feat.shape[-1] > 24 else conf
+
+    def normals(self, e, outs, g):
+        nrm = self.dpt(self.hooked(e, outs), g, "normal_local_head.dpt").permute(0, 2, 3, 1).clamp(-1, 1)
+        return nrm / nrm.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+
+    def forward(self, img1, img2, normal=True, desc=True):
+        """Both views' (pts, conf, desc, normal, desc_conf); normal / desc False skip those heads (None)."""
+        (e1, g1), (e2, g2) = self.encode(img1), self.encode(img2)
+        out1, out2 = self.decode(e1, g1, e2, g2)
         res = []
         for e, outs, g, head in [(e1, out1, g1, "ptsmatch_local_head"), (e2, out2, g2, "ptsmatch_global_head")]:
-            lay = [e] + outs
-            raw = self.dpt([lay[i] for i in hooks], g, head + ".dpt").permute(0, 2, 3, 1)
-            v = raw[..., :3]
-            d = v.norm(dim=-1, keepdim=True)
-            pts = v / d.clamp(min=1e-8) * torch.expm1(d)
-            conf = 1 + raw[..., 3].exp()
-            desc_t = desc_conf = nrm = None
-            if desc:
-                feat = self.mlp(torch.cat([e, outs[-1]], dim=-1), head + ".head_local_features")
-                feat = F.pixel_shuffle(feat.transpose(1, 2).reshape(feat.shape[0], -1, *g), self.patch).permute(0, 2, 3, 1)
-                desc_t = feat[..., :24] / feat[..., :24].norm(dim=-1, keepdim=True)
-                # desc_conf: exp of the 25th channel (MASt3R), else a copy of conf.
-                desc_conf = feat[..., 24].exp() if feat.shape[-1] > 24 else conf
-            if normal:
-                nrm = self.dpt([lay[i] for i in hooks], g, "normal_local_head.dpt").permute(0, 2, 3, 1).clamp(-1, 1)
-                nrm = nrm / nrm.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+            pts, conf = self.pointmap(e, outs, g, head)
+            desc_t, desc_conf = self.descriptors(e, outs, g, head, conf) if desc else (None, None)
+            nrm = self.normals(e, outs, g) if normal else None
             res.append((pts, conf, desc_t, nrm, desc_conf))
         return res
+
+    def stages(self, img1, img2):
+        """The forward as (name, thunk) stages in order, each run on the previous ones' results
+        (the same stages and names as the Rust side's profile)."""
+        st = {}
+        views = [("ptsmatch_local_head", 0), ("ptsmatch_global_head", 1)]
+
+        def encoder():
+            st["e"] = [self.encode(img1), self.encode(img2)]
+
+        def decoder():
+            (e1, g1), (e2, g2) = st["e"]
+            st["d"] = self.decode(e1, g1, e2, g2)
+
+        def pointmap():
+            st["p"] = [self.pointmap(st["e"][i][0], st["d"][i], st["e"][i][1], h) for h, i in views]
+
+        def normal():
+            [self.normals(st["e"][i][0], st["d"][i], st["e"][i][1]) for _, i in views]
+
+        def desc():
+            [self.descriptors(st["e"][i][0], st["d"][i], st["e"][i][1], h, st["p"][i][1]) for h, i in views]
+
+        return [("encoder", encoder), ("decoder", decoder), ("pointmap", pointmap), ("normal", normal), ("desc", desc)]
+
+
+def profile(model, img, img2, repeat):
+    """Per stage: fastest seconds of `repeat` runs, and FLOPs (torch's FlopCounterMode: matmuls,
+    convolutions, attention; 2 per multiply-add) of one run; plus this machine's f32 GEMM rate."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    secs, flops = {}, {}
+    for r in range(max(1, repeat) + 1):
+        for name, run in model.stages(img, img2):
+            if r == 0:  # the counting pass (slower: every op is intercepted)
+                with FlopCounterMode(display=False) as fc:
+                    run()
+                flops[name] = fc.get_total_flops()
+            else:
+                t0 = time.perf_counter()
+                run()
+                secs[name] = min(secs.get(name, float("inf")), time.perf_counter() - t0)
+    a, b = torch.rand(2048, 2048), torch.rand(2048, 2048)
+    torch.mm(a, b)
+    t0 = time.perf_counter()
+    for _ in range(5):
+        torch.mm(a, b)
+    gemm = 5 * 2 * 2048**3 / (time.perf_counter() - t0)
+    return {"seconds": secs, "flops": flops, "gemm_flops_per_s": gemm}
 
 
 def main():
@@ -174,6 +235,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=1, help="forward passes; the fastest is reported")
     ap.add_argument("--compare", help="view-1 pts3d (H, W, 3) from the Rust side")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--profile", action="store_true", help="also time and count FLOPs per stage (after the timed passes)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     wd, ht = (int(v) for v in a.size.split("x"))
@@ -192,6 +254,9 @@ def main():
         ref = np.load(a.compare)
         out["max_abs_diff_pts3d"] = float(np.abs(res[0][0].numpy() - ref).max())
         out["max_abs_pts3d"] = float(np.abs(ref).max())
+    if a.profile:
+        with torch.inference_mode():
+            out["profile"] = profile(model, img, img2, a.repeat)
     print(json.dumps(out))
 
 

@@ -123,20 +123,6 @@ fn run_rust(
         inputs.push(Tensor::<4>::from_data(TensorData::new(img, [1, 3, height, width]), &device));
     }
     let (x1, x2) = (inputs[0].clone(), inputs[1].clone());
-    if std::env::var_os("DENS3R_PROFILE").is_some() {
-        let t = Instant::now();
-        let (e, _) = model.encode_image(x1.clone());
-        let _ = e.to_data();
-        eprintln!("profile: encoder one view {:.2}s", t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        let f = model.encode(x1.clone(), x2.clone());
-        let _ = f.views[1].dec.last().unwrap().to_data();
-        eprintln!("profile: encoder x2 + decoder {:.2}s", t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        let p = model.heads(&f);
-        let _ = p.views[1].pts3d.to_data();
-        eprintln!("profile: heads {:.2}s", t.elapsed().as_secs_f64());
-    }
     let mut times = Vec::new();
     let mut pts = Vec::new();
     for _ in 0..repeat.max(1) {
@@ -154,11 +140,74 @@ fn run_rust(
         mono = mono.min(t0.elapsed().as_secs_f64());
     }
     dens3r_scene::npy::write_f32(&dir.join("pts3d.npy"), &[height, width, 3], &pts)?;
+    // Peak memory of the timed passes, before the profile's extra ones.
+    let rss = peak_rss_mb();
+    let stages = profile(&model, x1, x2);
     println!(
         "{}",
-        serde_json::json!({"seconds": seconds, "mono_seconds": mono, "all_seconds": times, "load_seconds": load_s, "peak_rss_mb": peak_rss_mb()})
+        serde_json::json!({"seconds": seconds, "mono_seconds": mono, "all_seconds": times, "load_seconds": load_s,
+            "peak_rss_mb": rss, "stages": stages})
     );
     Ok(())
+}
+
+/// The profile's stages, in forward order: (key, what it covers). The PyTorch peer
+/// (`bench/torch_dens3r.py --profile`) times and counts the same stages.
+const STAGES: [(&str, &str); 5] = [
+    ("encoder", "encoder, both views"),
+    ("decoder", "decoder (embed, blocks, norm), both views"),
+    ("pointmap", "pointmap DPT + pts3d / conf, both views"),
+    ("normal", "normal DPT + normalisation, both views"),
+    ("desc", "descriptor MLP + pixel shuffle, both views"),
+];
+
+/// Seconds per stage of one pair forward ([`STAGES`]), each stage forced to finish before the
+/// next starts; a head's time is the difference of head passes with and without it.
+/// Printed beside PyTorch's by `bench backbone`.
+fn profile(model: &Dens3r, x1: Tensor<4>, x2: Tensor<4>) -> serde_json::Value {
+    use dens3r_backbone::HeadOutputs;
+    let timed = |f: &mut dyn FnMut()| {
+        let t = Instant::now();
+        f();
+        t.elapsed().as_secs_f64()
+    };
+    let mut enc = None;
+    let encoder = timed(&mut || {
+        let (e1, g1) = model.encode_image(x1.clone());
+        let (e2, g2) = model.encode_image(x2.clone());
+        let _ = (e1.to_data(), e2.to_data());
+        enc = Some((e1, g1, e2, g2));
+    });
+    let (e1, g1, e2, g2) = enc.expect("set above");
+    let mut feats = None;
+    let decoder = timed(&mut || {
+        let f = model.decode(e1.clone(), g1, e2.clone(), g2);
+        for v in &f.views {
+            let _ = v.dec.last().map(|t| t.to_data());
+        }
+        feats = Some(f);
+    });
+    let f = feats.expect("set above");
+    // Fastest of two passes: the first pass of a head set can pay for allocations the
+    // timed forwards had warm, which would shift time between the differenced stages.
+    let heads = |want: HeadOutputs| {
+        let pass = || {
+            timed(&mut || {
+                let p = model.heads_with(&f, want);
+                for v in &p.views {
+                    let _ = v.pts3d.to_data();
+                    let _ = v.normal.as_ref().map(|n| n.to_data());
+                    let _ = v.desc.as_ref().map(|d| d.to_data());
+                }
+            })
+        };
+        pass().min(pass())
+    };
+    let pointmap = heads(HeadOutputs { normal: false, desc: false });
+    let with_normal = heads(HeadOutputs { normal: true, desc: false });
+    let all = heads(HeadOutputs::ALL);
+    let secs = [encoder, decoder, pointmap, (with_normal - pointmap).max(0.0), (all - with_normal).max(0.0)];
+    STAGES.iter().zip(secs).map(|((k, _), s)| (k.to_string(), serde_json::json!(s))).collect()
 }
 
 /// `WxH,WxH,...`, each side a positive multiple of 16.
@@ -257,6 +306,7 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         "{:<10} {:>9} {:>9} {:>11} {:>9} {:>9} {:>10} {:>10} {:>11}",
         "size", "rust s", "torch s", "torch/rust", "mono s", "torch/mono", "rust MB", "torch MB", "max |diff|"
     );
+    let mut profiles = Vec::new();
     for (w, h) in sizes {
         let r = child_json(
             Command::new(&exe)
@@ -274,10 +324,10 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         let rs = r["seconds"].as_f64().unwrap_or(f64::NAN);
         let rm = r["peak_rss_mb"].as_f64().unwrap_or(f64::NAN);
         let mono = r["mono_seconds"].as_f64().unwrap_or(f64::NAN);
-        let (ts, tm, diff) = if torch_ok {
+        let (ts, tm, diff, torch_profile) = if torch_ok {
             torch_forward(&python, &weights, (w, h), threads, heads, a.repeat, &dir)?
         } else {
-            (f64::NAN, f64::NAN, f64::NAN)
+            (f64::NAN, f64::NAN, f64::NAN, serde_json::Value::Null)
         };
         println!(
             "{:<10} {:>9.2} {:>9.2} {:>10.2}x {:>9.2} {:>8.2}x {:>10.0} {:>10.0} {:>11.2e}",
@@ -291,8 +341,32 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             tm,
             diff
         );
+        profiles.push((format!("{w}x{h}"), r["stages"].clone(), torch_profile));
+    }
+    for (size, rust, torch) in profiles {
+        print_profile(&size, &rust, &torch);
     }
     Ok(())
+}
+
+/// The per-stage table: FLOPs (counted on the PyTorch side, 2 per multiply-add of matmuls,
+/// convolutions and attention), each side's seconds and counted FLOPs per second (for the
+/// Rust side an effective rate: its Winograd convolutions do fewer multiplies than counted).
+fn print_profile(size: &str, rust: &serde_json::Value, torch: &serde_json::Value) {
+    let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+    let gemm = num(&torch["gemm_flops_per_s"]) / 1e9;
+    println!("\nprofile {size}, one pair forward, stages run one after another (fastest of --repeat on each side)");
+    println!("  GFLOP: counted by PyTorch's FlopCounterMode; GFLOP/s = GFLOP / seconds (Rust's Winograd 3x3");
+    println!("  convolutions do fewer multiplies than counted, so its rate there is effective, not achieved)");
+    println!("  this machine: f32 GEMM 2048^3 in PyTorch {gemm:.0} GFLOP/s (same run)");
+    println!("{:<44} {:>8} {:>8} {:>8} {:>8} {:>8}", "stage", "GFLOP", "rust s", "GFLOP/s", "torch s", "GFLOP/s");
+    let (mut tf, mut tr, mut tt) = (0.0, 0.0, 0.0);
+    for (key, what) in STAGES {
+        let (f, rs, ts) = (num(&torch["flops"][key]) / 1e9, num(&rust[key]), num(&torch["seconds"][key]));
+        (tf, tr, tt) = (tf + f, tr + rs, tt + ts);
+        println!("{what:<44} {f:>8.1} {rs:>8.2} {:>8.0} {ts:>8.2} {:>8.0}", f / rs, f / ts);
+    }
+    println!("{:<44} {tf:>8.1} {tr:>8.2} {:>8.0} {tt:>8.2} {:>8.0}", "total", tf / tr, tf / tt);
 }
 
 /// PyTorch's pair forward at `size` on `dir`'s images (`bench/torch_dens3r.py`): seconds, peak
@@ -305,14 +379,14 @@ fn torch_forward(
     heads: (usize, usize),
     repeat: usize,
     dir: &Path,
-) -> Result<(f64, f64, f64)> {
+) -> Result<(f64, f64, f64, serde_json::Value)> {
     let t = child_json(
         Command::new(python)
             .arg("bench/torch_dens3r.py")
             .arg(weights)
             .args(["--size", &format!("{w}x{h}"), "--threads", &threads.to_string()])
             .args(["--heads", &format!("{},{}", heads.0, heads.1)])
-            .args(["--repeat", &repeat.to_string()])
+            .args(["--repeat", &repeat.to_string(), "--profile"])
             .arg("--image")
             .arg(dir.join("img1.npy"))
             .arg("--image2")
@@ -323,5 +397,5 @@ fn torch_forward(
         "PyTorch",
     )?;
     let f = |k: &str| t[k].as_f64().unwrap_or(f64::NAN);
-    Ok((f("seconds"), f("peak_rss_mb"), f("max_abs_diff_pts3d")))
+    Ok((f("seconds"), f("peak_rss_mb"), f("max_abs_diff_pts3d"), t["profile"].clone()))
 }
