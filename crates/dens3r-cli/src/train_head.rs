@@ -108,7 +108,7 @@ pub struct TrainHeadArgs {
     /// Depth loss.
     #[arg(long, value_enum, default_value = "silog")]
     depth_loss: DepthLossArg,
-    /// Weight classes by inverse pixel frequency.
+    /// Weight classes by inverse pixel frequency (median frequency / frequency, at most 10).
     #[arg(long)]
     balance: bool,
     /// Seed.

@@ -239,7 +239,13 @@ pub fn default_layers(kind: &str, n_layers: usize) -> Vec<usize> {
     }
 }
 
-/// Class weights `median_freq / freq` over the training labels (0 for absent classes).
+/// Largest class weight [`inverse_frequency`] gives: a class with a handful of pixels (a stray
+/// background pixel in 6000 rendered rooms weighed 1.8e7 uncapped) would otherwise make a whole
+/// batch's loss that one pixel, and the gradient spike stalls AdamW for thousands of steps.
+pub const MAX_CLASS_WEIGHT: f32 = 10.0;
+
+/// Class weights `median_freq / freq` over the training labels, at most [`MAX_CLASS_WEIGHT`]
+/// (0 for absent classes).
 pub fn inverse_frequency(train: &[Sample], k: usize) -> Vec<f32> {
     let mut counts = vec![0u64; k];
     for s in train {
@@ -250,7 +256,7 @@ pub fn inverse_frequency(train: &[Sample], k: usize) -> Vec<f32> {
     let mut present: Vec<u64> = counts.iter().copied().filter(|&c| c > 0).collect();
     present.sort_unstable();
     let median = present.get(present.len() / 2).copied().unwrap_or(1) as f32;
-    counts.iter().map(|&c| if c == 0 { 0.0 } else { median / c as f32 }).collect()
+    counts.iter().map(|&c| if c == 0 { 0.0 } else { (median / c as f32).min(MAX_CLASS_WEIGHT) }).collect()
 }
 
 #[cfg(test)]
@@ -273,6 +279,13 @@ mod tests {
         let w = inverse_frequency(&train, 3);
         // Present counts [2, 6]: the median (index 1) is 6.
         assert_eq!(w, vec![1.0, 3.0, 0.0]);
+        // One pixel of class 2 against 30 of class 1 and 40 of class 0: median 30, so the
+        // rare class would weigh 30 uncapped.
+        let mut ids = vec![0u16; 40];
+        ids.extend([1; 30]);
+        ids.push(2);
+        let w = inverse_frequency(&[labels("c", &ids)], 3);
+        assert_eq!(w, vec![0.75, 1.0, MAX_CLASS_WEIGHT]);
     }
 
     #[test]
