@@ -108,6 +108,9 @@ pub struct TrainHeadArgs {
     /// Depth loss.
     #[arg(long, value_enum, default_value = "silog")]
     depth_loss: DepthLossArg,
+    /// Largest global gradient norm of a step (0 = no clipping).
+    #[arg(long, default_value_t = 1.0)]
+    clip_grad_norm: f32,
     /// Weight classes by inverse pixel frequency (median frequency / frequency, at most 10).
     #[arg(long)]
     balance: bool,
@@ -159,6 +162,7 @@ fn train_options(a: &TrainHeadArgs) -> Result<TrainOptions> {
         },
         seed: a.seed,
         checkpoint_every: a.checkpoint_every,
+        clip_grad_norm: (a.clip_grad_norm > 0.0).then_some(a.clip_grad_norm),
         ..TrainOptions::default()
     };
     options.check().map_err(|e| anyhow!(e))?;

@@ -84,6 +84,10 @@ pub struct TrainOptions {
     pub seed: u64,
     /// Checkpoint every this many steps (and after every epoch).
     pub checkpoint_every: usize,
+    /// Largest global gradient norm: a step's gradient is scaled down to it when longer (as
+    /// PyTorch's `clip_grad_norm_`); `None` never clips (checkpoints written before the option).
+    #[serde(default)]
+    pub clip_grad_norm: Option<f32>,
 }
 
 impl Default for TrainOptions {
@@ -103,6 +107,7 @@ impl Default for TrainOptions {
             depth_loss: DepthLoss::Silog,
             seed: 0,
             checkpoint_every: 50,
+            clip_grad_norm: Some(1.0),
         }
     }
 }
@@ -375,12 +380,14 @@ impl Trainer {
         let grads = loss.backward();
         let opt = dens3r_optim::AdamW { weight_decay: self.options.weight_decay, ..Default::default() };
         let shapes = self.head.param_shapes();
-        for (i, p) in params.iter().enumerate() {
-            let Some(g) = p.grad(&grads) else { continue };
-            let g = to_vec(g);
+        let grads: Vec<Option<Vec<f32>>> = params.iter().map(|p| p.grad(&grads).map(to_vec)).collect();
+        let norm = grads.iter().flatten().flatten().map(|&x| f64::from(x) * f64::from(x)).sum::<f64>().sqrt();
+        let at = dens3r_optim::At::new(self.step, lr).scaled(clip_scale(norm, self.options.clip_grad_norm));
+        for (i, g) in grads.iter().enumerate() {
+            let Some(g) = g else { continue };
             let decay = !shapes[i].0.ends_with(".bias");
             let (vals, m, v) = (&mut self.head.values[i], &mut self.m[i], &mut self.v[i]);
-            opt.update(dens3r_optim::At::new(self.step, lr), vals, m, v, &g, decay);
+            opt.update(at, vals, m, v, g, decay);
         }
         Some(value)
     }
@@ -553,4 +560,27 @@ pub fn jitter(img: &image::RgbImage, s: f32, rng: &mut ChaCha8Rng) -> image::Rgb
         }
     }
     out
+}
+
+/// The factor that brings a gradient of global norm `norm` down to `max` (1 when it is within,
+/// or when there is no limit; a non-finite norm is left to show in the loss).
+fn clip_scale(norm: f64, max: Option<f32>) -> f32 {
+    match max {
+        Some(m) if norm.is_finite() && norm > f64::from(m) => (f64::from(m) / norm) as f32,
+        _ => 1.0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::clip_scale;
+
+    #[test]
+    fn clipping_scales_long_gradients_down_to_the_limit_only() {
+        // A gradient of norm 5 against a limit of 1: scaled by 1/5; within it or unlimited: as is.
+        assert_eq!(clip_scale(5.0, Some(1.0)), 0.2);
+        assert_eq!(clip_scale(0.5, Some(1.0)), 1.0);
+        assert_eq!(clip_scale(5.0, None), 1.0);
+        assert_eq!(clip_scale(f64::NAN, Some(1.0)), 1.0);
+    }
 }
