@@ -240,8 +240,8 @@ pub fn default_layers(kind: &str, n_layers: usize) -> Vec<usize> {
 }
 
 /// Largest class weight [`inverse_frequency`] gives: a class with a handful of pixels (a stray
-/// background pixel in 6000 rendered rooms weighed 1.8e7 uncapped) would otherwise make a whole
-/// batch's loss that one pixel, and the gradient spike stalls AdamW for thousands of steps.
+/// background pixel in 6000 rendered rooms weighed 1.8e7 uncapped) would otherwise make an
+/// example's loss that one pixel.
 pub const MAX_CLASS_WEIGHT: f32 = 10.0;
 
 /// Class weights `median_freq / freq` over the training labels, at most [`MAX_CLASS_WEIGHT`]

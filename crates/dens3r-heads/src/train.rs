@@ -382,7 +382,8 @@ impl Trainer {
         let shapes = self.head.param_shapes();
         let grads: Vec<Option<Vec<f32>>> = params.iter().map(|p| p.grad(&grads).map(to_vec)).collect();
         let norm = grads.iter().flatten().flatten().map(|&x| f64::from(x) * f64::from(x)).sum::<f64>().sqrt();
-        let at = dens3r_optim::At::new(self.step, lr).scaled(clip_scale(norm, self.options.clip_grad_norm));
+        let at =
+            dens3r_optim::At::new(self.step, lr).scaled(dens3r_optim::clip_scale(norm, self.options.clip_grad_norm));
         for (i, g) in grads.iter().enumerate() {
             let Some(g) = g else { continue };
             let decay = !shapes[i].0.ends_with(".bias");
@@ -560,27 +561,4 @@ pub fn jitter(img: &image::RgbImage, s: f32, rng: &mut ChaCha8Rng) -> image::Rgb
         }
     }
     out
-}
-
-/// The factor that brings a gradient of global norm `norm` down to `max` (1 when it is within,
-/// or when there is no limit; a non-finite norm is left to show in the loss).
-fn clip_scale(norm: f64, max: Option<f32>) -> f32 {
-    match max {
-        Some(m) if norm.is_finite() && norm > f64::from(m) => (f64::from(m) / norm) as f32,
-        _ => 1.0,
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::clip_scale;
-
-    #[test]
-    fn clipping_scales_long_gradients_down_to_the_limit_only() {
-        // A gradient of norm 5 against a limit of 1: scaled by 1/5; within it or unlimited: as is.
-        assert_eq!(clip_scale(5.0, Some(1.0)), 0.2);
-        assert_eq!(clip_scale(0.5, Some(1.0)), 1.0);
-        assert_eq!(clip_scale(5.0, None), 1.0);
-        assert_eq!(clip_scale(f64::NAN, Some(1.0)), 1.0);
-    }
 }

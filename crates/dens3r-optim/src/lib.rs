@@ -101,6 +101,16 @@ impl<F: Float> At<F> {
     }
 }
 
+/// The factor that brings a gradient of global norm `norm` down to `max` (as PyTorch's
+/// `clip_grad_norm_`): 1 when it is within, when there is no limit, or when the norm is not
+/// finite (left to show in the loss).
+pub fn clip_scale(norm: f64, max: Option<f32>) -> f32 {
+    match max {
+        Some(m) if norm.is_finite() && norm > f64::from(m) => (f64::from(m) / norm) as f32,
+        _ => 1.0,
+    }
+}
+
 /// Adam(W): Adam's bias-corrected moments with decoupled weight decay (Loshchilov & Hutter),
 /// as PyTorch's `torch.optim.AdamW` updates (`p -= lr * wd * p`, then the Adam step); with
 /// `weight_decay` 0 it is Adam.
@@ -179,6 +189,15 @@ impl<F: Float + Send + Sync> AdamW<F> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn clipping_scales_long_gradients_down_to_the_limit_only() {
+        // A gradient of norm 5 against a limit of 1: scaled by 1/5; within it or unlimited: as is.
+        assert_eq!(clip_scale(5.0, Some(1.0)), 0.2);
+        assert_eq!(clip_scale(0.5, Some(1.0)), 1.0);
+        assert_eq!(clip_scale(5.0, None), 1.0);
+        assert_eq!(clip_scale(f64::NAN, Some(1.0)), 1.0);
+    }
+
     use super::*;
 
     /// Warm-up rises linearly to the peak, the cosine passes half the peak halfway through

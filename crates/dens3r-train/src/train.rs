@@ -634,7 +634,7 @@ impl Trainer {
         let sums: Vec<f64> =
             g.par_iter().map(|v| v.as_ref().map_or(0.0, |v| v.iter().map(|x| (*x as f64).powi(2)).sum())).collect();
         let norm = sums.iter().sum::<f64>().sqrt() as f32;
-        let scale = if self.config.clip > 0.0 && norm > self.config.clip { self.config.clip / norm } else { 1.0 };
+        let scale = dens3r_optim::clip_scale(norm.into(), (self.config.clip > 0.0).then_some(self.config.clip));
         let opt = AdamW { weight_decay: self.config.weight_decay, ..Default::default() };
         let step = self.step;
         (&mut self.params.values, &mut self.m, &mut self.v, &g, &self.params.shapes).into_par_iter().for_each(
