@@ -141,23 +141,39 @@ fn nearest_many(queries: &[usize], q: &Descriptors, db: &Descriptors) -> Vec<usi
 
 /// Seeds on a `subsample` grid of `from`; a seed `x` matches `y = NN(x)` in `to` when
 /// `NN(y)` back in `from` lies within `tol` pixels of `x`. Returns `(x, y)` flat indices.
-fn one_way(from: &Descriptors, to: &Descriptors, sub: usize, tol: f32) -> Vec<(usize, usize)> {
+/// Seeds of `from` and hits in `to` for which `usable_from` / `usable_to` is false are left
+/// out before searching (their matches would be dropped anyway).
+fn one_way(
+    from: &Descriptors,
+    to: &Descriptors,
+    sub: usize,
+    tol: f32,
+    usable_from: impl Fn(usize) -> bool,
+    usable_to: impl Fn(usize) -> bool,
+) -> Vec<(usize, usize)> {
     let mut seeds = Vec::new();
     let mut y = sub / 2;
     while y < from.height {
         let mut x = sub / 2;
         while x < from.width {
-            seeds.push(y * from.width + x);
+            let s = y * from.width + x;
+            if usable_from(s) {
+                seeds.push(s);
+            }
             x += sub;
         }
         y += sub;
     }
     let fwd = nearest_many(&seeds, from, to);
-    let back = nearest_many(&fwd, to, from);
+    // Seeds often land on the same pixel: each distinct usable one is searched back once.
+    let mut hits: Vec<usize> = fwd.iter().copied().filter(|&t| usable_to(t)).collect();
+    hits.sort_unstable();
+    hits.dedup();
+    let hit_back = nearest_many(&hits, to, from);
     seeds
         .into_iter()
-        .zip(fwd)
-        .zip(back)
+        .zip(fwd.iter().copied())
+        .filter_map(|(s, t)| Some(((s, t), hit_back[hits.binary_search(&t).ok()?])))
         .filter_map(|((s, t), b)| {
             let ((x0, y0), (x1, y1)) = (from.xy(s), from.xy(b));
             let d = ((x0 as f32 - x1 as f32).powi(2) + (y0 as f32 - y1 as f32).powi(2)).sqrt();
@@ -192,13 +208,17 @@ pub fn reciprocal_matches(
         return Err(format!("matching: descriptor sizes differ ({} vs {})", a.dim, b.dim));
     }
     let sub = opts.subsample.max(1);
-    let mut pairs = one_way(a, b, sub, opts.pixel_tol);
-    pairs.extend(one_way(b, a, sub, opts.pixel_tol).into_iter().map(|(y, x)| (x, y)));
-    pairs.sort_unstable();
-    pairs.dedup();
     let inside = |d: &Descriptors, (x, y): (usize, usize)| {
         x >= opts.border && y >= opts.border && x + opts.border < d.width && y + opts.border < d.height
     };
+    // A pixel below the confidence floor or on the border cannot be in a kept match (NaN
+    // confidences stay: `min` below passes the other one through).
+    let ua = |i: usize| (conf_a[i].is_nan() || conf_a[i] >= opts.min_conf) && inside(a, a.xy(i));
+    let ub = |i: usize| (conf_b[i].is_nan() || conf_b[i] >= opts.min_conf) && inside(b, b.xy(i));
+    let mut pairs = one_way(a, b, sub, opts.pixel_tol, ua, ub);
+    pairs.extend(one_way(b, a, sub, opts.pixel_tol, ub, ua).into_iter().map(|(y, x)| (x, y)));
+    pairs.sort_unstable();
+    pairs.dedup();
     Ok(pairs
         .into_iter()
         .filter_map(|(i, j)| {
@@ -359,5 +379,86 @@ mod tests {
             let best = (0..w * h).map(dot).fold(f64::NEG_INFINITY, f64::max);
             assert!(dot(g) >= best - 1e-5, "query {q}: {} vs {best}", dot(g));
         }
+    }
+
+    /// `one_way` (each distinct usable forward hit searched back once) keeps exactly the seeds a plain
+    /// per-seed round trip keeps, on descriptors drawn from a few prototypes, so that many
+    /// seeds share a hit and ties abound.
+    #[test]
+    fn matching_equals_plain_round_trips() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let (w, h, dim) = (53, 37, 8);
+        let protos: Vec<f32> = (0..12 * dim).map(|_| rng.gen_range(-1.0..1.0)).collect();
+        let mut draw =
+            || -> Vec<f32> { (0..w * h).flat_map(|_| protos[rng.gen_range(0..12) * dim..][..dim].to_vec()).collect() };
+        let (a, b) = (draw(), draw());
+        let (da, db) =
+            (Descriptors { width: w, height: h, dim, data: &a }, Descriptors { width: w, height: h, dim, data: &b });
+        let nn = |q: &Descriptors, i: usize, d: &Descriptors| {
+            let dot = |j: usize| (0..q.dim).map(|k| q.at(i)[k] * d.at(j)[k]).sum::<f32>();
+            (0..d.len()).fold((f32::NEG_INFINITY, 0), |best, j| if dot(j) > best.0 { (dot(j), j) } else { best }).1
+        };
+        for tol in [0.5, 5.0, 30.0] {
+            let got = one_way(&da, &db, 4, tol, |_| true, |_| true);
+            let mut want = Vec::new();
+            for y in (2..h).step_by(4) {
+                for x in (2..w).step_by(4) {
+                    let s = y * w + x;
+                    let t = nn(&da, s, &db);
+                    let (bx, by) = da.xy(nn(&db, t, &da));
+                    if ((bx as f32 - x as f32).powi(2) + (by as f32 - y as f32).powi(2)).sqrt() < tol {
+                        want.push((s, t));
+                    }
+                }
+            }
+            assert_eq!(got, want, "tol {tol}");
+        }
+        // Matching with confidences (some under the floor, some NaN) and a border keeps exactly
+        // the plain round trips of both directions whose pixels pass the filters.
+        let mut conf = || -> Vec<f32> {
+            (0..w * h)
+                .map(|_| match rng.gen_range(0..10) {
+                    0 => f32::NAN,
+                    1..=3 => 1.0,
+                    _ => 2.0,
+                })
+                .collect()
+        };
+        let (ca, cb) = (conf(), conf());
+        // Descriptors of a scene seen shifted and scaled (as in the test above): true matches.
+        let pa: Vec<(f32, f32)> = (0..w * h).map(|i| ((i % w) as f32, (i / w) as f32)).collect();
+        let pb: Vec<(f32, f32)> = pa.iter().map(|&(x, y)| ((x + 5.0) / 1.1, (y - 3.0) / 1.1)).collect();
+        let (a, b) = (features(&pa, 24, 2), features(&pb, 24, 2));
+        let (da, db) = (
+            Descriptors { width: w, height: h, dim: 24, data: &a },
+            Descriptors { width: w, height: h, dim: 24, data: &b },
+        );
+        let opts = MatchOptions { subsample: 4, ..Default::default() };
+        let got = reciprocal_matches(&da, &db, &ca, &cb, &opts).unwrap();
+        let round = |f: &Descriptors, t: &Descriptors| {
+            let mut out = Vec::new();
+            for y in (2..h).step_by(4) {
+                for x in (2..w).step_by(4) {
+                    let hit = nn(f, y * w + x, t);
+                    let (bx, by) = f.xy(nn(t, hit, f));
+                    if ((bx as f32 - x as f32).powi(2) + (by as f32 - y as f32).powi(2)).sqrt() < opts.pixel_tol {
+                        out.push((y * w + x, hit));
+                    }
+                }
+            }
+            out
+        };
+        let mut want = round(&da, &db);
+        want.extend(round(&db, &da).into_iter().map(|(j, i)| (i, j)));
+        want.sort_unstable();
+        want.dedup();
+        let inside = |(x, y): (usize, usize)| x >= 3 && y >= 3 && x + 3 < w && y + 3 < h;
+        let want: Vec<Match> = want
+            .into_iter()
+            .map(|(i, j)| Match { a: da.xy(i), b: db.xy(j), conf: ca[i].min(cb[j]) })
+            .filter(|m| m.conf >= opts.min_conf && inside(m.a) && inside(m.b))
+            .collect();
+        assert!(want.len() > 5, "{} matches", want.len());
+        assert_eq!(format!("{got:?}"), format!("{want:?}"));
     }
 }
