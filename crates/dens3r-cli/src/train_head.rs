@@ -162,7 +162,7 @@ fn train_options(a: &TrainHeadArgs) -> Result<TrainOptions> {
         },
         seed: a.seed,
         checkpoint_every: a.checkpoint_every,
-        clip_grad_norm: (a.clip_grad_norm > 0.0).then_some(a.clip_grad_norm),
+        clip_grad_norm: (a.clip_grad_norm != 0.0).then_some(a.clip_grad_norm),
         ..TrainOptions::default()
     };
     options.check().map_err(|e| anyhow!(e))?;

@@ -130,6 +130,9 @@ impl TrainOptions {
         if self.crops_per_image == Some(0) {
             return Err(HeadsError::invalid("crops per image must be at least 1"));
         }
+        if let Some(m) = self.clip_grad_norm.filter(|m| !(m.is_finite() && *m > 0.0)) {
+            return Err(HeadsError::invalid(format!("gradient-norm limit {m} must be positive (0 = no clipping)")));
+        }
         Ok(())
     }
 }
@@ -381,7 +384,7 @@ impl Trainer {
         let opt = dens3r_optim::AdamW { weight_decay: self.options.weight_decay, ..Default::default() };
         let shapes = self.head.param_shapes();
         let grads: Vec<Option<Vec<f32>>> = params.iter().map(|p| p.grad(&grads).map(to_vec)).collect();
-        let norm = grads.iter().flatten().flatten().map(|&x| f64::from(x) * f64::from(x)).sum::<f64>().sqrt();
+        let norm = dens3r_optim::global_norm(&grads);
         let at =
             dens3r_optim::At::new(self.step, lr).scaled(dens3r_optim::clip_scale(norm, self.options.clip_grad_norm));
         for (i, g) in grads.iter().enumerate() {

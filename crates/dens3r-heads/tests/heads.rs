@@ -383,6 +383,10 @@ fn epochs_cover_every_image() {
     assert_eq!(steps(Some((3, 4)), Some(5)), 20);
     let bad = TrainOptions { crops_per_image: Some(0), ..TrainOptions::default() };
     assert!(Trainer::new(head.clone(), bad, ad()).is_err());
+    for m in [-1.0, f32::NAN, 0.0] {
+        let bad = TrainOptions { clip_grad_norm: Some(m), ..TrainOptions::default() };
+        assert!(Trainer::new(head.clone(), bad, ad()).is_err(), "clip {m}");
+    }
     // fit takes exactly that many steps and validates once at the end of the epoch.
     let options = TrainOptions { batch: 3, crop: Some((3, 4)), epochs: 1, ..TrainOptions::default() };
     let mut t = Trainer::new(head, options, ad()).unwrap();

@@ -101,6 +101,17 @@ impl<F: Float> At<F> {
     }
 }
 
+/// Global L2 norm of a step's gradients (`None`: a tensor without one): per-tensor sums in
+/// parallel, added in tensor order, so every run gives the same bits.
+pub fn global_norm(grads: &[Option<Vec<f32>>]) -> f64 {
+    use rayon::prelude::*;
+    let sums: Vec<f64> = grads
+        .par_iter()
+        .map(|g| g.as_ref().map_or(0.0, |g| g.iter().map(|&x| f64::from(x) * f64::from(x)).sum()))
+        .collect();
+    sums.iter().sum::<f64>().sqrt()
+}
+
 /// The factor that brings a gradient of global norm `norm` down to `max` (as PyTorch's
 /// `clip_grad_norm_`): 1 when it is within, when there is no limit, or when the norm is not
 /// finite (left to show in the loss).
@@ -189,6 +200,8 @@ impl<F: Float + Send + Sync> AdamW<F> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn clipping_scales_long_gradients_down_to_the_limit_only() {
         // A gradient of norm 5 against a limit of 1: scaled by 1/5; within it or unlimited: as is.
@@ -196,9 +209,9 @@ mod tests {
         assert_eq!(clip_scale(0.5, Some(1.0)), 1.0);
         assert_eq!(clip_scale(5.0, None), 1.0);
         assert_eq!(clip_scale(f64::NAN, Some(1.0)), 1.0);
+        // Tensors (3, 4) and (12) with one absent: norm 13.
+        assert_eq!(global_norm(&[Some(vec![3.0, 4.0]), None, Some(vec![12.0])]), 13.0);
     }
-
-    use super::*;
 
     /// Warm-up rises linearly to the peak, the cosine passes half the peak halfway through
     /// the decay and ends at zero, never rising after the warm-up.

@@ -630,11 +630,9 @@ impl Trainer {
             .zip(&self.trains)
             .map(|(t, &tr)| if tr { t.grad(&grads).and_then(|g| g.into_data().try_to_vec::<f32>().ok()) } else { None })
             .collect();
-        // Per-tensor sums in parallel, added in tensor order: the same bits on every run.
-        let sums: Vec<f64> =
-            g.par_iter().map(|v| v.as_ref().map_or(0.0, |v| v.iter().map(|x| (*x as f64).powi(2)).sum())).collect();
-        let norm = sums.iter().sum::<f64>().sqrt() as f32;
-        let scale = dens3r_optim::clip_scale(norm.into(), (self.config.clip > 0.0).then_some(self.config.clip));
+        let norm = dens3r_optim::global_norm(&g);
+        let scale = dens3r_optim::clip_scale(norm, (self.config.clip > 0.0).then_some(self.config.clip));
+        let norm = norm as f32;
         let opt = AdamW { weight_decay: self.config.weight_decay, ..Default::default() };
         let step = self.step;
         (&mut self.params.values, &mut self.m, &mut self.v, &g, &self.params.shapes).into_par_iter().for_each(
