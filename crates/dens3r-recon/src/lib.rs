@@ -23,7 +23,7 @@ pub use cache::PairCache;
 pub use input::{list_images, load_images, InputImage};
 pub use output::{write_outputs, OutputOptions, OutputSummary};
 pub use pipeline::{reconstruct, ReconOptions, Reconstruction, Stage};
-pub use predictor::{NetworkPredictor, PairPredictor, ViewOutput};
+pub use predictor::{NetworkPredictor, PairPredictor, ViewOutput, Wanted};
 
 use std::path::Path;
 

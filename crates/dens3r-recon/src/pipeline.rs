@@ -2,7 +2,7 @@
 
 use crate::cache::PairCache;
 use crate::input::InputImage;
-use crate::predictor::{PairPredictor, ViewOutput};
+use crate::predictor::{PairPredictor, ViewOutput, Wanted};
 use crate::ReconError;
 use dens3r_align::match_pose::{pose_from_matches, MatchPoseOptions};
 use dens3r_align::matching::{reciprocal_matches, tracks, Descriptors, Match, MatchOptions};
@@ -117,7 +117,15 @@ pub fn reconstruct(
     progress(Stage::Predict, 0, order.len());
     for (e, &(i, j)) in order.iter().enumerate() {
         let t = Instant::now();
-        let key = PairCache::key(&id, &images[i], &images[j]);
+        // Each unordered pair is matched once, on the run with the smaller index first: only
+        // that run needs descriptors (cached apart from runs without them).
+        let matched = i < j || !ordered.contains(&(j, i));
+        let want = Wanted { descriptors: matched };
+        let key = if matched {
+            PairCache::key(&id, &images[i], &images[j])
+        } else {
+            PairCache::key(&format!("{id} without descriptors"), &images[i], &images[j])
+        };
         let out = match cache.load(&key, [sizes[i], sizes[j]]) {
             Some(out) => {
                 stats.cache_hits += 1;
@@ -126,7 +134,7 @@ pub fn reconstruct(
             None => {
                 let err =
                     |msg: String| ReconError::Predict { a: images[i].name.clone(), b: images[j].name.clone(), msg };
-                let out = predictor.predict(images, i, j).map_err(err)?;
+                let out = predictor.predict(images, i, j, want).map_err(err)?;
                 for (v, k) in [(0, i), (1, j)] {
                     out[v].check(sizes[k]).map_err(|m| err(format!("{}: {m}", images[k].name)))?;
                 }
@@ -142,8 +150,7 @@ pub fn reconstruct(
                 accumulate_normals(&mut normal_sum[k], nm, &out[v].conf);
             }
         }
-        // Each unordered pair is matched once, on the run with the smaller index first.
-        if i < j || !ordered.contains(&(j, i)) {
+        if matched {
             let t = Instant::now();
             if let Some(ms) = match_pair(&out, &opts.matching).map_err(ReconError::Other)? {
                 let (a, b, ms) = if i < j { (i, j, ms) } else { (j, i, ms.into_iter().map(swap).collect()) };

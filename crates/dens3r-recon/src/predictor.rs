@@ -66,14 +66,28 @@ impl ViewOutput {
     }
 }
 
+/// What a pair run is asked for beyond pointmaps, confidence and normals. A predictor may
+/// return more; the pipeline asks only for what it reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Wanted {
+    /// Matching descriptors and their confidence: needed only by the run a pair is matched on
+    /// (one of its two orders).
+    pub descriptors: bool,
+}
+
+impl Wanted {
+    /// Every output.
+    pub const ALL: Self = Self { descriptors: true };
+}
+
 /// Runs pairs of images.
 pub trait PairPredictor {
     /// Identifies the predictor and its settings in the pair cache: outputs cached under one
     /// id are reused only by a predictor with the same id.
     fn id(&self) -> String;
     /// Predicts the ordered pair `(images[i], images[j])`: both pointmaps in camera `i`'s
-    /// frame.
-    fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String>;
+    /// frame, and what `want` asks for.
+    fn predict(&self, images: &[InputImage], i: usize, j: usize, want: Wanted) -> Result<[ViewOutput; 2], String>;
 }
 
 /// An image's identity for the encoder cache: content hash, crop box, portrait rotation.
@@ -84,7 +98,8 @@ type ImageKey = (u64, (u32, u32, u32, u32), bool);
 /// depend on the other view), so only the decoder and heads run per pair; with a decoder shared
 /// by both views, the pair `(j, i)` asked right after `(i, j)` reuses its decoder pass with the
 /// views swapped (exactly what running it gives), and the normal head's outputs (one head
-/// for both views, on the same features), so only its point and descriptor heads run.
+/// for both views, on the same features), so only its point and descriptor heads run. The
+/// descriptor head runs only when asked ([`Wanted`]): it costs about as much as the point head.
 pub struct NetworkPredictor<'a> {
     model: &'a Dens3r,
     weights_id: String,
@@ -126,13 +141,14 @@ impl PairPredictor for NetworkPredictor<'_> {
         format!("dens3r-network-v1 {}", self.weights_id)
     }
 
-    fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String> {
+    fn predict(&self, images: &[InputImage], i: usize, j: usize, want: Wanted) -> Result<[ViewOutput; 2], String> {
         let (a, b) = (&images[i], &images[j]);
+        let desc = want.descriptors;
         let key = (image_key(a), image_key(b));
         let reuse = self.pending.borrow_mut().take().filter(|(k, _)| *k == key).map(|(_, r)| r);
         let pred = match reuse {
             Some(r) => {
-                let mut pred = self.model.heads_with(&r.features, HeadOutputs { normal: false, desc: true });
+                let mut pred = self.model.heads_with(&r.features, HeadOutputs { normal: false, desc });
                 for (v, n) in pred.views.iter_mut().zip(r.normals) {
                     (v.normal, v.raw_normal) = n;
                 }
@@ -141,7 +157,7 @@ impl PairPredictor for NetworkPredictor<'_> {
             None => {
                 let f = decode_pair(self.model, &self.encoding(a), &self.encoding(b));
                 self.decoded.set(self.decoded.get() + 1);
-                let pred = self.model.heads(&f);
+                let pred = self.model.heads_with(&f, HeadOutputs { normal: true, desc });
                 if let Some(features) = swapped_features(self.model, &f) {
                     let n = |k: usize| (pred.views[k].normal.clone(), pred.views[k].raw_normal.clone());
                     *self.pending.borrow_mut() = Some(((key.1, key.0), Reverse { features, normals: [n(1), n(0)] }));

@@ -12,7 +12,7 @@ use dens3r_geom::{DMat3, DVec3, Intrinsics, PinholeCamera, Raster, Vec3};
 use dens3r_mesh::metrics::{mesh_metrics, MeshMetricsOptions};
 use dens3r_recon::{
     list_images, load_images, reconstruct, write_outputs, InputImage, OutputOptions, PairCache, PairPredictor,
-    ReconOptions, ViewOutput,
+    ReconOptions, ViewOutput, Wanted,
 };
 use dens3r_render::path::room_walk;
 use dens3r_render::procedural::{room, ROOM_HI, ROOM_LO};
@@ -77,6 +77,8 @@ struct Oracle<'a> {
     t: &'a Truth,
     freqs: Vec<(DVec3, f64)>,
     calls: Cell<usize>,
+    /// Of those, the runs asked for descriptors (the others get none, as the network's).
+    desc_calls: Cell<usize>,
 }
 
 impl<'a> Oracle<'a> {
@@ -88,7 +90,7 @@ impl<'a> Oracle<'a> {
                 (d.normalize() * rng.gen_range(1.0f64..4.0).exp2(), rng.gen_range(0.0..std::f64::consts::TAU))
             })
             .collect();
-        Self { t, freqs, calls: Cell::new(0) }
+        Self { t, freqs, calls: Cell::new(0), desc_calls: Cell::new(0) }
     }
 }
 
@@ -97,8 +99,9 @@ impl PairPredictor for Oracle<'_> {
         "oracle-v1".into()
     }
 
-    fn predict(&self, _images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String> {
+    fn predict(&self, _images: &[InputImage], i: usize, j: usize, want: Wanted) -> Result<[ViewOutput; 2], String> {
         self.calls.set(self.calls.get() + 1);
+        self.desc_calls.set(self.desc_calls.get() + want.descriptors as usize);
         let t = self.t;
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64((i * 100 + j) as u64);
         let sim = Sim3 {
@@ -143,8 +146,8 @@ impl PairPredictor for Oracle<'_> {
                 points,
                 conf,
                 normals: Some(t.normals[k].clone()),
-                desc: Some(DescriptorMap { width: W, height: H, dim: DIM, data }),
-                desc_conf: Some(desc_conf),
+                desc: want.descriptors.then_some(DescriptorMap { width: W, height: H, dim: DIM, data }),
+                desc_conf: want.descriptors.then_some(desc_conf),
             }
         };
         Ok([view(i), view(j)])
@@ -157,7 +160,7 @@ impl PairPredictor for Refuses {
     fn id(&self) -> String {
         "oracle-v1".into()
     }
-    fn predict(&self, _: &[InputImage], _: usize, _: usize) -> Result<[ViewOutput; 2], String> {
+    fn predict(&self, _: &[InputImage], _: usize, _: usize, _: Wanted) -> Result<[ViewOutput; 2], String> {
         Err("the network was called".into())
     }
 }
@@ -181,6 +184,8 @@ fn oracle_photos_become_the_true_scene() {
     let mut stages = Vec::new();
     let rec = reconstruct(&images, &oracle, &cache, &opts, |s, d, _| stages.push((s, d))).unwrap();
     assert_eq!((rec.stats.pairs, oracle.calls.get(), rec.stats.cache_hits), (n * (n - 1), n * (n - 1), 0));
+    // Descriptors are asked of one run per unordered pair: the one it is matched on.
+    assert_eq!(oracle.desc_calls.get(), n * (n - 1) / 2);
     assert!(stages.iter().any(|s| s.0 == dens3r_recon::Stage::Align));
 
     // Cameras, up to one similarity (the gauge).
@@ -311,12 +316,13 @@ fn the_reverse_pair_reuses_the_decoder_pass_exactly() {
     let samples = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/room/images");
     let paths: Vec<_> = ["0000.png", "0001.png", "0002.png"].iter().map(|n| samples.join(n)).collect();
     let images = load_images(&paths, 64, true).unwrap();
+    let all = Wanted::ALL;
     let both = NetworkPredictor::new(&model, "a".into());
-    let _ = both.predict(&images, 0, 1).unwrap();
-    let reused = both.predict(&images, 1, 0).unwrap();
+    let _ = both.predict(&images, 0, 1, all).unwrap();
+    let reused = both.predict(&images, 1, 0, all).unwrap();
     assert_eq!(both.decoder_passes(), 1);
     let alone = NetworkPredictor::new(&model, "a".into());
-    let direct = alone.predict(&images, 1, 0).unwrap();
+    let direct = alone.predict(&images, 1, 0, all).unwrap();
     for v in 0..2 {
         assert_eq!(reused[v].points.data(), direct[v].points.data(), "view {v} points");
         assert_eq!(reused[v].conf.data(), direct[v].conf.data(), "view {v} conf");
@@ -327,10 +333,20 @@ fn the_reverse_pair_reuses_the_decoder_pass_exactly() {
     }
     // (0, 2) then (1, 0): nothing pending fits, both are decoded.
     let mixed = NetworkPredictor::new(&model, "a".into());
-    let _ = mixed.predict(&images, 0, 2).unwrap();
-    let again = mixed.predict(&images, 1, 0).unwrap();
+    let _ = mixed.predict(&images, 0, 2, all).unwrap();
+    let again = mixed.predict(&images, 1, 0, all).unwrap();
     assert_eq!(mixed.decoder_passes(), 2);
     assert_eq!(again[0].points.data(), direct[0].points.data());
+    // Without descriptors (the reverse run reconstruct makes), the rest is the same.
+    let lean = NetworkPredictor::new(&model, "a".into());
+    let _ = lean.predict(&images, 0, 1, all).unwrap();
+    let plain = lean.predict(&images, 1, 0, Wanted { descriptors: false }).unwrap();
+    for v in 0..2 {
+        assert!(plain[v].desc.is_none() && plain[v].desc_conf.is_none(), "view {v} descriptors");
+        assert_eq!(plain[v].points.data(), direct[v].points.data(), "view {v} points");
+        assert_eq!(plain[v].conf.data(), direct[v].conf.data(), "view {v} conf");
+        assert_eq!(plain[v].normals.as_ref().unwrap().data(), direct[v].normals.as_ref().unwrap().data());
+    }
 }
 
 /// The oracle, except that each pair's second view comes back in its own camera frame instead
@@ -343,8 +359,8 @@ impl PairPredictor for NoCrossView<'_> {
         "oracle-no-cross-view".into()
     }
 
-    fn predict(&self, images: &[InputImage], i: usize, j: usize) -> Result<[ViewOutput; 2], String> {
-        let [a, mut b] = self.0.predict(images, i, j)?;
+    fn predict(&self, images: &[InputImage], i: usize, j: usize, want: Wanted) -> Result<[ViewOutput; 2], String> {
+        let [a, mut b] = self.0.predict(images, i, j, want)?;
         let t = self.0.t;
         b.points = t.own[j].map(|p| if p.is_finite() && p.z > 0.0 { *p } else { Vec3::NAN });
         Ok([a, b])
