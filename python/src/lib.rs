@@ -224,7 +224,7 @@ impl Model {
         let first = self.prepare(image)?;
         match image2 {
             None => {
-                let pred = py.detach(|| predict_mono(self.net.model(), &first, res));
+                let pred = py.detach(|| predict_mono(self.net.model(), &first, res, dens3r_backbone::HeadOutputs::ALL));
                 Ok(view_dict(py, &pred, true)?.into_any())
             }
             Some(i2) => {

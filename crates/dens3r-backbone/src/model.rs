@@ -671,7 +671,12 @@ impl Dens3r {
     /// View 1's heads on self-pair features ([`Dens3r::encode_self`]): with the features
     /// kept, other heads can read the same backbone pass.
     pub fn mono_heads(&self, v: &ViewFeatures) -> ViewPrediction {
-        self.view_heads(&self.head1, v, HeadOutputs::ALL)
+        self.mono_heads_with(v, HeadOutputs::ALL)
+    }
+
+    /// [`Dens3r::mono_heads`] computing only the optional outputs in `want`.
+    pub fn mono_heads_with(&self, v: &ViewFeatures, want: HeadOutputs) -> ViewPrediction {
+        self.view_heads(&self.head1, v, want)
     }
 
     /// Runs the heads on backbone features.

@@ -1,7 +1,7 @@
 //! Single-image and pair prediction (spec section 2 "Single image" and 3.2), mapped back to
 //! the un-rotated image frame, optionally at the original resolution, in our conventions.
 
-use crate::model::{Dens3r, Features, Predictions, ViewFeatures, ViewPrediction};
+use crate::model::{Dens3r, Features, HeadOutputs, Predictions, ViewFeatures, ViewPrediction};
 use crate::preprocess::{rescale_to_original, rotate_map_clockwise, unrotate_vector, PrepInfo, Prepared};
 use burn::tensor::Tensor;
 use dens3r_geom::{NormalConvention, Raster, Vec3};
@@ -118,17 +118,24 @@ fn view_maps(v: &ViewPrediction, prep: &Prepared, frame: usize, frame_rotated: b
     ViewMaps { rgb, points, depth, normals, conf, desc, desc_conf, frame, info: prep.info.clone() }
 }
 
-/// Runs the self-pair and reads view 1 (`pred1`), as the official pipeline does.
-pub fn predict_mono(model: &Dens3r, prep: &Prepared, res: Resolution) -> MonoPrediction {
-    predict_mono_features(model, prep, res).0
+/// Runs the self-pair and reads view 1 (`pred1`), as the official pipeline does, with the
+/// optional outputs in `want` (the descriptor head costs about as much as the point head: ask
+/// for it only when descriptors are used).
+pub fn predict_mono(model: &Dens3r, prep: &Prepared, res: Resolution, want: HeadOutputs) -> MonoPrediction {
+    predict_mono_features(model, prep, res, want).0
 }
 
 /// [`predict_mono`] that also returns view 1's backbone features (network frame), so trained
 /// heads can run on the same pass.
-pub fn predict_mono_features(model: &Dens3r, prep: &Prepared, res: Resolution) -> (MonoPrediction, ViewFeatures) {
+pub fn predict_mono_features(
+    model: &Dens3r,
+    prep: &Prepared,
+    res: Resolution,
+    want: HeadOutputs,
+) -> (MonoPrediction, ViewFeatures) {
     let f = model.encode_self(prep.tensor(model.device()));
     let [v, _] = f.views;
-    let pred = model.mono_heads(&v);
+    let pred = model.mono_heads_with(&v, want);
     (view_maps(&pred, prep, 0, prep.info.rotated, res), v)
 }
 

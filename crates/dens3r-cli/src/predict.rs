@@ -245,11 +245,13 @@ fn predict_one(
     // The picture every map of this image is written at (overlays are drawn on it).
     let mut picture = None;
     if let (Some(net), Some(writer)) = (&nets.net, writer) {
+        // Nothing written here reads the descriptors.
+        let want = dens3r_backbone::HeadOutputs { normal: true, desc: false };
         let (mut pred, features) = if nets.heads_on_net() {
-            let (p, v) = predict_mono_features(net.model(), prep, res);
+            let (p, v) = predict_mono_features(net.model(), prep, res, want);
             (p, Some(net.maps(&v)))
         } else {
-            (predict_mono(net.model(), prep, res), None)
+            (predict_mono(net.model(), prep, res, want), None)
         };
         if let Some(src) = source.as_ref().filter(|_| a.original_size) {
             pred.rgb = src.clone();

@@ -4,6 +4,7 @@
 use dens3r_backbone::predict::{predict_mono, predict_pair, Resolution};
 use dens3r_backbone::preprocess::preprocess;
 use dens3r_backbone::verify::load_model;
+use dens3r_backbone::HeadOutputs;
 use std::path::PathBuf;
 
 use crate::fixtures::{parity, shared_parity, A};
@@ -26,11 +27,17 @@ fn pair_and_mono_agree_and_keep_orientations() {
     let got: Vec<f32> = p1.points.data().iter().flat_map(|p| p.to_array()).collect();
     assert_eq!(raw, got, "same numbers as model.forward");
 
-    let mono = predict_mono(&model, &land, Resolution::Network);
+    let mono = predict_mono(&model, &land, Resolution::Network, HeadOutputs::ALL);
     let [v1, v2] = predict_pair(&model, &land, &land, Resolution::Network);
     let worst = mono.points.data().iter().zip(v1.points.data()).map(|(a, b)| (*a - *b).length()).fold(0.0, f32::max);
     assert!(worst < 1e-6, "the self-pair's first view is predict_mono ({worst})");
     assert_eq!((v1.frame, v2.frame), (0, 0));
+    // Without the descriptor head (what `dens3r predict` asks for), the rest is unchanged.
+    let lean = predict_mono(&model, &land, Resolution::Network, HeadOutputs { normal: true, desc: false });
+    assert!(mono.desc.is_some() && lean.desc.is_none() && lean.desc_conf.is_none());
+    assert_eq!(lean.points.data(), mono.points.data());
+    assert_eq!(lean.conf.as_ref().unwrap().data(), mono.conf.as_ref().unwrap().data());
+    assert_eq!(lean.normals.as_ref().unwrap().data(), mono.normals.as_ref().unwrap().data());
 
     // A portrait second view: its maps are portrait-shaped; the first view's are not.
     let [w1, w2] = predict_pair(&model, &land, &port, Resolution::Network);
