@@ -400,20 +400,22 @@ mod tests {
             let dot = |j: usize| (0..q.dim).map(|k| q.at(i)[k] * d.at(j)[k]).sum::<f32>();
             (0..d.len()).fold((f32::NEG_INFINITY, 0), |best, j| if dot(j) > best.0 { (dot(j), j) } else { best }).1
         };
-        for tol in [0.5, 5.0, 30.0] {
-            let got = one_way(&da, &db, 4, tol, |_| true, |_| true);
-            let mut want = Vec::new();
+        // Plain round trips from every 4th pixel of `f`: (seed, hit) when back within `tol`.
+        let round = |f: &Descriptors, t: &Descriptors, tol: f32| {
+            let mut out = Vec::new();
             for y in (2..h).step_by(4) {
                 for x in (2..w).step_by(4) {
-                    let s = y * w + x;
-                    let t = nn(&da, s, &db);
-                    let (bx, by) = da.xy(nn(&db, t, &da));
+                    let hit = nn(f, y * w + x, t);
+                    let (bx, by) = f.xy(nn(t, hit, f));
                     if ((bx as f32 - x as f32).powi(2) + (by as f32 - y as f32).powi(2)).sqrt() < tol {
-                        want.push((s, t));
+                        out.push((y * w + x, hit));
                     }
                 }
             }
-            assert_eq!(got, want, "tol {tol}");
+            out
+        };
+        for tol in [0.5, 5.0, 30.0] {
+            assert_eq!(one_way(&da, &db, 4, tol, |_| true, |_| true), round(&da, &db, tol), "tol {tol}");
         }
         // Matching with confidences (some under the floor, some NaN) and a border keeps exactly
         // the plain round trips of both directions whose pixels pass the filters.
@@ -437,21 +439,8 @@ mod tests {
         );
         let opts = MatchOptions { subsample: 4, ..Default::default() };
         let got = reciprocal_matches(&da, &db, &ca, &cb, &opts).unwrap();
-        let round = |f: &Descriptors, t: &Descriptors| {
-            let mut out = Vec::new();
-            for y in (2..h).step_by(4) {
-                for x in (2..w).step_by(4) {
-                    let hit = nn(f, y * w + x, t);
-                    let (bx, by) = f.xy(nn(t, hit, f));
-                    if ((bx as f32 - x as f32).powi(2) + (by as f32 - y as f32).powi(2)).sqrt() < opts.pixel_tol {
-                        out.push((y * w + x, hit));
-                    }
-                }
-            }
-            out
-        };
-        let mut want = round(&da, &db);
-        want.extend(round(&db, &da).into_iter().map(|(j, i)| (i, j)));
+        let mut want = round(&da, &db, opts.pixel_tol);
+        want.extend(round(&db, &da, opts.pixel_tol).into_iter().map(|(j, i)| (i, j)));
         want.sort_unstable();
         want.dedup();
         let inside = |(x, y): (usize, usize)| x >= 3 && y >= 3 && x + 3 < w && y + 3 < h;

