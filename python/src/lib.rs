@@ -663,6 +663,7 @@ fn reconstruct<'py>(
             matching: dens3r_align::matching::MatchOptions::default(),
             min_track: 2,
             match_pose: Some(dens3r_align::match_pose::MatchPoseOptions::default()),
+            keypoints: Some(dens3r_recon::KeypointOptions::default()),
         };
         let rec = dens3r_recon::reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
             dens3r_recon::Stage::Predict => report("predict", done, total),
@@ -677,6 +678,7 @@ fn reconstruct<'py>(
             "pairs": rec.stats.pairs,
             "pairs_from_cache": rec.stats.cache_hits,
             "pairs_placed_by_matches": rec.stats.posed_by_matches,
+            "pairs_placed_by_keypoints": rec.stats.posed_by_keypoints,
             "tracks": rec.points.len(),
             "warnings": rec.stats.warnings.iter().chain(&summary.warnings).collect::<Vec<_>>(),
             "voxel": summary.voxel,

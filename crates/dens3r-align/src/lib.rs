@@ -5,9 +5,12 @@
 //! descriptor maps and joins them into tracks; [`two_view`] gives a pair's relative pose by
 //! PnP-RANSAC ([`resection`]) without global optimisation; [`match_pose`] places a pair's
 //! second view by its matches and its own-frame pointmap instead of the network's cross-view
-//! pointmap.
+//! pointmap; [`keypoints`] (SIFT) and [`epipolar`] (the essential matrix) place a pair by
+//! classical matches when the network's descriptors do not match.
 
+pub mod epipolar;
 pub mod global;
+pub mod keypoints;
 pub mod match_pose;
 pub mod matching;
 pub mod pairs;

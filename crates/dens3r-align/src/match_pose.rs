@@ -10,12 +10,14 @@
 //! cross-view pointmap stays. (A 3-D/3-D fit, not PnP: the DLT behind PnP with an unknown
 //! focal is degenerate when the matches lie on one plane, as a wall's do.)
 
+use crate::epipolar::{essential_ransac, triangulate, EpipolarOptions};
 use crate::matching::Match;
 use crate::resection::SplitMix;
 use dens3r_geom::align::umeyama;
+use dens3r_geom::focal::median;
 use dens3r_geom::transform::Sim3;
 use dens3r_geom::{Raster, Vec3};
-use glam::DVec3;
+use glam::{DVec2, DVec3};
 
 /// When a matched placement is trusted.
 #[derive(Debug, Clone, PartialEq)]
@@ -130,6 +132,81 @@ pub fn pose_from_matches(
     Some(MatchedPose { transform, points, inliers, usable })
 }
 
+/// When a pair placed by keypoint matches ([`pose_from_keypoints`]) is trusted.
+#[derive(Debug, Clone, PartialEq)]
+pub struct KeypointPoseOptions {
+    /// Essential-matrix RANSAC.
+    pub epipolar: EpipolarOptions,
+    /// Fewest inlier matches.
+    pub min_inliers: usize,
+    /// Smallest inlier fraction of the matches.
+    pub min_inlier_ratio: f64,
+}
+
+impl Default for KeypointPoseOptions {
+    fn default() -> Self {
+        Self { epipolar: EpipolarOptions::default(), min_inliers: 30, min_inlier_ratio: 0.3 }
+    }
+}
+
+/// Places view 2 by keypoint correspondences `(a[k] in view 1, b[k] in view 2)`, pixels) and
+/// their epipolar geometry, so that its rotation owes nothing to the network's depth: the
+/// essential matrix at the views' focals `(f1, f2)` (pixels; principal point at the centre)
+/// gives the rotation and the translation's
+/// direction, and the inliers' triangulated depths against the network's depths at the same
+/// pixels give the translation's length and view 2's scale (medians of the ratios). `pts1` and
+/// `own2` must be camera-frame pointmaps (each up to its own scale) along pinhole rays with the
+/// principal point at the image centre; `reconstruct` rebuilds the network's so. Returns the
+/// placement and the inlier mask; `None` when too few matches agree or no scale can be read.
+pub fn pose_from_keypoints(
+    pts1: &Raster<Vec3>,
+    own2: &Raster<Vec3>,
+    (f1, f2): (f64, f64),
+    a: &[DVec2],
+    b: &[DVec2],
+    opts: &KeypointPoseOptions,
+) -> Option<(MatchedPose, Vec<bool>)> {
+    let norm = |p: &Raster<Vec3>, f: f64, q: DVec2| {
+        DVec2::new((q.x - p.width() as f64 / 2.0) / f, (q.y - p.height() as f64 / 2.0) / f)
+    };
+    let na: Vec<DVec2> = a.iter().map(|&q| norm(pts1, f1, q)).collect();
+    let nb: Vec<DVec2> = b.iter().map(|&q| norm(own2, f2, q)).collect();
+    let pose = essential_ransac(&na, &nb, (f1 * f2).sqrt(), &opts.epipolar)?;
+    let inliers = pose.inlier_count();
+    if inliers < opts.min_inliers || (inliers as f64) < opts.min_inlier_ratio * a.len() as f64 {
+        return None;
+    }
+    let depth_at = |p: &Raster<Vec3>, q: DVec2| -> Option<f64> {
+        let (x, y) = (q.x.round(), q.y.round());
+        if x < 0.0 || y < 0.0 || x >= p.width() as f64 || y >= p.height() as f64 {
+            return None;
+        }
+        let z = p.get(x as usize, y as usize).z as f64;
+        (z.is_finite() && z > 0.0).then_some(z)
+    };
+    let (r, t) = (pose.rotation, pose.translation);
+    let (mut s1, mut s2) = (Vec::new(), Vec::new());
+    for k in (0..a.len()).filter(|&k| pose.inliers[k]) {
+        let Some((za, zb)) = triangulate(&r, t, na[k], nb[k]) else { continue };
+        if let (Some(d1), Some(d2)) = (depth_at(pts1, a[k]), depth_at(own2, b[k])) {
+            s1.push(d1 / za);
+            s2.push(d2 / zb);
+        }
+    }
+    if s1.len() < opts.min_inliers.min(inliers) {
+        return None;
+    }
+    let (s1, s2) = (median(&mut s1)?, median(&mut s2)?);
+    if !(s1.is_finite() && s2.is_finite() && s1 > 0.0 && s2 > 0.0) {
+        return None;
+    }
+    // own2 = s2 * (camera 2, unit baseline); camera 1 = R^T (camera 2 - t); pts1 = s1 * camera 1.
+    let rt = r.transpose();
+    let transform = Sim3 { scale: s1 / s2, rotation: rt, translation: -s1 * (rt * t) };
+    let points = own2.map(|q| if q.is_finite() { transform.apply(q.as_dvec3()).as_vec3() } else { Vec3::NAN });
+    Some((MatchedPose { transform, points, inliers, usable: a.len() }, pose.inliers))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -182,7 +259,7 @@ mod tests {
         // Camera 2's orientation in camera 1's frame: the fitted map composed with `frame`
         // against the truth (rot^T).
         let dr = p.transform.rotation * frame.rotation * rot;
-        let angle = ((dr.x_axis.x + dr.y_axis.y + dr.z_axis.z - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees();
+        let angle = dens3r_geom::transform::rotation_angle_deg(&dr);
         assert!(angle < 0.5, "rotation error {angle} deg");
         assert!((p.transform.scale * frame.scale - 3.0).abs() < 0.03, "scale {}", p.transform.scale * frame.scale);
         assert!(p.inliers as f64 > 0.9 * p.usable as f64, "{} of {}", p.inliers, p.usable);
@@ -206,6 +283,70 @@ mod tests {
             rotation: axis_angle(DVec3::new(0.3, -1.0, 0.5).normalize(), 0.7),
             translation: DVec3::new(0.5, -2.0, 1.0),
         });
+    }
+
+    /// Keypoints: every 5th pixel of view 1 and its exact (sub-pixel) projection in view 2,
+    /// the last `outliers` of them moved to random places in view 2.
+    fn keypoints(pts1: &Raster<Vec3>, rot: DMat3, t: DVec3, outliers: usize) -> (Vec<DVec2>, Vec<DVec2>) {
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        for y in (0..120).step_by(5) {
+            for x in (0..160).step_by(5) {
+                let c = rot * pts1.get(x, y).as_dvec3() + t;
+                let (u, v) = (200.0 * c.x / c.z + 80.0, 200.0 * c.y / c.z + 60.0);
+                if u >= 0.0 && v >= 0.0 && u < 159.5 && v < 119.5 {
+                    a.push(DVec2::new(x as f64, y as f64));
+                    b.push(DVec2::new(u, v));
+                }
+            }
+        }
+        let n = b.len();
+        let mut rng = SplitMix(3);
+        for q in &mut b[n - outliers..] {
+            *q = DVec2::new(rng.below(1600) as f64 / 10.0, rng.below(1200) as f64 / 10.0);
+        }
+        (a, b)
+    }
+
+    /// The epipolar placement recovers the relative rotation, view 2's scale (its points are
+    /// given at a third of the truth) and its points in view 1's frame, with a quarter of the
+    /// correspondences wrong; nearly none of the wrong ones are inliers.
+    #[test]
+    fn keypoints_place_the_second_view() {
+        let (pts1, own2, rot, t, _) = scene();
+        let (a, _) = keypoints(&pts1, rot, t, 0);
+        let n = a.len();
+        let (a, b) = keypoints(&pts1, rot, t, n / 4);
+        let (p, inl) =
+            pose_from_keypoints(&pts1, &own2, (200.0, 200.0), &a, &b, &KeypointPoseOptions::default()).expect("a pose");
+        let dr = p.transform.rotation * rot;
+        let angle = dens3r_geom::transform::rotation_angle_deg(&dr);
+        // Random correspondences that fall near an epipolar line tilt the fit slightly.
+        assert!(angle < 0.25, "rotation error {angle} deg");
+        assert!((p.transform.scale / 3.0 - 1.0).abs() < 0.04, "scale {}", p.transform.scale);
+        let wrong = inl[n - n / 4..].iter().filter(|&&m| m).count();
+        let right = inl[..n - n / 4].iter().filter(|&&m| m).count();
+        // A random point lies within the threshold of its epipolar line about 2% of the time.
+        assert!(
+            wrong as f64 <= 0.05 * (n / 4) as f64 && right as f64 > 0.95 * (n - n / 4) as f64,
+            "{right} right and {wrong} wrong inliers"
+        );
+        let mut worst = 0f64;
+        for (y, x) in [(60, 80), (10, 10), (100, 150), (30, 120)] {
+            let truth = rot.transpose() * (own2.get(x, y).as_dvec3() * 3.0 - t);
+            worst = worst.max((p.points.get(x, y).as_dvec3() - truth).length());
+        }
+        // 3% of the scene's depth (about 3).
+        assert!(worst < 0.1, "placed points off by {worst}");
+    }
+
+    /// Correspondences with no common geometry place nothing.
+    #[test]
+    fn keypoints_that_disagree_are_refused() {
+        let (pts1, own2, rot, t, _) = scene();
+        let (a, _) = keypoints(&pts1, rot, t, 0);
+        let n = a.len();
+        let (_, b) = keypoints(&pts1, rot, t, n);
+        assert!(pose_from_keypoints(&pts1, &own2, (200.0, 200.0), &a, &b, &KeypointPoseOptions::default()).is_none());
     }
 
     #[test]

@@ -79,6 +79,38 @@ fn row_max(row: &[f32]) -> f32 {
     m
 }
 
+/// `out[r * n + c] = lhs[r] . rhs[c]` for row-major `lhs` (`out.len() / n` rows) and `rhs`
+/// (`n` rows), both `dim` wide: one `gemm` call.
+pub(crate) fn dots_abt(lhs: &[f32], rhs: &[f32], dim: usize, out: &mut [f32]) {
+    let (rows, n) = (lhs.len() / dim.max(1), rhs.len() / dim.max(1));
+    assert!(lhs.len() == rows * dim && rhs.len() == n * dim && out.len() == rows * n, "dots_abt shapes");
+    // SAFETY: dst is rows x n, row stride n, inside `out`; lhs is rows x dim row-major; rhs is
+    // read as dim x n (element (k, j) at rhs[j * dim + k]); the shapes are checked above.
+    unsafe {
+        gemm::gemm(
+            rows,
+            n,
+            dim,
+            out.as_mut_ptr(),
+            1,
+            n as isize,
+            false,
+            lhs.as_ptr(),
+            1,
+            dim as isize,
+            rhs.as_ptr(),
+            dim as isize,
+            1,
+            0.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
+
 /// For each query (flat pixel index into `q`), the pixel of `db` whose descriptor has the
 /// largest dot product with it (the first on ties). Blocks of queries run in parallel; each
 /// block's scores against a tile of `db` come from one `gemm` call, followed by a running
@@ -97,32 +129,7 @@ fn nearest_many(queries: &[usize], q: &Descriptors, db: &Descriptors) -> Vec<usi
             for t0 in (0..db.len()).step_by(TB) {
                 let n = TB.min(db.len() - t0);
                 let rhs = &db.data[t0 * dim..(t0 + n) * dim];
-                // SAFETY: dst is rows x n with row stride n inside `scores` (rows * TB >= rows * n);
-                // lhs is rows x dim row-major; rhs is read as dim x n (element (k, j) at
-                // rhs[j * dim + k]); every index stays inside its slice.
-                unsafe {
-                    gemm::gemm(
-                        rows,
-                        n,
-                        dim,
-                        scores.as_mut_ptr(),
-                        1,
-                        n as isize,
-                        false,
-                        lhs.as_ptr(),
-                        1,
-                        dim as isize,
-                        rhs.as_ptr(),
-                        dim as isize,
-                        1,
-                        0.0,
-                        1.0,
-                        false,
-                        false,
-                        false,
-                        gemm::Parallelism::None,
-                    );
-                }
+                dots_abt(&lhs, rhs, dim, &mut scores[..rows * n]);
                 for (r, b) in best.iter_mut().enumerate() {
                     let row = &scores[r * n..(r + 1) * n];
                     // The row's maximum first (branch-free, vectorised), its index only when

@@ -20,7 +20,7 @@ pub struct Resection {
 
 /// Eigen-decomposition of a symmetric matrix by cyclic Jacobi rotations: eigenvalues and
 /// eigenvectors (columns of the returned row-major `n x n` matrix).
-fn jacobi_eigen(mut a: Vec<f64>, n: usize) -> (Vec<f64>, Vec<f64>) {
+pub(crate) fn jacobi_eigen(mut a: Vec<f64>, n: usize) -> (Vec<f64>, Vec<f64>) {
     let mut v = vec![0.0; n * n];
     for i in 0..n {
         v[i * n + i] = 1.0;

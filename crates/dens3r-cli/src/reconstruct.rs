@@ -8,8 +8,8 @@ use dens3r_align::matching::MatchOptions;
 use dens3r_align::{AlignOptions, PairGraph};
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
-    list_images, load_images, reconstruct, write_outputs, NetworkPredictor, OutputOptions, OutputSummary, PairCache,
-    ReconOptions, Reconstruction, Stage,
+    list_images, load_images, reconstruct, write_outputs, KeypointOptions, NetworkPredictor, OutputOptions,
+    OutputSummary, PairCache, ReconOptions, Reconstruction, Stage,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -70,6 +70,11 @@ pub struct ReconstructArgs {
     /// camera).
     #[arg(long)]
     no_match_pose: bool,
+    /// Do not place pairs by SIFT keypoint matches (by default a pair is placed by their
+    /// epipolar geometry first, where enough agree, so its rotation needs neither the
+    /// network's descriptors nor its depth).
+    #[arg(long)]
+    no_keypoints: bool,
     /// Skip the mesh (scene folder and exports only).
     #[arg(long)]
     no_mesh: bool,
@@ -132,6 +137,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         matching: MatchOptions::default(),
         min_track: a.min_track,
         match_pose: (!a.no_match_pose).then(MatchPoseOptions::default),
+        keypoints: (!a.no_keypoints).then(KeypointOptions::default),
     };
     let (pbar, abar) = (bar("pairs", 0, "pairs"), bar("align", a.iterations, "iterations"));
     let rec = reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
@@ -184,9 +190,12 @@ fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, en
         tracks
     );
     println!(
-        "pairs placed by their matches: {} of {}{}",
-        s.posed_by_matches,
+        "pairs placed by SIFT keypoints: {} of {}{} in {:.1}s; by the network's matches: {}{}",
+        s.posed_by_keypoints,
         s.pairs,
+        if a.no_keypoints { " (--no-keypoints)" } else { "" },
+        s.keypoint_seconds,
+        s.posed_by_matches,
         if a.no_match_pose { " (--no-match-pose)" } else { "" }
     );
     println!(

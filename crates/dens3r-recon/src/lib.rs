@@ -22,7 +22,7 @@ pub mod viz;
 pub use cache::PairCache;
 pub use input::{list_images, load_images, InputImage};
 pub use output::{write_outputs, OutputOptions, OutputSummary};
-pub use pipeline::{reconstruct, ReconOptions, Reconstruction, Stage};
+pub use pipeline::{reconstruct, KeypointOptions, ReconOptions, Reconstruction, Stage};
 pub use predictor::{NetworkPredictor, PairPredictor, ViewOutput, Wanted};
 
 use std::path::Path;

@@ -4,13 +4,18 @@ use crate::cache::PairCache;
 use crate::input::InputImage;
 use crate::predictor::{PairPredictor, ViewOutput, Wanted};
 use crate::ReconError;
-use dens3r_align::match_pose::{pose_from_matches, MatchPoseOptions};
+use dens3r_align::keypoints::{detect, match_mutual, Keypoints};
+use dens3r_align::match_pose::{pose_from_keypoints, pose_from_matches, KeypointPoseOptions, MatchPoseOptions};
 use dens3r_align::matching::{reciprocal_matches, tracks, Descriptors, Match, MatchOptions};
 use dens3r_align::{global_align, make_pairs, AlignOptions, Alignment, PairGraph, PairPrediction};
+use dens3r_geom::focal::{focal_or_fallback, median};
 use dens3r_geom::{DVec3, Raster, Vec3};
+use dens3r_io::panics::catch_quietly;
 use dens3r_scene::export::TrackPoint;
+use glam::DVec2;
 use image::RgbImage;
-use std::collections::HashSet;
+use rayon::prelude::*;
+use std::collections::{HashMap, HashSet};
 use std::time::Instant;
 
 /// Reconstruction settings.
@@ -28,6 +33,27 @@ pub struct ReconOptions {
     /// and its own-frame pointmap where enough matches agree ([`dens3r_align::match_pose`]),
     /// instead of the network's cross-view pointmap; `None` keeps the network's everywhere.
     pub match_pose: Option<MatchPoseOptions>,
+    /// Place pairs by SIFT keypoint matches and their epipolar geometry first, where enough
+    /// agree ([`dens3r_align::match_pose::pose_from_keypoints`]): the rotation then owes
+    /// nothing to the network's depth or descriptors. `None` skips keypoints.
+    pub keypoints: Option<KeypointOptions>,
+}
+
+/// Keypoint matching settings ([`ReconOptions::keypoints`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct KeypointOptions {
+    /// Strongest SIFT keypoints kept per image.
+    pub max_keypoints: usize,
+    /// Lowe's ratio test.
+    pub ratio: f32,
+    /// When a placement is trusted.
+    pub pose: KeypointPoseOptions,
+}
+
+impl Default for KeypointOptions {
+    fn default() -> Self {
+        Self { max_keypoints: 4000, ratio: 0.8, pose: KeypointPoseOptions::default() }
+    }
 }
 
 impl Default for ReconOptions {
@@ -38,6 +64,7 @@ impl Default for ReconOptions {
             matching: MatchOptions::default(),
             min_track: 2,
             match_pose: Some(MatchPoseOptions::default()),
+            keypoints: Some(KeypointOptions::default()),
         }
     }
 }
@@ -86,6 +113,11 @@ pub struct ReconStats {
     /// Ordered pairs whose second view was placed by its matches (see
     /// [`ReconOptions::match_pose`]).
     pub posed_by_matches: usize,
+    /// Ordered pairs placed by keypoint matches (see [`ReconOptions::keypoints`]); these are
+    /// not counted in `posed_by_matches`.
+    pub posed_by_keypoints: usize,
+    /// Seconds detecting and matching keypoints and placing pairs by them.
+    pub keypoint_seconds: f64,
     /// Things the user should know (fallbacks, cache problems).
     pub warnings: Vec<String>,
 }
@@ -163,8 +195,17 @@ pub fn reconstruct(
         progress(Stage::Predict, e + 1, order.len());
     }
     matches.sort_by_key(|m| (m.0, m.1));
+    let mut placed = HashSet::new();
+    if let Some(kp) = &opts.keypoints {
+        let t = Instant::now();
+        let warnings = std::sync::Mutex::new(Vec::new());
+        placed = place_by_keypoints(images, &mut preds, &order, &mut matches, kp, &warnings);
+        stats.warnings.extend(warnings.into_inner().unwrap());
+        stats.posed_by_keypoints = placed.len();
+        stats.keypoint_seconds = t.elapsed().as_secs_f64();
+    }
     if let Some(mp) = &opts.match_pose {
-        stats.posed_by_matches = place_by_matches(&mut preds, &order, &matches, mp);
+        stats.posed_by_matches = place_by_matches(&mut preds, &order, &matches, &placed, mp);
     }
 
     let t = Instant::now();
@@ -204,13 +245,16 @@ fn place_by_matches(
     preds: &mut [PairPrediction],
     order: &[(usize, usize)],
     matches: &[(usize, usize, Vec<Match>)],
+    skip: &HashSet<(usize, usize)>,
     opts: &MatchPoseOptions,
 ) -> usize {
-    let index: std::collections::HashMap<(usize, usize), usize> =
-        order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
+    let index: HashMap<(usize, usize), usize> = order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
     let placed: Vec<Option<(Raster<Vec3>, Raster<f32>)>> = order
         .iter()
         .map(|&(i, j)| {
+            if skip.contains(&(i, j)) {
+                return None;
+            }
             let rev = *index.get(&(j, i))?;
             let (a, b) = (i.min(j), i.max(j));
             let ms = &matches.iter().find(|m| m.0 == a && m.1 == b)?.2;
@@ -229,6 +273,144 @@ fn place_by_matches(
         }
     }
     n
+}
+
+/// A pair's second view placed in its first view's frame: points, their confidence, and the
+/// matches that placed it.
+type Placed = (Raster<Vec3>, Raster<f32>, Vec<Match>);
+
+/// Places ordered pairs by SIFT keypoint matches ([`pose_from_keypoints`]) where enough agree,
+/// replacing their cross-view pointmaps as [`place_by_matches`] does; a placed pair's matches
+/// (the keypoint inliers, at the nearest pixels) replace the network's in `matches`, so tracks
+/// and match pictures follow the geometry used. Returns the ordered pairs placed.
+fn place_by_keypoints(
+    images: &[InputImage],
+    preds: &mut [PairPrediction],
+    order: &[(usize, usize)],
+    matches: &mut Vec<(usize, usize, Vec<Match>)>,
+    opts: &KeypointOptions,
+    warnings: &std::sync::Mutex<Vec<String>>,
+) -> HashSet<(usize, usize)> {
+    let index: HashMap<(usize, usize), usize> = order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
+    // A panic inside the SIFT crate costs that image its keypoints, not the run.
+    let kps: Vec<Keypoints> = images
+        .par_iter()
+        .map(|im| {
+            catch_quietly(|| detect(&im.rgb(), opts.max_keypoints)).unwrap_or_else(|e| {
+                warnings.lock().unwrap().push(format!("{}: no SIFT keypoints ({e})", im.name));
+                Keypoints::default()
+            })
+        })
+        .collect();
+    // Depth from the network, rays from one pinhole: each own-frame pointmap rebuilt from its
+    // z at one focal per image (the median over its own-frame pointmaps' Weiszfeld focals;
+    // one for all images when they share a size, as one camera's photos do). A network's
+    // depth is learned long before its rays (dens3r-s's own-frame points miss any pinhole by
+    // about 70 px at 512 px), and the epipolar geometry needs the one focal the global
+    // alignment will start from.
+    let focals = pooled_focals(preds, images.len());
+    let own: Vec<Raster<Vec3>> = preds.iter().map(|p| pinhole(&p.pts_i, focals[p.i])).collect();
+    let unordered: Vec<(usize, usize)> = order.iter().filter(|p| p.0 < p.1).copied().collect();
+    let pair_kp: HashMap<(usize, usize), (Vec<DVec2>, Vec<DVec2>)> = unordered
+        .par_iter()
+        .map(|&(i, j)| {
+            let m = match_mutual(&kps[i], &kps[j], opts.ratio);
+            ((i, j), m.iter().map(|&(p, q)| (kps[i].xy[p], kps[j].xy[q])).unzip())
+        })
+        .collect();
+    let placed: Vec<Option<Placed>> = order
+        .par_iter()
+        .map(|&(i, j)| {
+            let rev = *index.get(&(j, i))?;
+            let e = index[&(i, j)];
+            // Matched once per unordered pair, read both ways.
+            let (a, b) = if i < j {
+                pair_kp.get(&(i, j))?.clone()
+            } else {
+                let (b, a) = pair_kp.get(&(j, i))?.clone();
+                (a, b)
+            };
+            let (pose, inl) = pose_from_keypoints(&own[e], &own[rev], (focals[i], focals[j]), &a, &b, &opts.pose)?;
+            let px = |r: &Raster<Vec3>, q: DVec2| {
+                let x = (q.x.round().max(0.0) as usize).min(r.width() - 1);
+                let y = (q.y.round().max(0.0) as usize).min(r.height() - 1);
+                (x, y)
+            };
+            let kept: Vec<Match> = (0..a.len())
+                .filter(|&k| inl[k])
+                .map(|k| {
+                    let (pa, pb) = (px(&own[e], a[k]), px(&own[rev], b[k]));
+                    let conf = preds[e].conf_i.get(pa.0, pa.1).min(*preds[rev].conf_i.get(pb.0, pb.1));
+                    Match { a: pa, b: pb, conf }
+                })
+                .collect();
+            Some((pose.points, preds[rev].conf_i.clone(), kept))
+        })
+        .collect();
+    if placed.iter().all(Option::is_none) {
+        return HashSet::new();
+    }
+    for (p, o) in preds.iter_mut().zip(own) {
+        p.pts_i = o;
+    }
+    let mut done = HashSet::new();
+    let mut kept: HashMap<(usize, usize), Vec<Match>> = HashMap::new();
+    for (e, p) in placed.into_iter().enumerate() {
+        let Some((pts, conf, ms)) = p else { continue };
+        preds[e].pts_j = pts;
+        preds[e].conf_j = conf;
+        let (i, j) = order[e];
+        done.insert((i, j));
+        // One set of matches per unordered pair: the run with the smaller index first wins.
+        let (key, ms) = if i < j { ((i, j), ms) } else { ((j, i), ms.into_iter().map(swap).collect()) };
+        if i < j || !kept.contains_key(&key) {
+            kept.insert(key, ms);
+        }
+    }
+    for (&(a, b), ms) in &kept {
+        match matches.iter_mut().find(|m| m.0 == a && m.1 == b) {
+            Some(m) => m.2 = ms.clone(),
+            None => matches.push((a, b, ms.clone())),
+        }
+    }
+    matches.sort_by_key(|m| (m.0, m.1));
+    done
+}
+
+/// One focal per image: the median of the Weiszfeld focals of its own-frame pointmaps (the
+/// pairs it comes first in), pooled into one median when every image has the same size.
+fn pooled_focals(preds: &[PairPrediction], n: usize) -> Vec<f64> {
+    let mut per: Vec<Vec<f64>> = vec![Vec::new(); n];
+    for p in preds {
+        let f = focal_or_fallback(&p.pts_i, p.pts_i.width(), p.pts_i.height()).unwrap_or_else(|f| f);
+        per[p.i].push(f);
+    }
+    let sizes: HashSet<(usize, usize)> = preds.iter().map(|p| (p.pts_i.width(), p.pts_i.height())).collect();
+    if sizes.len() == 1 {
+        let mut all: Vec<f64> = per.concat();
+        let f = median(&mut all).unwrap_or(1.0);
+        return vec![f; n];
+    }
+    per.iter_mut().map(|v| median(v).unwrap_or(1.0)).collect()
+}
+
+/// A pointmap rebuilt from its depth (z) along the rays of a pinhole of focal `f` (principal
+/// point at the centre, as global alignment assumes); invalid points stay invalid.
+fn pinhole(pts: &Raster<Vec3>, f: f64) -> Raster<Vec3> {
+    let (cx, cy) = (pts.width() as f64 / 2.0, pts.height() as f64 / 2.0);
+    let mut out = pts.clone();
+    for y in 0..pts.height() {
+        for x in 0..pts.width() {
+            let z = pts.get(x, y).z as f64;
+            let q = if z.is_finite() && z > 0.0 {
+                DVec3::new((x as f64 - cx) / f * z, (y as f64 - cy) / f * z, z).as_vec3()
+            } else {
+                Vec3::NAN
+            };
+            *out.get_mut(x, y) = q;
+        }
+    }
+    out
 }
 
 fn swap(m: Match) -> Match {

@@ -1,0 +1,296 @@
+//! Two-view geometry from point correspondences alone, no depth: the essential matrix of two
+//! calibrated views by the eight-point algorithm inside RANSAC (Sampson distance, local
+//! refits), decomposed into the relative rotation and translation direction by cheirality.
+//! `reconstruct` places pairs by it when keypoint matches are used ([`crate::keypoints`]), so a
+//! pair's rotation does not depend on the network's depth.
+
+use crate::resection::{jacobi_eigen, SplitMix};
+use glam::{DMat3, DVec2, DVec3};
+use glamx::DSvd3;
+
+/// The relative pose of view `b` to view `a`: `x_b = rotation * x_a + translation` (camera
+/// frames, OpenCV axes), `translation` of unit length (two views fix no scale).
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpipolarPose {
+    /// Rotation taking camera `a`'s frame to camera `b`'s.
+    pub rotation: DMat3,
+    /// Unit translation, in camera `b`'s frame.
+    pub translation: DVec3,
+    /// Which correspondences agree with the pose (Sampson distance under the threshold, in
+    /// front of both cameras).
+    pub inliers: Vec<bool>,
+}
+
+impl EpipolarPose {
+    /// How many correspondences agree.
+    pub fn inlier_count(&self) -> usize {
+        self.inliers.iter().filter(|&&m| m).count()
+    }
+}
+
+/// Essential-matrix RANSAC settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpipolarOptions {
+    /// Eight-point hypotheses tried at most (fewer once the inlier ratio makes more pointless).
+    pub iterations: usize,
+    /// Inlier Sampson distance, pixels.
+    pub threshold_px: f64,
+    /// Sampling seed (results are reproducible).
+    pub seed: u64,
+}
+
+impl Default for EpipolarOptions {
+    fn default() -> Self {
+        Self { iterations: 2000, threshold_px: 1.5, seed: 0 }
+    }
+}
+
+/// The essential matrix of normalised correspondences (`a[k]`, `b[k]` = `K^-1 [u, v, 1]`'s first
+/// two entries) with `b^T E a = 0`, by the linear eight-point algorithm, projected onto the
+/// essential manifold (singular values 1, 1, 0). `None` under 8 correspondences.
+pub fn eight_point(a: &[DVec2], b: &[DVec2]) -> Option<DMat3> {
+    if a.len() < 8 || a.len() != b.len() {
+        return None;
+    }
+    // Isotropic normalisation of each side (Hartley): centroid at 0, mean distance sqrt(2).
+    let (ta, na) = normalise(a)?;
+    let (tb, nb) = normalise(b)?;
+    let mut ata = vec![0.0; 81];
+    for (p, q) in na.iter().zip(&nb) {
+        let row = [q.x * p.x, q.x * p.y, q.x, q.y * p.x, q.y * p.y, q.y, p.x, p.y, 1.0];
+        for r in 0..9 {
+            for c in r..9 {
+                ata[r * 9 + c] += row[r] * row[c];
+            }
+        }
+    }
+    for r in 0..9 {
+        for c in 0..r {
+            ata[r * 9 + c] = ata[c * 9 + r];
+        }
+    }
+    let (vals, vecs) = jacobi_eigen(ata, 9);
+    let k = (0..9).min_by(|&i, &j| vals[i].total_cmp(&vals[j]))?;
+    let e: Vec<f64> = (0..9).map(|r| vecs[r * 9 + k]).collect();
+    // Row-major 3x3 -> glam's column-major.
+    let en = DMat3::from_cols(DVec3::new(e[0], e[3], e[6]), DVec3::new(e[1], e[4], e[7]), DVec3::new(e[2], e[5], e[8]));
+    let e = tb.transpose() * en * ta;
+    let svd = DSvd3::from_matrix(e);
+    if !svd.s.x.is_finite() || svd.s.x <= 0.0 {
+        return None;
+    }
+    Some(svd.u * DMat3::from_diagonal(DVec3::new(1.0, 1.0, 0.0)) * svd.vt)
+}
+
+/// The similarity taking points to zero mean and mean distance sqrt(2), and the moved points.
+fn normalise(p: &[DVec2]) -> Option<(DMat3, Vec<DVec2>)> {
+    let c = p.iter().copied().sum::<DVec2>() / p.len() as f64;
+    let d = p.iter().map(|q| (*q - c).length()).sum::<f64>() / p.len() as f64;
+    if !(d > 1e-12 && d.is_finite()) {
+        return None;
+    }
+    let s = std::f64::consts::SQRT_2 / d;
+    let t = DMat3::from_cols(DVec3::new(s, 0.0, 0.0), DVec3::new(0.0, s, 0.0), DVec3::new(-s * c.x, -s * c.y, 1.0));
+    Some((t, p.iter().map(|q| (*q - c) * s).collect()))
+}
+
+/// Squared Sampson distance of a normalised correspondence to `b^T E a = 0`.
+pub fn sampson_sq(e: &DMat3, a: DVec2, b: DVec2) -> f64 {
+    let (pa, pb) = (a.extend(1.0), b.extend(1.0));
+    let ea = *e * pa;
+    let etb = e.transpose() * pb;
+    let num = pb.dot(ea);
+    let den = ea.x * ea.x + ea.y * ea.y + etb.x * etb.x + etb.y * etb.y;
+    if den <= 0.0 {
+        return f64::INFINITY;
+    }
+    num * num / den
+}
+
+/// The depths along `a` (in camera a) and `b` (in camera b) that best explain one
+/// correspondence under `x_b = R x_a + t` (midpoint method); `None` for parallel rays.
+pub fn triangulate(r: &DMat3, t: DVec3, a: DVec2, b: DVec2) -> Option<(f64, f64)> {
+    // Solve za * R a - zb * b = -t in least squares.
+    let u = *r * a.extend(1.0);
+    let v = b.extend(1.0);
+    let (uu, uv, vv) = (u.dot(u), u.dot(v), v.dot(v));
+    let det = uu * vv - uv * uv;
+    if det.abs() < 1e-12 * uu * vv {
+        return None;
+    }
+    let (tu, tv) = (-t.dot(u), -t.dot(v));
+    let za = (tu * vv - tv * uv) / det;
+    let zb = (tu * uv - tv * uu) / det;
+    Some((za, zb))
+}
+
+/// The four poses an essential matrix allows, the one with most correspondences (of `mask`) in
+/// front of both cameras, and that count.
+fn decompose(e: &DMat3, a: &[DVec2], b: &[DVec2], mask: &[bool]) -> Option<(DMat3, DVec3, usize)> {
+    let svd = DSvd3::from_matrix(*e);
+    let (mut u, mut vt) = (svd.u, svd.vt);
+    if u.determinant() < 0.0 {
+        u = -u;
+    }
+    if vt.determinant() < 0.0 {
+        vt = -vt;
+    }
+    let w = DMat3::from_cols(DVec3::new(0.0, 1.0, 0.0), DVec3::new(-1.0, 0.0, 0.0), DVec3::Z);
+    let t = u.z_axis;
+    let mut best: Option<(DMat3, DVec3, usize)> = None;
+    for r in [u * w * vt, u * w.transpose() * vt] {
+        for t in [t, -t] {
+            let front = a
+                .iter()
+                .zip(b)
+                .zip(mask)
+                .filter(|(_, &m)| m)
+                .filter(|((&p, &q), _)| triangulate(&r, t, p, q).is_some_and(|(za, zb)| za > 0.0 && zb > 0.0))
+                .count();
+            if best.as_ref().is_none_or(|x| front > x.2) {
+                best = Some((r, t, front));
+            }
+        }
+    }
+    best
+}
+
+/// Relative pose of two calibrated views from normalised correspondences (see
+/// [`eight_point`]); `focal` (pixels) converts the threshold. Eight-point hypotheses from random
+/// samples scored by inlier count, each new best refitted on its inliers until the set stops
+/// growing; then the pose whose triangulations lie in front of both cameras. `None` with fewer
+/// than 12 correspondences, or when no pose has 12 inliers in front.
+pub fn essential_ransac(a: &[DVec2], b: &[DVec2], focal: f64, opts: &EpipolarOptions) -> Option<EpipolarPose> {
+    let n = a.len();
+    if n < 12 || b.len() != n || focal.is_nan() || focal <= 0.0 {
+        return None;
+    }
+    let thr2 = (opts.threshold_px / focal).powi(2);
+    let score = |e: &DMat3| -> (usize, Vec<bool>) {
+        let mask: Vec<bool> = a.iter().zip(b).map(|(&p, &q)| sampson_sq(e, p, q) < thr2).collect();
+        (mask.iter().filter(|&&m| m).count(), mask)
+    };
+    let fit = |mask: &[bool]| {
+        let (pa, pb): (Vec<DVec2>, Vec<DVec2>) =
+            a.iter().zip(b).zip(mask).filter(|(_, &m)| m).map(|((p, q), _)| (*p, *q)).unzip();
+        eight_point(&pa, &pb)
+    };
+    let mut rng = SplitMix(opts.seed);
+    let mut best: Option<(usize, DMat3, Vec<bool>)> = None;
+    let mut pick = Vec::with_capacity(8);
+    let mut it = 0;
+    let mut needed = opts.iterations;
+    while it < needed {
+        it += 1;
+        pick.clear();
+        while pick.len() < 8 {
+            let k = rng.below(n);
+            if !pick.contains(&k) {
+                pick.push(k);
+            }
+        }
+        let sa: Vec<DVec2> = pick.iter().map(|&k| a[k]).collect();
+        let sb: Vec<DVec2> = pick.iter().map(|&k| b[k]).collect();
+        let Some(e) = eight_point(&sa, &sb) else { continue };
+        let (mut c, mut mask) = score(&e);
+        if best.as_ref().is_some_and(|x| c <= x.0) {
+            continue;
+        }
+        let mut e = e;
+        for _ in 0..10 {
+            let Some(e2) = fit(&mask) else { break };
+            let (c2, m2) = score(&e2);
+            if c2 <= c {
+                break;
+            }
+            (e, c, mask) = (e2, c2, m2);
+        }
+        best = Some((c, e, mask));
+        // Stop once 99.9% sure of one all-inlier sample.
+        let w = c as f64 / n as f64;
+        let p_good = w.powi(8);
+        if p_good > 1e-9 {
+            let k = ((1.0 - 0.999f64).ln() / (1.0 - p_good).max(1e-12).ln()).ceil();
+            needed = needed.min(k.max(50.0) as usize);
+        }
+    }
+    let (_, e, mask) = best?;
+    let (r, t, _) = decompose(&e, a, b, &mask)?;
+    let inliers: Vec<bool> = a
+        .iter()
+        .zip(b)
+        .zip(&mask)
+        .map(|((&p, &q), &m)| m && triangulate(&r, t, p, q).is_some_and(|(za, zb)| za > 0.0 && zb > 0.0))
+        .collect();
+    if inliers.iter().filter(|&&m| m).count() < 12 {
+        return None;
+    }
+    Some(EpipolarPose { rotation: r, translation: t.normalize(), inliers })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dens3r_geom::transform::axis_angle;
+
+    fn scene(seed: u64, n: usize) -> (DMat3, DVec3, Vec<DVec2>, Vec<DVec2>) {
+        let mut rng = SplitMix(seed);
+        let mut u = || rng.below(1_000_000) as f64 / 1e6;
+        let r = axis_angle(DVec3::new(0.3, 1.0, 0.1).normalize(), 0.5);
+        let t = DVec3::new(-0.8, 0.1, 0.2);
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        while a.len() < n {
+            let x = DVec3::new(u() * 2.0 - 1.0, u() * 2.0 - 1.0, 3.0 + 2.0 * u());
+            let y = r * x + t;
+            if y.z > 0.1 {
+                a.push(DVec2::new(x.x / x.z, x.y / x.z));
+                b.push(DVec2::new(y.x / y.z, y.y / y.z));
+            }
+        }
+        (r, t, a, b)
+    }
+
+    fn angle(a: &DMat3, b: &DMat3) -> f64 {
+        dens3r_geom::transform::rotation_angle_deg(&(a.transpose() * *b)).to_radians()
+    }
+
+    /// Exact correspondences give the generating pose (rotation, translation direction) and
+    /// an essential matrix every correspondence satisfies.
+    #[test]
+    fn exact_correspondences_give_the_pose() {
+        let (r, t, a, b) = scene(1, 40);
+        let e = eight_point(&a, &b).unwrap();
+        for (p, q) in a.iter().zip(&b) {
+            assert!(sampson_sq(&e, *p, *q).sqrt() < 1e-9);
+        }
+        let pose = essential_ransac(&a, &b, 500.0, &EpipolarOptions::default()).unwrap();
+        assert!(angle(&pose.rotation, &r) < 1e-6, "rotation off by {}", angle(&pose.rotation, &r));
+        assert!(pose.translation.dot(t.normalize()) > 1.0 - 1e-9);
+        assert_eq!(pose.inlier_count(), 40);
+    }
+
+    /// With 40% of the correspondences replaced by random ones and 0.5 px noise on the rest,
+    /// RANSAC finds the inliers and the rotation within 0.5 degrees.
+    #[test]
+    fn outliers_and_noise() {
+        let (r, t, a, mut b) = scene(2, 300);
+        let f = 500.0;
+        let mut rng = SplitMix(7);
+        let mut u = || rng.below(1_000_000) as f64 / 1e6 - 0.5;
+        let mut outlier = vec![false; b.len()];
+        for (k, q) in b.iter_mut().enumerate() {
+            if k % 5 < 2 {
+                *q = DVec2::new(u(), u());
+                outlier[k] = true;
+            } else {
+                *q += DVec2::new(u(), u()) / f;
+            }
+        }
+        let pose = essential_ransac(&a, &b, f, &EpipolarOptions::default()).unwrap();
+        assert!(angle(&pose.rotation, &r).to_degrees() < 0.5);
+        assert!(pose.translation.dot(t.normalize()) > 0.999);
+        let found = pose.inliers.iter().zip(&outlier).filter(|(&m, &o)| m && !o).count();
+        let wrong = pose.inliers.iter().zip(&outlier).filter(|(&m, &o)| m && o).count();
+        assert!(found >= 170 && wrong <= 5, "found {found} of 180 inliers, {wrong} outliers kept");
+    }
+}
