@@ -604,9 +604,10 @@ fn pair_graph(graph: &str, window: usize, cyclic: bool) -> PyResult<dens3r_align
 /// (the same pipeline and outputs: `OUTPUT/scene/`, `colmap/`, `matches/`, `mesh.glb`).
 /// Returns `read_scene` of the scene folder plus `output`, `mesh` (a mesh dict, or None) and
 /// `summary` (alignment residuals, pairs, warnings). `progress(stage, done, total)` is called
-/// with stage "predict", "align" or "fuse".
+/// with stage "predict", "align" or "fuse". `focal` (pixels of the photos) fixes every focal;
+/// without it a photo's EXIF 35 mm equivalent focal length is kept where it has one.
 #[pyfunction]
-#[pyo3(signature = (photos, output, *, model=None, graph="complete".to_string(), window=3, cyclic=false, iterations=300, fixed_focal=false, voxel=None, min_conf=3.0, mesh=true, cache=true, match_pictures=20, gpu=false, progress=None))]
+#[pyo3(signature = (photos, output, *, model=None, graph="complete".to_string(), window=3, cyclic=false, iterations=300, fixed_focal=false, focal=None, voxel=None, min_conf=3.0, mesh=true, cache=true, match_pictures=20, gpu=false, progress=None))]
 #[allow(clippy::too_many_arguments)]
 fn reconstruct<'py>(
     py: Python<'py>,
@@ -618,6 +619,7 @@ fn reconstruct<'py>(
     cyclic: bool,
     iterations: usize,
     fixed_focal: bool,
+    focal: Option<f64>,
     voxel: Option<f32>,
     min_conf: f32,
     mesh: bool,
@@ -629,6 +631,9 @@ fn reconstruct<'py>(
     let graph = pair_graph(&graph, window, cyclic)?;
     if voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         return Err(PyValueError::new_err("voxel: must be positive"));
+    }
+    if focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
+        return Err(PyValueError::new_err("focal: must be a positive number of pixels of the photos"));
     }
     let loaded;
     let model = match model {
@@ -650,7 +655,10 @@ fn reconstruct<'py>(
     let (summary, rec_stats) = py.detach(|| {
         use dens3r_recon::{list_images, load_images, write_outputs, NetworkPredictor, OutputOptions, PairCache};
         let paths = list_images(&photos).map_err(err)?;
-        let images = load_images(&paths, model.size, model.keep_portrait).map_err(err)?;
+        let mut images = load_images(&paths, model.size, model.keep_portrait).map_err(err)?;
+        if focal.is_some() {
+            images.iter_mut().for_each(|im| im.set_focal(focal));
+        }
         if images.len() < 2 {
             return Err(err(format!("reconstruction needs at least 2 photos, got {}", images.len())));
         }

@@ -90,6 +90,9 @@ pub struct AlignOptions {
     pub grid_points: usize,
     /// Optimise focals (otherwise the Weiszfeld estimates are kept).
     pub optimize_focal: bool,
+    /// Known focal lengths per image (pixels at its size; from EXIF or the user), used as they
+    /// are and never optimised; images without an entry, or with `None`, are estimated.
+    pub focals: Vec<Option<f64>>,
 }
 
 impl Default for AlignOptions {
@@ -102,6 +105,7 @@ impl Default for AlignOptions {
             conf: ConfTransform::Log,
             grid_points: 4096,
             optimize_focal: true,
+            focals: Vec::new(),
         }
     }
 }
@@ -238,7 +242,12 @@ pub fn global_align(
     let score: Vec<f64> = pairs.iter().map(|p| mean_conf(&p.conf_i) * mean_conf(&p.conf_j)).collect();
 
     let world = spanning_tree_points(n, pairs, &w, &score)?;
-    let init = initial_cameras(sizes, pairs, &w, &score, world)?;
+    let mut init = initial_cameras(sizes, pairs, &w, &score, world)?;
+    for (f, known) in init.focal.iter_mut().zip(&opts.focals) {
+        if let Some(k) = known.filter(|k| k.is_finite() && *k > 0.0) {
+            *f = k;
+        }
+    }
     let grids: Vec<Vec<(usize, usize)>> = sizes.iter().map(|&(wk, hk)| grid(wk, hk, opts.grid_points)).collect();
     let (problem, mut state, g) = Problem::new(sizes, pairs, &w, grids, &init)?;
     let (loss0, last) = problem.optimise(&mut state, opts, progress);
@@ -654,6 +663,9 @@ impl Problem {
                 // Fields of view between about 1 and 168 degrees: a bound that only untrained
                 // or broken predictions reach (they otherwise drive the focal to 0).
                 for (k, (l, s)) in st.logf.iter_mut().zip(step).enumerate() {
+                    if opts.focals.get(k).is_some_and(Option::is_some) {
+                        continue;
+                    }
                     let side = self.sizes[k].0.max(self.sizes[k].1) as f64;
                     *l = (*l - s).clamp((0.05 * side).ln(), (50.0 * side).ln());
                 }

@@ -52,6 +52,14 @@ pub struct ReconstructArgs {
     /// Keep the estimated focals fixed during alignment.
     #[arg(long)]
     fixed_focal: bool,
+    /// Focal length of every photo in pixels of the photo as stored (after its EXIF rotation),
+    /// kept fixed. Without it a photo's EXIF 35 mm equivalent focal length is used where it has
+    /// one, and the other focals are estimated.
+    #[arg(long, value_name = "PX")]
+    focal: Option<f64>,
+    /// Ignore the photos' EXIF focal lengths: estimate every focal not given by --focal.
+    #[arg(long)]
+    no_exif_focal: bool,
     /// TSDF voxel in scene units (default: twice the pixel footprint at the median depth).
     #[arg(long)]
     voxel: Option<f32>,
@@ -112,6 +120,9 @@ fn checked_graph(a: &ReconstructArgs) -> Result<PairGraph> {
     if !(a.budget_mb.is_finite() && a.budget_mb > 0.0) {
         bail!("--budget-mb must be positive");
     }
+    if a.focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
+        bail!("--focal must be a positive number of pixels (e.g. 1000 for a 4000-pixel-wide photo at 70 degrees)");
+    }
     if !a.min_conf.is_finite() {
         bail!("--min-conf {}: expected a finite confidence (e.g. 1.5; confidences are 1 + exp(x))", a.min_conf);
     }
@@ -124,7 +135,14 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let t0 = Instant::now();
     // Every photo is decoded before the model loads: a bad photo fails in a second.
     let paths = list_images(&a.photos)?;
-    let images = load_images(&paths, a.model.size, a.model.keep_portrait)?;
+    let mut images = load_images(&paths, a.model.size, a.model.keep_portrait)?;
+    for im in &mut images {
+        match a.focal {
+            Some(f) => im.set_focal(Some(f)),
+            None if a.no_exif_focal => im.set_focal(None),
+            None => {}
+        }
+    }
     if images.len() < 2 {
         bail!("reconstruction needs at least 2 photos, got {}", images.len());
     }
@@ -198,12 +216,15 @@ fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, en
         s.posed_by_matches,
         if a.no_match_pose { " (--no-match-pose)" } else { "" }
     );
+    let known = if a.focal.is_some() { "all given by --focal" } else { "the rest estimated" };
     println!(
-        "alignment: residual {:.4} -> {:.4} (scene units) in {:.1}s; focals {}",
+        "alignment: residual {:.4} -> {:.4} (scene units) in {:.1}s; focals {} ({} of {} known, {known})",
         rec.alignment.loss.0,
         rec.alignment.loss.1,
         s.align_seconds,
-        rec.alignment.views.iter().map(|v| format!("{:.1}", v.camera.intrinsics.fx)).collect::<Vec<_>>().join(", ")
+        rec.alignment.views.iter().map(|v| format!("{:.1}", v.camera.intrinsics.fx)).collect::<Vec<_>>().join(", "),
+        s.known_focals,
+        rec.names.len()
     );
     match &summary.mesh {
         Some(m) => println!(

@@ -21,6 +21,10 @@ pub struct InputImage {
     pub prep: Prepared,
     /// FNV-1a hash of the file's bytes (pair cache key).
     pub hash: u64,
+    /// Focal length in pixels at [`size`](Self::size), when known: from the photo's EXIF 35 mm
+    /// equivalent focal length ([`exif_focal_px`]), or given by [`set_focal`](Self::set_focal).
+    /// Reconstruction keeps a known focal fixed instead of estimating it.
+    pub focal: Option<f64>,
 }
 
 impl InputImage {
@@ -33,6 +37,18 @@ impl InputImage {
         } else {
             (w as usize, h as usize)
         }
+    }
+
+    /// Sets the focal length from `photo_px`, in pixels of the photo as read (after its EXIF
+    /// orientation, before resizing); `None` forgets it, so it is estimated.
+    pub fn set_focal(&mut self, photo_px: Option<f64>) {
+        self.focal = photo_px.filter(|f| f.is_finite() && *f > 0.0).map(|f| f * self.photo_to_map());
+    }
+
+    /// Pixels of the maps per pixel of the photo (the resize factor; cropping keeps the focal).
+    pub fn photo_to_map(&self) -> f64 {
+        let (o, r) = (self.prep.info.original, self.prep.info.resized);
+        f64::from(r.0.max(r.1)) / f64::from(o.0.max(o.1).max(1))
     }
 
     /// The network input in the photo's own orientation (the colours of the scene frame).
@@ -85,9 +101,29 @@ pub fn load_images(paths: &[PathBuf], size: u32, keep_portrait: bool) -> Result<
         let bytes = std::fs::read(p).map_err(|e| ReconError::input(p, format!("cannot read ({e})")))?;
         let img = open_oriented(p)?;
         let prep = preprocess(&img, size, !keep_portrait).map_err(|e| ReconError::input(p, e.to_string()))?;
-        out.push(InputImage { name: unique_name(p, &mut names), path: p.clone(), prep, hash: fnv1a(&bytes, 0) });
+        let focal = exif_focal_px(&bytes, (img.width(), img.height()));
+        let mut im =
+            InputImage { name: unique_name(p, &mut names), path: p.clone(), prep, hash: fnv1a(&bytes, 0), focal: None };
+        im.set_focal(focal);
+        out.push(im);
     }
     Ok(out)
+}
+
+/// Diagonal of a 36 x 24 mm frame, mm: a 35 mm equivalent focal length gives the same field of
+/// view across the image diagonal as this lens on that frame (CIPA DC-008).
+pub const FULL_FRAME_DIAGONAL_MM: f64 = 43.266_615;
+
+/// The focal length in pixels of a `(w, h)` photo from its EXIF `FocalLengthIn35mmFilm` tag
+/// (JPEG, PNG, TIFF or HEIF container): `f35 / 43.27 mm * diagonal`. `None` when the file has
+/// no EXIF, no such tag, or the value 0 ("unknown") or over 5000 mm (not a camera's).
+pub fn exif_focal_px(bytes: &[u8], (w, h): (u32, u32)) -> Option<f64> {
+    let exif = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(bytes)).ok()?;
+    let f35 = exif.get_field(exif::Tag::FocalLengthIn35mmFilm, exif::In::PRIMARY)?.value.get_uint(0)?;
+    if f35 == 0 || f35 > 5000 {
+        return None;
+    }
+    Some(f64::from(f35) / FULL_FRAME_DIAGONAL_MM * f64::from(w).hypot(f64::from(h)))
 }
 
 /// A frame name for `p` not yet in `taken` (the file stem, suffixed `_1`, `_2`, .. on clashes),
@@ -106,6 +142,63 @@ pub fn unique_name(p: &Path, taken: &mut HashSet<String>) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A JPEG of `w x h` whose EXIF says `f35` mm (35 mm equivalent), as phones write it.
+    fn jpeg_with_focal(w: u32, h: u32, f35: Option<u16>) -> Vec<u8> {
+        use image::ImageEncoder;
+        let img = RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 7 % 256) as u8, (y * 5 % 256) as u8, 128]));
+        let mut bytes = Vec::new();
+        let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 90);
+        if let Some(f) = f35 {
+            let field = exif::Field {
+                tag: exif::Tag::FocalLengthIn35mmFilm,
+                ifd_num: exif::In::PRIMARY,
+                value: exif::Value::Short(vec![f]),
+            };
+            let mut writer = exif::experimental::Writer::new();
+            writer.push_field(&field);
+            let mut tiff = std::io::Cursor::new(Vec::new());
+            writer.write(&mut tiff, false).unwrap();
+            enc.set_exif_metadata(tiff.into_inner()).unwrap();
+        }
+        enc.write_image(img.as_raw(), w, h, image::ExtendedColorType::Rgb8).unwrap();
+        bytes
+    }
+
+    /// A phone's 26 mm (35 mm equivalent) main camera on a 4:3 photo: 79.5 degrees across the
+    /// diagonal (2 atan(21.63 / 26)), 67.3 across the width (the width is 0.8 of the diagonal).
+    #[test]
+    fn exif_focal_gives_the_field_of_view_of_its_35mm_equivalent() {
+        let bytes = jpeg_with_focal(400, 300, Some(26));
+        let f = exif_focal_px(&bytes, (400, 300)).expect("EXIF focal");
+        let hfov = 2.0 * (200.0 / f).atan().to_degrees();
+        let dfov = 2.0 * (250.0 / f).atan().to_degrees();
+        assert!((hfov - 67.3).abs() < 0.1 && (dfov - 79.5).abs() < 0.1, "{hfov} {dfov}");
+        // No EXIF, or "unknown" (0): no focal.
+        assert_eq!(exif_focal_px(&jpeg_with_focal(400, 300, None), (400, 300)), None);
+        assert_eq!(exif_focal_px(&jpeg_with_focal(400, 300, Some(0)), (400, 300)), None);
+
+        // Loaded at long side 256 (0.64 of the photo), portrait or not: the focal follows the
+        // resize, and the field of view stays.
+        let dir = tempfile::tempdir().unwrap();
+        let (land, port) = (dir.path().join("land.jpg"), dir.path().join("port.jpg"));
+        std::fs::write(&land, &bytes).unwrap();
+        std::fs::write(&port, jpeg_with_focal(300, 400, Some(26))).unwrap();
+        let ims = load_images(&[land, port], 256, false).unwrap();
+        for im in &ims {
+            let fm = im.focal.expect("focal at the map size");
+            let (w, h) = im.size();
+            assert_eq!(w.max(h), 256);
+            let dfov_map = 2.0 * ((w as f64).hypot(h as f64) / 2.0 / fm).atan().to_degrees();
+            assert!((dfov_map - 79.5).abs() < 0.3, "{}: {dfov_map}", im.name);
+        }
+        // `set_focal` overrides, in photo pixels; `None` forgets.
+        let mut im = ims[0].clone();
+        im.set_focal(Some(500.0));
+        assert!((im.focal.unwrap() - 320.0).abs() < 1e-9);
+        im.set_focal(None);
+        assert_eq!(im.focal, None);
+    }
 
     #[test]
     fn names_are_unique() {

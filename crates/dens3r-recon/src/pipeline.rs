@@ -118,6 +118,8 @@ pub struct ReconStats {
     pub posed_by_keypoints: usize,
     /// Seconds detecting and matching keypoints and placing pairs by them.
     pub keypoint_seconds: f64,
+    /// Images whose focal was known (EXIF or given) and kept.
+    pub known_focals: usize,
     /// Things the user should know (fallbacks, cache problems).
     pub warnings: Vec<String>,
 }
@@ -141,7 +143,8 @@ pub fn reconstruct(
     let order: Vec<(usize, usize)> =
         make_pairs(n, opts.graph, false).into_iter().flat_map(|(i, j)| [(i, j), (j, i)]).collect();
     let ordered: HashSet<(usize, usize)> = order.iter().copied().collect();
-    let mut stats = ReconStats { pairs: order.len(), ..Default::default() };
+    let known_focals = images.iter().filter(|im| im.focal.is_some()).count();
+    let mut stats = ReconStats { pairs: order.len(), known_focals, ..Default::default() };
     let id = predictor.id();
     let mut normal_sum: Vec<Option<(Vec<Vec3>, Vec<f32>)>> = vec![None; n];
     let mut matches = Vec::new();
@@ -210,7 +213,9 @@ pub fn reconstruct(
 
     let t = Instant::now();
     let iters = opts.align.iterations;
-    let alignment = global_align(&sizes, &preds, &opts.align, |it, _| progress(Stage::Align, it, iters))?;
+    // Known focals (EXIF, `--focal`) are kept; the rest are estimated.
+    let align = AlignOptions { focals: images.iter().map(|im| im.focal).collect(), ..opts.align.clone() };
+    let alignment = global_align(&sizes, &preds, &align, |it, _| progress(Stage::Align, it, iters))?;
     stats.align_seconds = t.elapsed().as_secs_f64();
     stats.warnings.extend(alignment.warnings.iter().cloned());
     drop(preds);
@@ -308,7 +313,8 @@ fn place_by_keypoints(
     // depth is learned long before its rays (dens3r-s's own-frame points miss any pinhole by
     // about 70 px at 512 px), and the epipolar geometry needs the one focal the global
     // alignment will start from.
-    let focals = pooled_focals(preds, images.len());
+    let known: Vec<Option<f64>> = images.iter().map(|im| im.focal).collect();
+    let focals = pooled_focals(preds, &known);
     let own: Vec<Raster<Vec3>> = preds.iter().map(|p| pinhole(&p.pts_i, focals[p.i])).collect();
     let unordered: Vec<(usize, usize)> = order.iter().filter(|p| p.0 < p.1).copied().collect();
     let pair_kp: HashMap<(usize, usize), (Vec<DVec2>, Vec<DVec2>)> = unordered
@@ -377,11 +383,13 @@ fn place_by_keypoints(
     done
 }
 
-/// One focal per image: the median of the Weiszfeld focals of its own-frame pointmaps (the
-/// pairs it comes first in), pooled into one median when every image has the same size.
-fn pooled_focals(preds: &[PairPrediction], n: usize) -> Vec<f64> {
+/// One focal per image: its `known` focal where given; else the median of the Weiszfeld
+/// focals of its own-frame pointmaps (the pairs it comes first in), pooled into one median
+/// over the images without a known focal when every image has the same size.
+fn pooled_focals(preds: &[PairPrediction], known: &[Option<f64>]) -> Vec<f64> {
+    let n = known.len();
     let mut per: Vec<Vec<f64>> = vec![Vec::new(); n];
-    for p in preds {
+    for p in preds.iter().filter(|p| known[p.i].is_none()) {
         let f = focal_or_fallback(&p.pts_i, p.pts_i.width(), p.pts_i.height()).unwrap_or_else(|f| f);
         per[p.i].push(f);
     }
@@ -389,9 +397,9 @@ fn pooled_focals(preds: &[PairPrediction], n: usize) -> Vec<f64> {
     if sizes.len() == 1 {
         let mut all: Vec<f64> = per.concat();
         let f = median(&mut all).unwrap_or(1.0);
-        return vec![f; n];
+        per = vec![vec![f]; n];
     }
-    per.iter_mut().map(|v| median(v).unwrap_or(1.0)).collect()
+    known.iter().zip(per.iter_mut()).map(|(k, v)| k.unwrap_or_else(|| median(v).unwrap_or(1.0))).collect()
 }
 
 /// A pointmap rebuilt from its depth (z) along the rays of a pinhole of focal `f` (principal

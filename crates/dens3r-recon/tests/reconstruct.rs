@@ -470,7 +470,8 @@ impl PairPredictor for DepthOnly<'_> {
 
 /// Keypoint matches place the pairs of a network that knows only depth: the relative
 /// rotations of the renderer's cameras come back (within the error its warped rays leave in
-/// the focal, 4% here); without keypoints they do not.
+/// the focal, 4% here; closer with the focal known, which is then kept); without keypoints
+/// they do not.
 #[test]
 fn keypoints_place_the_pairs_of_a_depth_only_network() {
     // The room's surfaces all in fine high-contrast noise (non-repeating: a tiled photo's
@@ -509,6 +510,17 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
     );
     assert_eq!(with.stats.posed_by_keypoints, with.stats.pairs);
     assert!(med < 1.5 && worst < 3.0, "{med} {worst}");
+    // The camera's true focal, known (as a photo's EXIF or `--focal` gives it): kept as it is,
+    // and the rotations need no focal estimate.
+    let f = t.cams[0].intrinsics.fx;
+    let mut known = images.clone();
+    known.iter_mut().for_each(|im| im.set_focal(Some(f)));
+    let kf = reconstruct(&known, &net, &cache, &opts, |_, _, _| {}).unwrap();
+    let (medk, worstk) = rotation_errors(&t, &kf.alignment);
+    eprintln!("with the focal known: median relative rotation error {medk:.3} deg, worst {worstk:.3} deg");
+    assert_eq!((kf.stats.known_focals, kf.stats.posed_by_keypoints), (n, kf.stats.pairs));
+    assert!(kf.alignment.views.iter().all(|v| (v.camera.intrinsics.fx / f - 1.0).abs() < 1e-9));
+    assert!(medk < 0.75 && worstk < 1.0 && medk < med, "{medk} {worstk} ({med} estimated)");
     let opts = ReconOptions { keypoints: None, ..opts };
     let without = reconstruct(&images, &net, &cache, &opts, |_, _, _| {}).unwrap();
     let (med0, _) = rotation_errors(&t, &without.alignment);
