@@ -182,13 +182,7 @@ pub fn essential_ransac(a: &[DVec2], b: &[DVec2], focal: f64, opts: &EpipolarOpt
     let mut needed = opts.iterations;
     while it < needed {
         it += 1;
-        pick.clear();
-        while pick.len() < 8 {
-            let k = rng.below(n);
-            if !pick.contains(&k) {
-                pick.push(k);
-            }
-        }
+        rng.distinct(n, 8, &mut pick);
         let sa: Vec<DVec2> = pick.iter().map(|&k| a[k]).collect();
         let sb: Vec<DVec2> = pick.iter().map(|&k| b[k]).collect();
         let Some(e) = eight_point(&sa, &sb) else { continue };

@@ -110,6 +110,13 @@ impl Default for AlignOptions {
     }
 }
 
+impl AlignOptions {
+    /// Image `k`'s known focal ([`Self::focals`]), when it is a usable one (finite, positive).
+    fn known_focal(&self, k: usize) -> Option<f64> {
+        self.focals.get(k).copied().flatten().filter(|f| f.is_finite() && *f > 0.0)
+    }
+}
+
 /// Why alignment could not run.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum GlobalAlignError {
@@ -243,9 +250,9 @@ pub fn global_align(
 
     let world = spanning_tree_points(n, pairs, &w, &score)?;
     let mut init = initial_cameras(sizes, pairs, &w, &score, world)?;
-    for (f, known) in init.focal.iter_mut().zip(&opts.focals) {
-        if let Some(k) = known.filter(|k| k.is_finite() && *k > 0.0) {
-            *f = k;
+    for (k, f) in init.focal.iter_mut().enumerate() {
+        if let Some(known) = opts.known_focal(k) {
+            *f = known;
         }
     }
     let grids: Vec<Vec<(usize, usize)>> = sizes.iter().map(|&(wk, hk)| grid(wk, hk, opts.grid_points)).collect();
@@ -663,7 +670,7 @@ impl Problem {
                 // Fields of view between about 1 and 168 degrees: a bound that only untrained
                 // or broken predictions reach (they otherwise drive the focal to 0).
                 for (k, (l, s)) in st.logf.iter_mut().zip(step).enumerate() {
-                    if opts.focals.get(k).is_some_and(Option::is_some) {
+                    if opts.known_focal(k).is_some() {
                         continue;
                     }
                     let side = self.sizes[k].0.max(self.sizes[k].1) as f64;

@@ -215,6 +215,18 @@ mod tests {
 
     /// Two cameras (focal 200, 160x120) looking at a bumpy surface; view 2 turned 20 degrees
     /// about y and moved; its own points are given at a third of the true scale.
+    /// The farthest of a few placed points from view 2's true point in camera 1's frame
+    /// (`own2` is [`scene`]'s: a third of the true scale).
+    fn worst_placed(placed: &Raster<Vec3>, own2: &Raster<Vec3>, rot: DMat3, t: DVec3) -> f64 {
+        [(60, 80), (10, 10), (100, 150), (30, 120)]
+            .into_iter()
+            .map(|(y, x)| {
+                let truth = rot.transpose() * (own2.get(x, y).as_dvec3() * 3.0 - t);
+                (placed.get(x, y).as_dvec3() - truth).length()
+            })
+            .fold(0.0, f64::max)
+    }
+
     fn scene() -> (Raster<Vec3>, Raster<Vec3>, DMat3, DVec3, Vec<Match>) {
         let (w, h, f) = (160usize, 120usize, 200.0f64);
         let depth = |x: f64, y: f64| 3.0 + 0.6 * (x * 9.0).sin() * (y * 7.0).cos();
@@ -264,11 +276,7 @@ mod tests {
         assert!((p.transform.scale * frame.scale - 3.0).abs() < 0.03, "scale {}", p.transform.scale * frame.scale);
         assert!(p.inliers as f64 > 0.9 * p.usable as f64, "{} of {}", p.inliers, p.usable);
         // Every placed point is view 2's true point in camera 1's frame.
-        let mut worst = 0f64;
-        for (y, x) in [(60, 80), (10, 10), (100, 150), (30, 120)] {
-            let truth = rot.transpose() * (own2.get(x, y).as_dvec3() * 3.0 - t);
-            worst = worst.max((p.points.get(x, y).as_dvec3() - truth).length());
-        }
+        let worst = worst_placed(&p.points, &own2, rot, t);
         assert!(worst < 0.05, "placed points off by {worst}");
     }
 
@@ -330,11 +338,7 @@ mod tests {
             wrong as f64 <= 0.05 * (n / 4) as f64 && right as f64 > 0.95 * (n - n / 4) as f64,
             "{right} right and {wrong} wrong inliers"
         );
-        let mut worst = 0f64;
-        for (y, x) in [(60, 80), (10, 10), (100, 150), (30, 120)] {
-            let truth = rot.transpose() * (own2.get(x, y).as_dvec3() * 3.0 - t);
-            worst = worst.max((p.points.get(x, y).as_dvec3() - truth).length());
-        }
+        let worst = worst_placed(&p.points, &own2, rot, t);
         // 3% of the scene's depth (about 3).
         assert!(worst < 0.1, "placed points off by {worst}");
     }

@@ -234,6 +234,17 @@ impl SplitMix {
         z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
         ((z ^ (z >> 31)) % n as u64) as usize
     }
+
+    /// `k` distinct draws in `0..n` (all of `0..n` in some order when `k >= n`) into `out`.
+    pub(crate) fn distinct(&mut self, n: usize, k: usize, out: &mut Vec<usize>) {
+        out.clear();
+        while out.len() < k.min(n) {
+            let i = self.below(n);
+            if !out.contains(&i) {
+                out.push(i);
+            }
+        }
+    }
 }
 
 /// Robust resection (PnP-RANSAC with unknown focal, locally optimised): DLT hypotheses from
@@ -278,13 +289,7 @@ pub fn resect_ransac(samples: &[((f64, f64), DVec3, f64)], opts: &RansacOptions)
     let mut best: Option<(f64, Resection, Vec<bool>)> = None;
     let mut pick = Vec::with_capacity(SAMPLE);
     for _ in 0..opts.iterations {
-        pick.clear();
-        while pick.len() < SAMPLE.min(n) {
-            let k = rng.below(n);
-            if !pick.contains(&k) {
-                pick.push(k);
-            }
-        }
+        rng.distinct(n, SAMPLE, &mut pick);
         let minimal: Vec<_> = pick.iter().map(|&k| samples[k]).collect();
         if let Some(r) = resect(&minimal) {
             let (sc, mask) = score(&r);

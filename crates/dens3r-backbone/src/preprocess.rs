@@ -114,10 +114,15 @@ pub fn max_decoded_bytes(file_len: u64) -> u64 {
 
 /// Reads an image file applying its EXIF orientation.
 pub fn open_oriented(path: &Path) -> Result<DynamicImage, BackboneError> {
+    let bytes = std::fs::read(path).map_err(|e| BackboneError::file(path, format!("cannot read ({e})")))?;
+    decode_oriented(path, &bytes)
+}
+
+/// [`open_oriented`] of a file's `bytes` already in memory (`path` names it in errors).
+pub fn decode_oriented(path: &Path, bytes: &[u8]) -> Result<DynamicImage, BackboneError> {
     let file = |m: String| BackboneError::file(path, m);
     let err = |e: image::ImageError| file(format!("unreadable image ({e}); use PNG or JPEG"));
-    let bytes = std::fs::read(path).map_err(|e| file(format!("cannot read ({e})")))?;
-    let mut decoder = image::ImageReader::new(std::io::Cursor::new(&bytes[..]))
+    let mut decoder = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|e| file(format!("cannot read ({e})")))?
         .into_decoder()
@@ -135,7 +140,7 @@ pub fn open_oriented(path: &Path) -> Result<DynamicImage, BackboneError> {
         )));
     }
     // JPEG decoders fill a cut-off file's missing rows with grey without a word.
-    if jpeg_truncated(&bytes) {
+    if jpeg_truncated(bytes) {
         return Err(file(
             "the JPEG is truncated (no end of image after its last scan); copy or export it again".into(),
         ));

@@ -2,7 +2,7 @@
 //! landscape, resize, crop to multiples of 16), unique names, content hashes for the cache.
 
 use crate::ReconError;
-use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
+use dens3r_backbone::preprocess::{decode_oriented, preprocess, Prepared};
 use image::RgbImage;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -99,7 +99,7 @@ pub fn load_images(paths: &[PathBuf], size: u32, keep_portrait: bool) -> Result<
     let mut out = Vec::with_capacity(paths.len());
     for p in paths {
         let bytes = std::fs::read(p).map_err(|e| ReconError::input(p, format!("cannot read ({e})")))?;
-        let img = open_oriented(p)?;
+        let img = decode_oriented(p, &bytes)?;
         let prep = preprocess(&img, size, !keep_portrait).map_err(|e| ReconError::input(p, e.to_string()))?;
         let focal = exif_focal_px(&bytes, (img.width(), img.height()));
         let mut im =

@@ -198,11 +198,13 @@ pub fn reconstruct(
         progress(Stage::Predict, e + 1, order.len());
     }
     matches.sort_by_key(|m| (m.0, m.1));
+    // The photos as the maps see them: SIFT's input, the tracks' colours and the scene's frames.
+    let rgb: Vec<RgbImage> = images.iter().map(|im| im.rgb()).collect();
     let mut placed = HashSet::new();
     if let Some(kp) = &opts.keypoints {
         let t = Instant::now();
         let warnings = std::sync::Mutex::new(Vec::new());
-        placed = place_by_keypoints(images, &mut preds, &order, &mut matches, kp, &warnings);
+        placed = place_by_keypoints(images, &rgb, &mut preds, &order, &mut matches, kp, &warnings);
         stats.warnings.extend(warnings.into_inner().unwrap());
         stats.posed_by_keypoints = placed.len();
         stats.keypoint_seconds = t.elapsed().as_secs_f64();
@@ -230,7 +232,6 @@ pub fn reconstruct(
             })
         })
         .collect();
-    let rgb: Vec<RgbImage> = images.iter().map(|im| im.rgb()).collect();
     let points = track_points(&alignment, &rgb, &matches, opts.min_track);
     Ok(Reconstruction {
         names: images.iter().map(|im| im.name.clone()).collect(),
@@ -290,6 +291,7 @@ type Placed = (Raster<Vec3>, Raster<f32>, Vec<Match>);
 /// and match pictures follow the geometry used. Returns the ordered pairs placed.
 fn place_by_keypoints(
     images: &[InputImage],
+    rgb: &[RgbImage],
     preds: &mut [PairPrediction],
     order: &[(usize, usize)],
     matches: &mut Vec<(usize, usize, Vec<Match>)>,
@@ -300,8 +302,9 @@ fn place_by_keypoints(
     // A panic inside the SIFT crate costs that image its keypoints, not the run.
     let kps: Vec<Keypoints> = images
         .par_iter()
-        .map(|im| {
-            catch_quietly(|| detect(&im.rgb(), opts.max_keypoints)).unwrap_or_else(|e| {
+        .zip(rgb)
+        .map(|(im, rgb)| {
+            catch_quietly(|| detect(rgb, opts.max_keypoints)).unwrap_or_else(|e| {
                 warnings.lock().unwrap().push(format!("{}: no SIFT keypoints ({e})", im.name));
                 Keypoints::default()
             })

@@ -382,16 +382,16 @@ impl PairPredictor for NoCrossView<'_> {
     }
 }
 
-/// Median and largest rotation error (degrees) of the aligned cameras after the best
-/// similarity onto the true camera centres.
+/// Median and largest error (degrees) of the aligned cameras' relative rotations over all
+/// view pairs (no gauge needed).
 fn rotation_errors(t: &Truth, a: &dens3r_align::Alignment) -> (f64, f64) {
     let n = t.cams.len();
+    let truth: Vec<DMat3> = t.cams.iter().map(|c| DMat3::from_mat4(c.cam_to_world)).collect();
+    let est: Vec<DMat3> = a.views.iter().map(|v| DMat3::from_mat4(v.camera.cam_to_world)).collect();
     let mut errs = Vec::new();
     for p in 0..n {
         for q in p + 1..n {
             let rel = |c: &[DMat3]| c[p].transpose() * c[q];
-            let truth: Vec<DMat3> = t.cams.iter().map(|c| DMat3::from_mat4(c.cam_to_world)).collect();
-            let est: Vec<DMat3> = a.views.iter().map(|v| DMat3::from_mat4(v.camera.cam_to_world)).collect();
             errs.push(rotation_angle_deg(&(rel(&truth).transpose() * rel(&est))));
         }
     }
