@@ -672,6 +672,7 @@ fn reconstruct<'py>(
             min_track: 2,
             match_pose: Some(dens3r_align::match_pose::MatchPoseOptions::default()),
             keypoints: Some(dens3r_recon::KeypointOptions::default()),
+            drop_unplaced: true,
         };
         let rec = dens3r_recon::reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
             dens3r_recon::Stage::Predict => report("predict", done, total),
@@ -687,6 +688,7 @@ fn reconstruct<'py>(
             "pairs_from_cache": rec.stats.cache_hits,
             "pairs_placed_by_matches": rec.stats.posed_by_matches,
             "pairs_placed_by_keypoints": rec.stats.posed_by_keypoints,
+            "pairs_left_out": rec.stats.pairs_left_out,
             "tracks": rec.points.len(),
             "warnings": rec.stats.warnings.iter().chain(&summary.warnings).collect::<Vec<_>>(),
             "voxel": summary.voxel,

@@ -19,5 +19,5 @@ pub mod two_view;
 mod union_find;
 
 pub use global::{global_align, AlignOptions, AlignedView, Alignment, ConfTransform, GlobalAlignError, PairPrediction};
-pub use pairs::{make_pairs, PairGraph};
+pub use pairs::{make_pairs, verified_subgraph, PairGraph};
 pub use two_view::{relative_pose, RelativePose};

@@ -72,6 +72,24 @@ pub fn make_pairs(n: usize, graph: PairGraph, symmetrize: bool) -> Vec<(usize, u
     out
 }
 
+/// Which of `pairs` (over images `0..n`) global alignment should keep once some are
+/// `verified` (placed by geometry, e.g. keypoint epipolar fits): every verified pair, and an
+/// unverified one only where it joins two groups of images that verified pairs do not
+/// connect. Unverified pairs inside a verified group would only pull it towards the
+/// network's cross-view guesses; those between groups are all that places one group against
+/// the other. With no verified pair every pair is kept.
+pub fn verified_subgraph(n: usize, pairs: &[(usize, usize)], verified: &[bool]) -> Vec<bool> {
+    assert_eq!(pairs.len(), verified.len(), "one flag per pair");
+    if !verified.iter().any(|&v| v) {
+        return vec![true; pairs.len()];
+    }
+    let mut groups = crate::union_find::UnionFind::new(n);
+    for (&(i, j), _) in pairs.iter().zip(verified).filter(|(_, &v)| v) {
+        groups.union(i, j);
+    }
+    pairs.iter().zip(verified).map(|(&(i, j), &v)| v || groups.find(i) != groups.find(j)).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -95,5 +113,18 @@ mod tests {
         let p = make_pairs(3, PairGraph::SlidingWindow { k: 5, cyclic: true }, true);
         assert_eq!(p.len(), 6);
         assert!(p.iter().all(|(i, j)| i != j));
+    }
+
+    #[test]
+    fn unverified_pairs_are_kept_only_between_verified_groups() {
+        // Images 0-1-2 verified as a chain, 3-4 verified, 5 in no verified pair.
+        let pairs = [(0, 1), (1, 2), (0, 2), (3, 4), (2, 3), (1, 4), (4, 5), (0, 5), (1, 0)];
+        let verified = [true, true, false, true, false, false, false, false, true];
+        let keep = verified_subgraph(6, &pairs, &verified);
+        // (0, 2) lies inside the group {0, 1, 2}: dropped; (2, 3) and (1, 4) join {0, 1, 2} to
+        // {3, 4}, (4, 5) and (0, 5) reach image 5: kept.
+        assert_eq!(keep, vec![true, true, false, true, true, true, true, true, true]);
+        // Nothing verified: everything stays.
+        assert_eq!(verified_subgraph(6, &pairs, &[false; 9]), vec![true; 9]);
     }
 }

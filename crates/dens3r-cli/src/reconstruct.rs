@@ -83,6 +83,11 @@ pub struct ReconstructArgs {
     /// network's descriptors nor its depth).
     #[arg(long)]
     no_keypoints: bool,
+    /// Align every pair, also those neither keypoints nor matches placed (by default these
+    /// are left out among images that placed pairs already connect: their cross-view
+    /// pointmaps are the network's unchecked guess).
+    #[arg(long)]
+    keep_unplaced: bool,
     /// Skip the mesh (scene folder and exports only).
     #[arg(long)]
     no_mesh: bool,
@@ -156,6 +161,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         min_track: a.min_track,
         match_pose: (!a.no_match_pose).then(MatchPoseOptions::default),
         keypoints: (!a.no_keypoints).then(KeypointOptions::default),
+        drop_unplaced: !a.keep_unplaced,
     };
     let (pbar, abar) = (bar("pairs", 0, "pairs"), bar("align", a.iterations, "iterations"));
     let rec = reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
@@ -208,13 +214,15 @@ fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, en
         tracks
     );
     println!(
-        "pairs placed by SIFT keypoints: {} of {}{} in {:.1}s; by the network's matches: {}{}",
+        "pairs placed by SIFT keypoints: {} of {}{} in {:.1}s; by the network's matches: {}{}; unplaced pairs left out: {}{}",
         s.posed_by_keypoints,
         s.pairs,
         if a.no_keypoints { " (--no-keypoints)" } else { "" },
         s.keypoint_seconds,
         s.posed_by_matches,
-        if a.no_match_pose { " (--no-match-pose)" } else { "" }
+        if a.no_match_pose { " (--no-match-pose)" } else { "" },
+        s.pairs_left_out,
+        if a.keep_unplaced { " (--keep-unplaced)" } else { "" }
     );
     let known = if a.focal.is_some() { "all given by --focal" } else { "the rest estimated" };
     println!(

@@ -4,12 +4,13 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use dens3r_geom::Intrinsics;
 use dens3r_render::noise::Noise;
-use dens3r_render::procedural::{self, ROOM_HI, ROOM_LO};
+use dens3r_render::procedural::{self, ObjectTexture, ROOM_HI, ROOM_LO};
 use dens3r_render::{path, World};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Instant;
 
-#[derive(Clone, Copy, ValueEnum)]
+#[derive(Clone, Copy, PartialEq, ValueEnum)]
 pub enum Procedural {
     /// A furnished 4 m room (floor, walls, ceiling, boxes, spheres, tori).
     Room,
@@ -60,6 +61,10 @@ pub struct RenderArgs {
     /// Tilt every normal by a random angle of this RMS, degrees.
     #[arg(long, default_value_t = 0.0)]
     normal_noise: f32,
+    /// Surface pattern of a mesh or blob: noise, checker, plain, or an image file (a
+    /// photograph tiled over the surface, as a real object's texture).
+    #[arg(long, default_value = "noise")]
+    texture: String,
     /// Output scene folder.
     #[arg(short, long)]
     output: PathBuf,
@@ -104,18 +109,38 @@ fn check(a: &RenderArgs) -> Result<()> {
     Ok(())
 }
 
+/// The `--texture` value as an object texture (an image file is read and decoded here).
+fn object_texture(spec: &str) -> Result<ObjectTexture> {
+    Ok(match spec {
+        "noise" => ObjectTexture::Noise,
+        "checker" => ObjectTexture::Checker,
+        "plain" => ObjectTexture::Plain,
+        path => {
+            let img = dens3r_backbone::preprocess::open_oriented(std::path::Path::new(path)).with_context(|| {
+                format!("--texture {path}: not noise, checker or plain, and not a readable image file")
+            })?;
+            ObjectTexture::Photo(Arc::new(img.to_rgb8()))
+        }
+    })
+}
+
 pub fn run(a: RenderArgs) -> Result<()> {
     check(&a)?;
     let t0 = Instant::now();
+    let texture = object_texture(&a.texture)?;
+    if a.procedural == Some(Procedural::Room) && a.texture != "noise" {
+        bail!("--texture applies to --mesh and --procedural blob; the room has its own materials");
+    }
     let (objects, default_path) = match (&a.mesh, a.procedural) {
         (Some(p), _) => {
             let mesh = dens3r_mesh::read_mesh(p)?;
-            (procedural::single_object(mesh, a.seed as u32), CameraPath::Orbit)
+            (procedural::single_object_with(mesh, a.seed as u32, texture), CameraPath::Orbit)
         }
         (None, Some(Procedural::Room)) => (procedural::room(a.seed), CameraPath::Walk),
-        (None, Some(Procedural::Blob)) => {
-            (procedural::single_object(procedural::blob_mesh(a.seed, 5), a.seed as u32), CameraPath::Orbit)
-        }
+        (None, Some(Procedural::Blob)) => (
+            procedural::single_object_with(procedural::blob_mesh(a.seed, 5), a.seed as u32, texture),
+            CameraPath::Orbit,
+        ),
         (None, None) => bail!("give --mesh FILE or --procedural room|blob"),
     };
     let world = World::new(objects).map_err(anyhow::Error::msg).context("cannot build the scene")?;

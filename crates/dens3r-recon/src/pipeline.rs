@@ -7,7 +7,7 @@ use crate::ReconError;
 use dens3r_align::keypoints::{detect, match_mutual, Keypoints};
 use dens3r_align::match_pose::{pose_from_keypoints, pose_from_matches, KeypointPoseOptions, MatchPoseOptions};
 use dens3r_align::matching::{reciprocal_matches, tracks, Descriptors, Match, MatchOptions};
-use dens3r_align::{global_align, make_pairs, AlignOptions, Alignment, PairGraph, PairPrediction};
+use dens3r_align::{global_align, make_pairs, verified_subgraph, AlignOptions, Alignment, PairGraph, PairPrediction};
 use dens3r_geom::focal::{focal_or_fallback, median};
 use dens3r_geom::{DVec3, Raster, Vec3};
 use dens3r_io::panics::catch_quietly;
@@ -37,6 +37,11 @@ pub struct ReconOptions {
     /// agree ([`dens3r_align::match_pose::pose_from_keypoints`]): the rotation then owes
     /// nothing to the network's depth or descriptors. `None` skips keypoints.
     pub keypoints: Option<KeypointOptions>,
+    /// Leave out of the alignment the pairs neither keypoints nor matches placed, among
+    /// images that placed pairs already connect ([`dens3r_align::verified_subgraph`]): a
+    /// network's unverified cross-view pointmaps then cannot pull verified cameras. Off keeps
+    /// every pair (for a network whose cross-view pointmaps are trusted).
+    pub drop_unplaced: bool,
 }
 
 /// Keypoint matching settings ([`ReconOptions::keypoints`]).
@@ -65,6 +70,7 @@ impl Default for ReconOptions {
             min_track: 2,
             match_pose: Some(MatchPoseOptions::default()),
             keypoints: Some(KeypointOptions::default()),
+            drop_unplaced: true,
         }
     }
 }
@@ -118,6 +124,9 @@ pub struct ReconStats {
     pub posed_by_keypoints: usize,
     /// Seconds detecting and matching keypoints and placing pairs by them.
     pub keypoint_seconds: f64,
+    /// Ordered pairs left out of the alignment: unplaced pairs among images that placed pairs
+    /// already connect ([`dens3r_align::verified_subgraph`]).
+    pub pairs_left_out: usize,
     /// Images whose focal was known (EXIF or given) and kept.
     pub known_focals: usize,
     /// Things the user should know (fallbacks, cache problems).
@@ -210,8 +219,21 @@ pub fn reconstruct(
         stats.keypoint_seconds = t.elapsed().as_secs_f64();
     }
     if let Some(mp) = &opts.match_pose {
-        stats.posed_by_matches = place_by_matches(&mut preds, &order, &matches, &placed, mp);
+        let by_matches = place_by_matches(&mut preds, &order, &matches, &placed, mp);
+        stats.posed_by_matches = by_matches.len();
+        placed.extend(by_matches);
     }
+    // Pairs placed by geometry outrank the network's cross-view guesses: where they connect
+    // images, the unplaced pairs among those images are left out of the alignment.
+    let keep = if opts.drop_unplaced {
+        let verified: Vec<bool> = order.iter().map(|p| placed.contains(p)).collect();
+        verified_subgraph(n, &order, &verified)
+    } else {
+        vec![true; order.len()]
+    };
+    stats.pairs_left_out = keep.iter().filter(|&&k| !k).count();
+    let mut keep = keep.into_iter();
+    preds.retain(|_| keep.next().expect("one flag per pair"));
 
     let t = Instant::now();
     let iters = opts.align.iterations;
@@ -246,14 +268,14 @@ pub fn reconstruct(
 
 /// Replaces each ordered pair's cross-view pointmap (view `j` in camera `i`'s frame) by view
 /// `j`'s own-frame pointmap (from the reverse run) placed by the pair's matches, where they
-/// agree on a camera; returns how many pairs were placed so.
+/// agree on a camera; returns the ordered pairs placed so.
 fn place_by_matches(
     preds: &mut [PairPrediction],
     order: &[(usize, usize)],
     matches: &[(usize, usize, Vec<Match>)],
     skip: &HashSet<(usize, usize)>,
     opts: &MatchPoseOptions,
-) -> usize {
+) -> HashSet<(usize, usize)> {
     let index: HashMap<(usize, usize), usize> = order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
     let placed: Vec<Option<(Raster<Vec3>, Raster<f32>)>> = order
         .iter()
@@ -270,15 +292,15 @@ fn place_by_matches(
             Some((pose.points, preds[rev].conf_i.clone()))
         })
         .collect();
-    let mut n = 0;
+    let mut done = HashSet::new();
     for (e, p) in placed.into_iter().enumerate() {
         if let Some((pts, conf)) = p {
             preds[e].pts_j = pts;
             preds[e].conf_j = conf;
-            n += 1;
+            done.insert(order[e]);
         }
     }
-    n
+    done
 }
 
 /// A pair's second view placed in its first view's frame: points, their confidence, and the

@@ -28,6 +28,10 @@ pub enum Texture {
         image: Arc<RgbImage>,
         /// Object units covered by the image's width.
         size: f32,
+        /// Each of the six projection faces (+-x, +-y, +-z) shows its own part of the
+        /// picture, so that opposite sides of an object do not repeat one another (a real
+        /// object's texture does not); otherwise all six show the same tiling.
+        per_face: bool,
     },
 }
 
@@ -57,8 +61,8 @@ impl Material {
                 let n = ((fbm(p / *scale, self.seed) - 0.5) * 2.5 + 0.5).clamp(0.0, 1.0);
                 0.3 + 0.7 * n
             }
-            Texture::Photo { image, size } => {
-                let rgb = photo_texel(image, p, n, *size, self.seed);
+            Texture::Photo { image, size, per_face } => {
+                let rgb = photo_texel(image, p, n, *size, self.seed, *per_face);
                 return [0, 1, 2].map(|c| (self.color[c] * rgb[c]).clamp(0.0, 1.0));
             }
         };
@@ -67,20 +71,23 @@ impl Material {
 }
 
 /// Linear colour of `image` at the tri-planar coordinates of `p` (the two axes other than
-/// the normal's dominant one), bilinear with mirrored repeat; `seed` offsets the tiling.
-fn photo_texel(image: &RgbImage, p: glam::Vec3, n: glam::Vec3, size: f32, seed: u32) -> [f32; 3] {
+/// the normal's dominant one), bilinear with mirrored repeat; `seed` offsets the tiling, and
+/// with `per_face` each projection face (axis and sign) is offset by its own amount.
+fn photo_texel(image: &RgbImage, p: glam::Vec3, n: glam::Vec3, size: f32, seed: u32, per_face: bool) -> [f32; 3] {
     let a = n.abs();
-    let (u, v) = if a.x >= a.y && a.x >= a.z {
-        (p.y, p.z)
+    let (u, v, face) = if a.x >= a.y && a.x >= a.z {
+        (p.y, p.z, if n.x >= 0.0 { 0 } else { 1 })
     } else if a.y >= a.z {
-        (p.x, p.z)
+        (p.x, p.z, if n.y >= 0.0 { 2 } else { 3 })
     } else {
-        (p.x, p.y)
+        (p.x, p.y, if n.z >= 0.0 { 4 } else { 5 })
     };
     let (w, h) = (image.width().max(1) as f32, image.height().max(1) as f32);
     let off = (seed % 1024) as f32 / 1024.0;
-    let x = (u / size.max(1e-6) + off) * w;
-    let y = (-v / size.max(1e-6) + off) * w;
+    // Steps of irrational fractions of the mirrored period (two picture widths / heights).
+    let (du, dv) = if per_face { (face as f32 * 0.618, face as f32 * 0.414) } else { (0.0, 0.0) };
+    let x = (u / size.max(1e-6) + off + du) * w;
+    let y = (-v / size.max(1e-6) + off + dv) * w;
     let mirror = |t: f32, n: f32| {
         let period = 2.0 * n;
         let t = t.rem_euclid(period);
@@ -136,4 +143,36 @@ fn hash(x: i32, y: i32, z: i32, seed: u32) -> f32 {
     h = h.wrapping_mul(0x5bd1_e995);
     h ^= h >> 15;
     (h & 0xffff) as f32 / 65535.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// A picture with no two pixels alike (each colour codes its position).
+    fn gradient() -> Arc<RgbImage> {
+        Arc::new(RgbImage::from_fn(64, 48, |x, y| image::Rgb([(x * 4) as u8, (y * 5) as u8, ((x + y) * 2) as u8])))
+    }
+
+    /// Without `per_face`, the point (0, v, w) shows the same texel on the +x and -x sides (the
+    /// projection drops x, and the sign of the normal); with it, the two sides differ, and a
+    /// side still shows one continuous picture.
+    #[test]
+    fn per_face_photos_differ_between_opposite_sides() {
+        let mat = |per_face| Material {
+            color: [1.0; 3],
+            texture: Texture::Photo { image: gradient(), size: 1.0, per_face },
+            seed: 5,
+        };
+        let p = Vec3::new(0.0, 0.3, 0.2);
+        let shared = mat(false);
+        assert_eq!(shared.albedo(p, Vec3::X), shared.albedo(p, Vec3::NEG_X));
+        let own = mat(true);
+        let (plus, minus) = (own.albedo(p, Vec3::X), own.albedo(p, Vec3::NEG_X));
+        assert!(plus.iter().zip(&minus).any(|(a, b)| (a - b).abs() > 0.05), "{plus:?} {minus:?}");
+        // Nearby points on one side have nearby colours (bilinear, no jumps within a face).
+        let near = own.albedo(p + Vec3::new(0.0, 1e-3, 0.0), Vec3::X);
+        assert!(plus.iter().zip(&near).all(|(a, b)| (a - b).abs() < 0.02), "{plus:?} {near:?}");
+    }
 }

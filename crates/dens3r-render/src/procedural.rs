@@ -122,14 +122,39 @@ pub fn blob_mesh(seed: u64, subdivisions: u32) -> TriMesh {
 
 /// A single mesh object (class "object") at the origin with a noise texture sized to it.
 pub fn single_object(mesh: TriMesh, seed: u32) -> Vec<Object> {
+    single_object_with(mesh, seed, ObjectTexture::Noise)
+}
+
+/// The surface pattern of [`single_object_with`], sized to the object.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ObjectTexture {
+    /// Smooth value noise, 12 features across the object (low contrast at small scales).
+    Noise,
+    /// A 3-D checkerboard, 8 cells across the object.
+    Checker,
+    /// Flat colour.
+    Plain,
+    /// A photograph (sRGB), its width spanning the object once, each side of the object
+    /// showing its own part of it (tri-planar projection).
+    Photo(Arc<image::RgbImage>),
+}
+
+/// A single mesh object (class "object") at the origin with the given texture.
+pub fn single_object_with(mesh: TriMesh, seed: u32, texture: ObjectTexture) -> Vec<Object> {
     let (lo, hi) = mesh.bounds().unwrap_or((Vec3::ZERO, Vec3::ONE));
     let scale = (hi - lo).max_element().max(1e-6);
+    let (color, texture) = match texture {
+        ObjectTexture::Noise => ([0.85, 0.7, 0.55], Texture::Noise { scale: scale / 12.0 }),
+        ObjectTexture::Checker => ([0.85, 0.7, 0.55], Texture::Checker { size: scale / 8.0 }),
+        ObjectTexture::Plain => ([0.85, 0.7, 0.55], Texture::Plain),
+        ObjectTexture::Photo(image) => ([1.0; 3], Texture::Photo { image, size: scale, per_face: true }),
+    };
     vec![Object {
         name: "object".into(),
         shape: Shape::Mesh(Arc::new(mesh)),
         rotation: Quat::IDENTITY,
         translation: Vec3::ZERO,
         class_id: CLASS_OBJECT,
-        material: Material { color: [0.85, 0.7, 0.55], texture: Texture::Noise { scale: scale / 12.0 }, seed },
+        material: Material { color, texture, seed },
     }]
 }

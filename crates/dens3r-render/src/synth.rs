@@ -162,7 +162,7 @@ fn material(rng: &mut ChaCha8Rng, assets: &Assets, scale: f32) -> Material {
         0..=4 if !assets.photos.is_empty() => {
             color = [0.0; 3].map(|_| (tint * rng.gen_range(0.85..1.15f32)).min(1.0));
             let image = assets.photos[rng.gen_range(0..assets.photos.len())].clone();
-            Texture::Photo { image, size: scale * rng.gen_range(0.5..3.0) }
+            Texture::Photo { image, size: scale * rng.gen_range(0.5..3.0), per_face: false }
         }
         0..=5 => Texture::Checker { size: scale * rng.gen_range(0.08..0.5) },
         6..=8 => Texture::Noise { scale: scale * rng.gen_range(0.03..0.4) },
