@@ -5,13 +5,14 @@ use crate::model_args::{load_network, open_backbone, resolve_model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use dens3r_backbone::predict::{predict_mono, predict_mono_features, to_image_grid, Resolution};
-use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
+use dens3r_backbone::preprocess::{decode_oriented, preprocess, Prepared};
 use dens3r_geom::FALLBACK_HFOV_DEG;
 use dens3r_heads::data::resize_nearest;
 use dens3r_heads::features::file_hash;
 use dens3r_heads::infer::{check_head, infer, write_head_output, HeadOutput};
 use dens3r_heads::{Backbone, Dens3rBackbone, Head, Task};
-use dens3r_recon::mono::write_mono_frame;
+use dens3r_recon::input::exif_focal_px;
+use dens3r_recon::mono::{write_mono_frame, FocalSource};
 use dens3r_scene::SceneWriter;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -48,6 +49,15 @@ pub struct PredictArgs {
     /// intrinsics line up with the input photos (COLMAP, nerfstudio). Default: network size.
     #[arg(long)]
     original_size: bool,
+    /// Focal length in pixels of the photos as read (after their EXIF orientation, before
+    /// resizing), for every image: the cameras take it and the pointmaps follow. Without it a
+    /// photo's EXIF 35 mm equivalent focal length is used where it has one, and the rest are
+    /// estimated from the pointmap.
+    #[arg(long)]
+    focal: Option<f64>,
+    /// Ignore the photos' EXIF focal lengths: estimate every focal not given by --focal.
+    #[arg(long)]
+    no_exif_focal: bool,
     /// Input images (PNG or JPEG).
     #[arg(required = true)]
     images: Vec<PathBuf>,
@@ -96,10 +106,15 @@ impl Networks {
 }
 
 /// An input image: its unique name, the network input, and the photo where it is read again.
-type Input = (String, Prepared, Option<image::RgbImage>);
+/// One image: frame name, network input, the photo where it is read again, and its known
+/// focal (pixels of the photo as read) with the source.
+type Input = (String, Prepared, Option<image::RgbImage>, Option<(f64, FocalSource)>);
 
 pub fn run(a: PredictArgs) -> Result<()> {
     crate::model_args::check_size(a.size)?;
+    if a.focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
+        bail!("--focal must be a positive number of pixels (e.g. 1000 for a 4000-pixel-wide photo at 70 degrees)");
+    }
     for p in &a.images {
         if !p.is_file() {
             bail!("{}: image not found", p.display());
@@ -209,11 +224,17 @@ fn load_inputs(a: &PredictArgs, other_backbone: bool) -> Result<Vec<Input>> {
     a.images
         .iter()
         .map(|p| {
-            let img = open_oriented(p)?;
+            let bytes = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
+            let img = decode_oriented(p, &bytes)?;
             let prep =
                 preprocess(&img, a.size, !a.keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
             let name = dens3r_recon::input::unique_name(p, &mut names);
-            Ok((name, prep, keep_source.then(|| img.to_rgb8())))
+            let focal = match a.focal {
+                Some(f) => Some((f, FocalSource::Given)),
+                None if a.no_exif_focal => None,
+                None => exif_focal_px(&bytes, (img.width(), img.height())).map(|f| (f, FocalSource::Exif)),
+            };
+            Ok((name, prep, keep_source.then(|| img.to_rgb8()), focal))
         })
         .collect()
 }
@@ -238,7 +259,7 @@ fn predict_one(
     nets: &Networks,
     writer: Option<&mut SceneWriter>,
     root: &Path,
-    (name, prep, source): &Input,
+    (name, prep, source, focal): &Input,
 ) -> Result<()> {
     let res = if a.original_size { Resolution::Original } else { Resolution::Network };
     let device = burn::tensor::Device::flex();
@@ -256,7 +277,12 @@ fn predict_one(
         if let Some(src) = source.as_ref().filter(|_| a.original_size) {
             pred.rgb = src.clone();
         }
-        if !write_mono_frame(writer, name, &pred)? {
+        // A known focal in pixels of the maps written: the photo's at --original-size, else
+        // scaled by the resize (cropping keeps it).
+        let (o, r) = (prep.info.original, prep.info.resized);
+        let scale = if a.original_size { 1.0 } else { f64::from(r.0.max(r.1)) / f64::from(o.0.max(o.1).max(1)) };
+        let known = focal.map(|(f, s)| (f * scale, s));
+        if write_mono_frame(writer, name, &pred, known)? == FocalSource::Fallback {
             eprintln!(
                 "warning: {name}: the pointmap gives no positive focal (untrained weights?); using a {FALLBACK_HFOV_DEG}-degree field of view"
             );

@@ -236,6 +236,99 @@ fn verify_passes_on_fixtures_and_fails_on_a_wrong_dump() {
     }
 }
 
+/// A JPEG copy of `src` whose EXIF says `f35` mm (35 mm equivalent), as phones write it.
+fn jpeg_with_focal(src: &Path, dst: &Path, f35: u16) {
+    use image::ImageEncoder;
+    let img = image::open(src).unwrap().to_rgb8();
+    let mut bytes = Vec::new();
+    let mut enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 95);
+    let field = exif::Field {
+        tag: exif::Tag::FocalLengthIn35mmFilm,
+        ifd_num: exif::In::PRIMARY,
+        value: exif::Value::Short(vec![f35]),
+    };
+    let mut writer = exif::experimental::Writer::new();
+    writer.push_field(&field);
+    let mut tiff = std::io::Cursor::new(Vec::new());
+    writer.write(&mut tiff, false).unwrap();
+    enc.set_exif_metadata(tiff.into_inner()).unwrap();
+    enc.write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8).unwrap();
+    std::fs::write(dst, bytes).unwrap();
+}
+
+/// The points of a binary PLY point cloud as `write_mesh` writes it (x, y, z floats, then
+/// red, green, blue bytes per vertex).
+fn ply_points(path: &Path) -> Vec<glam::DVec3> {
+    let bytes = std::fs::read(path).unwrap();
+    let end = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let header = String::from_utf8_lossy(&bytes[..end]);
+    assert!(header.contains("binary_little_endian") && header.contains("property uchar blue\n"), "{header}");
+    let n: usize = header.lines().find_map(|l| l.strip_prefix("element vertex ")).unwrap().parse().unwrap();
+    let f = |o: usize| f32::from_le_bytes(bytes[o..o + 4].try_into().unwrap()) as f64;
+    (0..n).map(|i| end + i * 15).map(|o| glam::DVec3::new(f(o), f(o + 4), f(o + 8))).collect()
+}
+
+/// `predict`'s cameras take a known focal: `--focal` in photo pixels (scaled to the maps:
+/// 160 x 120 photos at network size 64 are 0.4 of it; at --original-size, as given), or the
+/// photo's EXIF 35 mm equivalent (26 mm on a 160 x 120 photo: diagonal 200 px, 200 x 26 /
+/// 43.27 = 120.2 px); the pointmap follows the camera (each point projects back to its
+/// pixel), the depth is the network's either way; `--no-exif-focal` estimates it. The
+/// source is recorded as `focal_source` in cameras.json.
+#[test]
+fn predict_uses_a_known_focal() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = parity(A);
+    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
+    let (w, c) = (w.to_str().unwrap(), c.to_str().unwrap());
+    let img = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/room/images/0000.png");
+    let jpg = dir.path().join("phone.jpg");
+    jpeg_with_focal(&img, &jpg, 26);
+    let run = |extra: &[&str], input: &Path, name: &str| {
+        let out = dir.path().join(name);
+        let mut args = vec!["predict", "--weights", w, "--config", c, "--size", "64"];
+        args.extend_from_slice(extra);
+        args.extend([input.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+        ok(&args);
+        let scene = dens3r_scene::Scene::open(&out).unwrap();
+        let f = scene.frames()[0].clone();
+        let depth = scene.depth(&f).unwrap().unwrap();
+        (out, f, depth)
+    };
+    let source = |f: &dens3r_scene::Frame| f.extra["focal_source"].as_str().unwrap().to_string();
+    // Estimated: from the pointmap, or (the fixture's random weights give no positive focal)
+    // the 60-degree fallback.
+    let estimated = |f: &dens3r_scene::Frame| ["pointmap", "fallback"].contains(&source(f).as_str());
+    let (_, est, d_est) = run(&[], &img, "estimated");
+    assert!(estimated(&est), "{}", source(&est));
+    let (out, given, d_given) = run(&["--focal", "200"], &img, "given");
+    assert_eq!(source(&given), "given");
+    assert!((given.k[0][0] - 80.0).abs() < 1e-9 && (given.k[1][1] - 80.0).abs() < 1e-9, "{:?}", given.k);
+    assert_eq!(d_est.data(), d_given.data(), "the depth does not depend on the focal");
+    // The coloured pointmap lies on the camera's rays.
+    let cloud = ply_points(&out.join("pointmaps/0000.ply"));
+    let k = given.k;
+    let mut hit = 0;
+    for p in cloud {
+        let (u, v) = (k[0][0] * p.x / p.z + k[0][2], k[1][1] * p.y / p.z + k[1][2]);
+        let (x, y) = (u.round(), v.round());
+        assert!((u - x).abs() < 1e-3 && (v - y).abs() < 1e-3, "({u}, {v}) is no pixel");
+        assert!((*d_given.get(x as usize, y as usize) as f64 - p.z).abs() < 1e-4 * p.z);
+        hit += 1;
+    }
+    assert!(hit > 64 * 48 / 2, "{hit} points");
+    let (_, full, _) = run(&["--focal", "200", "--original-size"], &img, "full");
+    assert!((full.k[0][0] - 200.0).abs() < 1e-9, "{:?}", full.k);
+    let (_, exif, _) = run(&[], &jpg, "exif");
+    assert_eq!(source(&exif), "exif");
+    let expected = 200.0 * 26.0 / 43.266_615 * 0.4;
+    assert!((exif.k[0][0] - expected).abs() < 1e-6, "{} vs {expected}", exif.k[0][0]);
+    let (_, no_exif, _) = run(&["--no-exif-focal"], &jpg, "no-exif");
+    assert!(estimated(&no_exif), "{}", source(&no_exif));
+    assert!((no_exif.k[0][0] - expected).abs() > 1e-3);
+    let e = fails(&["predict", "--weights", w, "--focal", "0", img.to_str().unwrap(), "-o", "/tmp/never"]);
+    assert!(e.contains("--focal must be a positive number"), "{e}");
+}
+
 #[test]
 fn predict_writes_a_valid_scene_and_rejects_bad_input() {
     let dir = tempfile::tempdir().unwrap();
