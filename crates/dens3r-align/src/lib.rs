@@ -10,6 +10,7 @@
 
 pub mod epipolar;
 pub mod global;
+pub mod homography;
 pub mod keypoints;
 pub mod match_pose;
 pub mod matching;

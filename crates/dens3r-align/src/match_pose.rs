@@ -17,7 +17,7 @@ use dens3r_geom::align::umeyama;
 use dens3r_geom::focal::median;
 use dens3r_geom::transform::Sim3;
 use dens3r_geom::{Raster, Vec3};
-use glam::{DVec2, DVec3};
+use glam::{DMat3, DVec2, DVec3};
 
 /// When a matched placement is trusted.
 #[derive(Debug, Clone, PartialEq)]
@@ -184,15 +184,41 @@ pub fn pose_from_keypoints(
         let z = p.get(x as usize, y as usize).z as f64;
         (z.is_finite() && z > 0.0).then_some(z)
     };
-    let (r, t) = (pose.rotation, pose.translation);
-    let (mut s1, mut s2) = (Vec::new(), Vec::new());
-    for k in (0..a.len()).filter(|&k| pose.inliers[k]) {
-        let Some((za, zb)) = triangulate(&r, t, na[k], nb[k]) else { continue };
-        if let (Some(d1), Some(d2)) = (depth_at(pts1, a[k]), depth_at(own2, b[k])) {
-            s1.push(d1 / za);
-            s2.push(d2 / zb);
+    // Each inlier's network depth over its triangulated depth, in both views, under a pose.
+    let ratios = |r: &DMat3, t: DVec3| -> (Vec<f64>, Vec<f64>) {
+        let (mut s1, mut s2) = (Vec::new(), Vec::new());
+        for k in (0..a.len()).filter(|&k| pose.inliers[k]) {
+            let Some((za, zb)) = triangulate(r, t, na[k], nb[k]) else { continue };
+            if let (Some(d1), Some(d2)) = (depth_at(pts1, a[k]), depth_at(own2, b[k])) {
+                if za > 0.0 && zb > 0.0 {
+                    s1.push(d1 / za);
+                    s2.push(d2 / zb);
+                }
+            }
         }
-    }
+        (s1, s2)
+    };
+    // Where the epipolar geometry leaves alternatives (most inliers on one plane), the pose
+    // whose triangulated depths agree best with the network's (up to one scale per view:
+    // least spread of the log ratios) wins.
+    let spread = |v: &[f64]| -> f64 {
+        let mut l: Vec<f64> = v.iter().map(|x| x.ln()).collect();
+        let Some(m) = median(&mut l.clone()) else { return f64::INFINITY };
+        l.iter_mut().for_each(|x| *x = (*x - m).abs());
+        median(&mut l).unwrap_or(f64::INFINITY)
+    };
+    let (r, t) = std::iter::once((pose.rotation, pose.translation))
+        .chain(pose.alternatives.iter().copied())
+        .map(|(r, t)| {
+            let (s1, s2) = ratios(&r, t);
+            let score =
+                if s1.len() < opts.min_inliers.min(inliers) { f64::INFINITY } else { spread(&s1) + spread(&s2) };
+            (r, t, score)
+        })
+        .min_by(|x, y| x.2.total_cmp(&y.2))
+        .map(|(r, t, _)| (r, t))
+        .expect("at least the pose itself");
+    let (mut s1, mut s2) = ratios(&r, t);
     if s1.len() < opts.min_inliers.min(inliers) {
         return None;
     }
@@ -211,7 +237,6 @@ pub fn pose_from_keypoints(
 mod tests {
     use super::*;
     use dens3r_geom::transform::axis_angle;
-    use glam::DMat3;
 
     /// Two cameras (focal 200, 160x120) looking at a bumpy surface; view 2 turned 20 degrees
     /// about y and moved; its own points are given at a third of the true scale.
@@ -341,6 +366,46 @@ mod tests {
         let worst = worst_placed(&p.points, &own2, rot, t);
         // 3% of the scene's depth (about 3).
         assert!(worst < 0.1, "placed points off by {worst}");
+    }
+
+    /// Two views sharing only a wall (the plane z = 3 + 0.4 x, in a 25 degree strip of each
+    /// 320x320 view, focal 250), 28 degrees apart, keypoints with +-0.2 px noise and exact
+    /// depths: the epipolar fit alone lands about 7 degrees off; the plane's homography
+    /// offers the true pose, and the network's depth (here exact) picks it.
+    #[test]
+    fn depth_picks_the_pose_on_a_plane() {
+        let (w, h, f) = (320usize, 320usize, 250.0f64);
+        let rot = axis_angle(DVec3::Y, -28f64.to_radians());
+        let t = DVec3::new(0.35, 0.0, 0.15);
+        let ray = |x: f64, y: f64| DVec3::new((x - w as f64 / 2.0) / f, (y - h as f64 / 2.0) / f, 1.0);
+        // Plane n . x = c in each camera's frame.
+        let (n1, c1) = (DVec3::new(-0.4, 0.0, 1.0), 3.0);
+        let (n2, c2) = (rot * n1, c1 + (rot * n1).dot(t));
+        let on_plane = |n: DVec3, c: f64, x: usize, y: usize| {
+            let d = ray(x as f64, y as f64);
+            let s = c / n.dot(d);
+            if s > 0.0 {
+                (d * s).as_vec3()
+            } else {
+                Vec3::NAN
+            }
+        };
+        let pts1 = Raster::from_fn(w, h, |x, y| on_plane(n1, c1, x, y));
+        let own2 = Raster::from_fn(w, h, |x, y| on_plane(n2, c2, x, y) * 0.5);
+        let (a, b) = crate::epipolar::tests::planar_scene(rot, t, f);
+        let px = |q: DVec2| DVec2::new(q.x * f + w as f64 / 2.0, q.y * f + h as f64 / 2.0);
+        let (a, b): (Vec<DVec2>, Vec<DVec2>) = a.into_iter().zip(b).map(|(p, q)| (px(p), px(q))).unzip();
+        assert!(a.iter().chain(&b).all(|q| q.x >= 0.0 && q.y >= 0.0 && q.x < w as f64 && q.y < h as f64));
+        let opts = KeypointPoseOptions::default();
+        let norm = |v: &[DVec2]| v.iter().map(|q| (*q - DVec2::new(160.0, 160.0)) / f).collect::<Vec<_>>();
+        let plain = crate::epipolar::essential_ransac(&norm(&a), &norm(&b), f, &opts.epipolar).unwrap();
+        let plain_err = dens3r_geom::transform::rotation_angle_deg(&(plain.rotation.transpose() * rot));
+        eprintln!("epipolar fit alone: {plain_err:.2} deg off, {} alternative(s)", plain.alternatives.len());
+        assert!(plain_err > 2.0 && !plain.alternatives.is_empty(), "{plain_err}");
+        let (p, _) = pose_from_keypoints(&pts1, &own2, (f, f), &a, &b, &opts).expect("a pose");
+        let angle = dens3r_geom::transform::rotation_angle_deg(&(p.transform.rotation * rot));
+        assert!(angle < 0.5, "rotation error {angle} deg");
+        assert!((p.transform.scale / 2.0 - 1.0).abs() < 0.02, "scale {}", p.transform.scale);
     }
 
     /// Correspondences with no common geometry place nothing.

@@ -269,6 +269,10 @@ pub fn reconstruct(
     })
 }
 
+/// A pair's second view placed in its first view's frame: points, their confidence and the
+/// similarity that placed them.
+type Placement = (Raster<Vec3>, Raster<f32>, Sim3);
+
 /// Replaces each ordered pair's cross-view pointmap (view `j` in camera `i`'s frame) by view
 /// `j`'s own-frame pointmap (from the reverse run) placed by the pair's matches, where they
 /// agree on a camera; returns the ordered pairs placed so, each with the similarity that took
@@ -281,7 +285,7 @@ fn place_by_matches(
     opts: &MatchPoseOptions,
 ) -> HashMap<(usize, usize), Sim3> {
     let index: HashMap<(usize, usize), usize> = order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
-    let placed: Vec<Option<(Raster<Vec3>, Raster<f32>, Sim3)>> = order
+    let placed: Vec<Option<Placement>> = order
         .iter()
         .map(|&(i, j)| {
             if skip.contains_key(&(i, j)) {

@@ -520,7 +520,7 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
     eprintln!("with the focal known: median relative rotation error {medk:.3} deg, worst {worstk:.3} deg");
     assert_eq!((kf.stats.known_focals, kf.stats.posed_by_keypoints), (n, kf.stats.pairs));
     assert!(kf.alignment.views.iter().all(|v| (v.camera.intrinsics.fx / f - 1.0).abs() < 1e-9));
-    assert!(medk < 0.75 && worstk < 1.0 && medk < med, "{medk} {worstk} ({med} estimated)");
+    assert!(medk < 0.2 && worstk < 0.5 && medk < med, "{medk} {worstk} ({med} estimated)");
     let opts = ReconOptions { keypoints: None, ..opts };
     let without = reconstruct(&images, &net, &cache, &opts, |_, _, _| {}).unwrap();
     let (med0, _) = rotation_errors(&t, &without.alignment);
@@ -532,9 +532,9 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
 /// neighbours share about half their view and keypoints place them; views two steps apart
 /// share little and stay unplaced. Those pairs' cross-view pointmaps (the depth-only network's
 /// guess: no motion) are left out where placed pairs already join their images, so they no
-/// longer pull the placed cameras; kept (`drop_unplaced: false`), they do. (The placed pairs
-/// are 0.2-5.5 degrees off here: where two views share little more than one wall, the
-/// essential matrix is poorly conditioned.)
+/// longer pull the placed cameras; kept (`drop_unplaced: false`), they do. (Where two views
+/// share little more than one wall, the essential matrix alone leaves a pair up to 5.5
+/// degrees off here; the wall's homography and the depth pick the pose.)
 #[test]
 fn unplaced_pairs_do_not_pull_placed_cameras() {
     let objects = room(3)
@@ -573,7 +573,7 @@ fn unplaced_pairs_do_not_pull_placed_cameras() {
     );
     // The four neighbour pairs (both orders) placed, the three two-step pairs not, and left out.
     assert_eq!((s.posed_by_keypoints, s.pairs_left_out), (8, 6));
-    assert!(med < 3.0 && worst < 8.0, "{med} {worst}");
+    assert!(med < 1.5 && worst < 4.0, "{med} {worst}");
     let kept = ReconOptions { drop_unplaced: false, ..opts };
     let all = reconstruct(&images, &net, &cache, &kept, |_, _, _| {}).unwrap();
     let (med_all, worst_all) = rotation_errors(&t, &all.alignment);
