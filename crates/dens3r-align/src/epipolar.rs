@@ -88,8 +88,9 @@ pub fn eight_point(a: &[DVec2], b: &[DVec2]) -> Option<DMat3> {
     Some(svd.u * DMat3::from_diagonal(DVec3::new(1.0, 1.0, 0.0)) * svd.vt)
 }
 
-/// The similarity taking points to zero mean and mean distance sqrt(2), and the moved points.
-fn normalise(p: &[DVec2]) -> Option<(DMat3, Vec<DVec2>)> {
+/// The similarity taking points to zero mean and mean distance sqrt(2), and the moved points
+/// (Hartley's normalisation, shared with [`crate::homography`]).
+pub(crate) fn normalise(p: &[DVec2]) -> Option<(DMat3, Vec<DVec2>)> {
     let c = p.iter().copied().sum::<DVec2>() / p.len() as f64;
     let d = p.iter().map(|q| (*q - c).length()).sum::<f64>() / p.len() as f64;
     if !(d > 1e-12 && d.is_finite()) {

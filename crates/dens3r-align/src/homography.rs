@@ -4,6 +4,7 @@
 //! alike. The homography of that plane is well conditioned there, and its decomposition gives
 //! the candidate poses [`crate::epipolar`] weighs against each other.
 
+use crate::epipolar::normalise;
 use crate::resection::{jacobi_eigen, SplitMix};
 use glam::{DMat3, DVec2, DVec3};
 use glamx::DSvd3;
@@ -39,18 +40,6 @@ pub fn homography_dlt(a: &[DVec2], b: &[DVec2]) -> Option<DMat3> {
     let hn = DMat3::from_cols(DVec3::new(h[0], h[3], h[6]), DVec3::new(h[1], h[4], h[7]), DVec3::new(h[2], h[5], h[8]));
     let h = tb.inverse() * hn * ta;
     (h.is_finite() && h.determinant().abs() > 1e-12).then_some(h)
-}
-
-/// The similarity taking points to zero mean and mean distance sqrt(2), and the moved points.
-fn normalise(p: &[DVec2]) -> Option<(DMat3, Vec<DVec2>)> {
-    let c = p.iter().copied().sum::<DVec2>() / p.len() as f64;
-    let d = p.iter().map(|q| (*q - c).length()).sum::<f64>() / p.len() as f64;
-    if !(d > 1e-12 && d.is_finite()) {
-        return None;
-    }
-    let s = std::f64::consts::SQRT_2 / d;
-    let t = DMat3::from_cols(DVec3::new(s, 0.0, 0.0), DVec3::new(0.0, s, 0.0), DVec3::new(-s * c.x, -s * c.y, 1.0));
-    Some((t, p.iter().map(|q| (*q - c) * s).collect()))
 }
 
 /// Distance (normalised units) from `H a` to `b`; infinite for points sent to infinity.
