@@ -5,7 +5,8 @@
 //! pair's rotation does not depend on the network's depth.
 
 use crate::homography::{homography_poses, homography_ransac};
-use crate::resection::{jacobi_eigen, SplitMix};
+use crate::ransac::ransac;
+use crate::resection::jacobi_eigen;
 use dens3r_geom::transform::rotation_angle_deg;
 use glam::{DMat3, DVec2, DVec3};
 use glamx::DSvd3;
@@ -177,45 +178,7 @@ pub fn essential_ransac(a: &[DVec2], b: &[DVec2], focal: f64, opts: &EpipolarOpt
         let mask: Vec<bool> = a.iter().zip(b).map(|(&p, &q)| sampson_sq(e, p, q) < thr2).collect();
         (mask.iter().filter(|&&m| m).count(), mask)
     };
-    let fit = |mask: &[bool]| {
-        let (pa, pb): (Vec<DVec2>, Vec<DVec2>) =
-            a.iter().zip(b).zip(mask).filter(|(_, &m)| m).map(|((p, q), _)| (*p, *q)).unzip();
-        eight_point(&pa, &pb)
-    };
-    let mut rng = SplitMix(opts.seed);
-    let mut best: Option<(usize, DMat3, Vec<bool>)> = None;
-    let mut pick = Vec::with_capacity(8);
-    let mut it = 0;
-    let mut needed = opts.iterations;
-    while it < needed {
-        it += 1;
-        rng.distinct(n, 8, &mut pick);
-        let sa: Vec<DVec2> = pick.iter().map(|&k| a[k]).collect();
-        let sb: Vec<DVec2> = pick.iter().map(|&k| b[k]).collect();
-        let Some(e) = eight_point(&sa, &sb) else { continue };
-        let (mut c, mut mask) = score(&e);
-        if best.as_ref().is_some_and(|x| c <= x.0) {
-            continue;
-        }
-        let mut e = e;
-        for _ in 0..10 {
-            let Some(e2) = fit(&mask) else { break };
-            let (c2, m2) = score(&e2);
-            if c2 <= c {
-                break;
-            }
-            (e, c, mask) = (e2, c2, m2);
-        }
-        best = Some((c, e, mask));
-        // Stop once 99.9% sure of one all-inlier sample.
-        let w = c as f64 / n as f64;
-        let p_good = w.powi(8);
-        if p_good > 1e-9 {
-            let k = ((1.0 - 0.999f64).ln() / (1.0 - p_good).max(1e-12).ln()).ceil();
-            needed = needed.min(k.max(50.0) as usize);
-        }
-    }
-    let (_, e, mask) = best?;
+    let (_, e, mask) = ransac(a, b, 8, opts.iterations, opts.seed, eight_point, score)?;
     let (r, t, _) = decompose(&e, a, b, &mask)?;
     let agree = |r: &DMat3, t: DVec3| -> Vec<bool> {
         let e = skew(t) * *r;
@@ -378,6 +341,7 @@ fn solve5(mut m: [[f64; 5]; 5], mut v: [f64; 5]) -> Option<[f64; 5]> {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::resection::SplitMix;
     use dens3r_geom::transform::axis_angle;
 
     fn scene(seed: u64, n: usize) -> (DMat3, DVec3, Vec<DVec2>, Vec<DVec2>) {

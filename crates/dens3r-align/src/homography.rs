@@ -5,7 +5,8 @@
 //! the candidate poses [`crate::epipolar`] weighs against each other.
 
 use crate::epipolar::normalise;
-use crate::resection::{jacobi_eigen, SplitMix};
+use crate::ransac::ransac;
+use crate::resection::jacobi_eigen;
 use glam::{DMat3, DVec2, DVec3};
 use glamx::DSvd3;
 
@@ -52,8 +53,7 @@ pub fn transfer_error(h: &DMat3, a: DVec2, b: DVec2) -> f64 {
 }
 
 /// The homography most correspondences agree with (transfer error under `threshold`,
-/// normalised units): four-point samples, the best refitted on its inliers while they grow,
-/// `iterations` samples at most (fewer once the inlier ratio makes more pointless); with its
+/// normalised units): four-point samples in [`ransac`], `iterations` at most; with its
 /// inliers. `None` under 8 correspondences.
 pub fn homography_ransac(
     a: &[DVec2],
@@ -70,46 +70,7 @@ pub fn homography_ransac(
         let m: Vec<bool> = a.iter().zip(b).map(|(&p, &q)| transfer_error(h, p, q) < threshold).collect();
         (m.iter().filter(|&&x| x).count(), m)
     };
-    let fit = |mask: &[bool]| {
-        let (pa, pb): (Vec<DVec2>, Vec<DVec2>) =
-            a.iter().zip(b).zip(mask).filter(|(_, &m)| m).map(|((p, q), _)| (*p, *q)).unzip();
-        homography_dlt(&pa, &pb)
-    };
-    let mut rng = SplitMix(seed);
-    let mut pick = Vec::with_capacity(4);
-    let mut best: Option<(usize, DMat3, Vec<bool>)> = None;
-    let (mut it, mut needed) = (0, iterations);
-    while it < needed {
-        it += 1;
-        rng.distinct(n, 4, &mut pick);
-        let sa: Vec<DVec2> = pick.iter().map(|&k| a[k]).collect();
-        let sb: Vec<DVec2> = pick.iter().map(|&k| b[k]).collect();
-        let Some(h) = homography_dlt(&sa, &sb) else { continue };
-        let (mut c, mut mask) = score(&h);
-        if best.as_ref().is_some_and(|x| c <= x.0) {
-            continue;
-        }
-        let mut h = h;
-        for _ in 0..10 {
-            let Some(h2) = fit(&mask) else { break };
-            let (c2, m2) = score(&h2);
-            if c2 < c {
-                break;
-            }
-            let grew = c2 > c;
-            (h, c, mask) = (h2, c2, m2);
-            if !grew {
-                break;
-            }
-        }
-        best = Some((c, h, mask));
-        let p_good = (c as f64 / n as f64).powi(4);
-        if p_good > 1e-9 {
-            let k = ((1.0 - 0.999f64).ln() / (1.0 - p_good).max(1e-12).ln()).ceil();
-            needed = needed.min(k.max(50.0) as usize);
-        }
-    }
-    best.map(|(_, h, m)| (h, m))
+    ransac(a, b, 4, iterations, seed, homography_dlt, score).map(|(_, h, m)| (h, m))
 }
 
 /// The poses `(R, t)` (`x_b = R x_a + t`, `t` of unit length) that the homography `b ~ H a`
@@ -156,6 +117,7 @@ pub fn homography_poses(h: &DMat3, a: &[DVec2], b: &[DVec2]) -> Vec<(DMat3, DVec
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::resection::SplitMix;
     use dens3r_geom::transform::{axis_angle, rotation_angle_deg};
 
     /// Points of the plane z = 3 + 0.4 x seen by two cameras: the homography maps one view's

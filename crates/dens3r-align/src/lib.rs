@@ -15,6 +15,7 @@ pub mod keypoints;
 pub mod match_pose;
 pub mod matching;
 pub mod pairs;
+mod ransac;
 pub mod resection;
 pub mod two_view;
 mod union_find;

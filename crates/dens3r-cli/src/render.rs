@@ -103,6 +103,9 @@ fn check(a: &RenderArgs) -> Result<()> {
     if !(0.0..1.0).contains(&a.depth_noise) || !(0.0..90.0).contains(&a.normal_noise) {
         bail!("--depth-noise must be in [0, 1) and --normal-noise in [0, 90) degrees");
     }
+    if a.procedural == Some(Procedural::Room) && a.texture != "noise" {
+        bail!("--texture applies to --mesh and --procedural blob; the room has its own materials");
+    }
     if !(a.distance > 0.0 && a.distance.is_finite()) {
         bail!("--distance must be positive, got {}", a.distance);
     }
@@ -128,9 +131,6 @@ pub fn run(a: RenderArgs) -> Result<()> {
     check(&a)?;
     let t0 = Instant::now();
     let texture = object_texture(&a.texture)?;
-    if a.procedural == Some(Procedural::Room) && a.texture != "noise" {
-        bail!("--texture applies to --mesh and --procedural blob; the room has its own materials");
-    }
     let (objects, default_path) = match (&a.mesh, a.procedural) {
         (Some(p), _) => {
             let mesh = dens3r_mesh::read_mesh(p)?;

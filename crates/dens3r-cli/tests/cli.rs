@@ -325,8 +325,10 @@ fn predict_uses_a_known_focal() {
     let (_, no_exif, _) = run(&["--no-exif-focal"], &jpg, "no-exif");
     assert!(estimated(&no_exif), "{}", source(&no_exif));
     assert!((no_exif.k[0][0] - expected).abs() > 1e-3);
-    let e = fails(&["predict", "--weights", w, "--focal", "0", img.to_str().unwrap(), "-o", "/tmp/never"]);
+    let never = dir.path().join("never");
+    let e = fails(&["predict", "--weights", w, "--focal", "0", img.to_str().unwrap(), "-o", never.to_str().unwrap()]);
     assert!(e.contains("--focal must be a positive number"), "{e}");
+    assert!(!never.exists(), "nothing written on a refused --focal");
 }
 
 #[test]

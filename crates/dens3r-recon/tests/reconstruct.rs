@@ -468,14 +468,10 @@ impl PairPredictor for DepthOnly<'_> {
     }
 }
 
-/// Keypoint matches place the pairs of a network that knows only depth: the relative
-/// rotations of the renderer's cameras come back (within the error its warped rays leave in
-/// the focal, 4% here; closer with the focal known, which is then kept); without keypoints
-/// they do not.
-#[test]
-fn keypoints_place_the_pairs_of_a_depth_only_network() {
-    // The room's surfaces all in fine high-contrast noise (non-repeating: a tiled photo's
-    // mirrored copies give SIFT ambiguous matches), 320x224 photos.
+/// The room with every surface in fine high-contrast noise (non-repeating: a tiled photo's
+/// mirrored copies give SIFT ambiguous matches), photographed from camera-to-world `poses`
+/// (320x224, one camera of 62 degrees), loaded as `reconstruct` reads photos.
+fn noise_room_photos(poses: Vec<glam::DMat4>) -> (Truth, Vec<InputImage>) {
     let objects = room(3)
         .into_iter()
         .map(|mut o| {
@@ -483,6 +479,20 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
             o
         })
         .collect();
+    let t = truth_of(objects, poses, 2 * W, 2 * H, Some(62.0));
+    let dir = tempfile::tempdir().unwrap();
+    photos(&t, dir.path());
+    let paths = list_images(&[dir.path().to_path_buf()]).unwrap();
+    let images = load_images(&paths, 2 * W as u32, false).unwrap();
+    (t, images)
+}
+
+/// Keypoint matches place the pairs of a network that knows only depth: the relative
+/// rotations of the renderer's cameras come back (within the error its warped rays leave in
+/// the focal, 4% here; closer with the focal known, which is then kept); without keypoints
+/// they do not.
+#[test]
+fn keypoints_place_the_pairs_of_a_depth_only_network() {
     // Five views across the room, each looking at the same point of the far wall (neighbours
     // about 9 degrees apart), by one camera (one focal), as the keypoint path assumes of
     // same-size photos.
@@ -493,11 +503,7 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
             dens3r_geom::camera::look_at(eye, DVec3::new(0.0, 2.0, 1.0), DVec3::Z).unwrap()
         })
         .collect();
-    let t = truth_of(objects, poses, 2 * W, 2 * H, Some(62.0));
-    let dir = tempfile::tempdir().unwrap();
-    photos(&t, dir.path());
-    let paths = list_images(&[dir.path().to_path_buf()]).unwrap();
-    let images = load_images(&paths, 2 * W as u32, false).unwrap();
+    let (t, images) = noise_room_photos(poses);
     let net = DepthOnly(&t);
     let cache = PairCache::new(None);
     let graph = dens3r_align::PairGraph::SlidingWindow { k: 1, cyclic: false };
@@ -537,13 +543,6 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
 /// degrees off here; the wall's homography and the depth pick the pose.)
 #[test]
 fn unplaced_pairs_do_not_pull_placed_cameras() {
-    let objects = room(3)
-        .into_iter()
-        .map(|mut o| {
-            o.material.texture = dens3r_render::Texture::Noise { scale: 0.05 };
-            o
-        })
-        .collect();
     let n = 5;
     let poses = (0..n)
         .map(|k| {
@@ -553,11 +552,7 @@ fn unplaced_pairs_do_not_pull_placed_cameras() {
             dens3r_geom::camera::look_at(eye, target, DVec3::Z).unwrap()
         })
         .collect();
-    let t = truth_of(objects, poses, 2 * W, 2 * H, Some(62.0));
-    let dir = tempfile::tempdir().unwrap();
-    photos(&t, dir.path());
-    let paths = list_images(&[dir.path().to_path_buf()]).unwrap();
-    let mut images = load_images(&paths, 2 * W as u32, false).unwrap();
+    let (t, mut images) = noise_room_photos(poses);
     let f = t.cams[0].intrinsics.fx;
     images.iter_mut().for_each(|im| im.set_focal(Some(f)));
     let net = DepthOnly(&t);
