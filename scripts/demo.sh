@@ -17,10 +17,13 @@ set -x
 # 1. Two real photographs (CC0, data-samples/photos): depth, normals (OpenCV camera frame),
 #    confidence and focal per photo, at the photo's own size, with PNG pictures in viz/.
 $B predict data-samples/photos/*.png --original-size -o "$out/photos" --overwrite
-# 2. An object seen from 10 views (512x384, rendered from the bundled mesh, so the true cameras
-#    are known), then the photos -> mesh pipeline on its images alone.
-$B render --mesh data-samples/orbit/gt_mesh.ply --views 10 --width 512 --height 384 -o "$out/orbit" --overwrite
+# 2. An object seen from 10 views (512x384, rendered from the bundled mesh with a photographed
+#    gravel surface, data-samples/textures, so the true cameras are known), then the photos ->
+#    mesh pipeline on its images alone: no focal is given (the keypoint pairs' cycles find it).
+$B render --mesh data-samples/orbit/gt_mesh.ply --views 10 --width 512 --height 384 \
+  --texture data-samples/textures/gravel.png -o "$out/orbit" --overwrite
 #    The views circle the object: each is paired with its 3 neighbours on either side.
+rm -rf "$out/recon"
 $B reconstruct "$out/orbit/images" -o "$out/recon" --graph swin --window 3 --cyclic
 # 3. How close it came: cameras (relative rotation over all pairs, focal), depth (up to scale)
 #    and normals against the render's ground truth.

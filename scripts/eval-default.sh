@@ -9,7 +9,8 @@
 #     truth (`dens3r eval baselines`), a DINOv2-S + DPT depth head trained by `train-head` on the
 #     same synthetic training scenes, and normals derived from the model's own depth;
 #   - cameras: the motorcycle pair's relative pose, and a 10-view 512 px orbit of the Stanford
-#     bunny (`reconstruct`).
+#     bunny (`reconstruct`, no focal given), its surface the renderer's noise and the bundled
+#     gravel photograph.
 # Work goes to $DENS3R_EVAL_DIR (default .cache/eval-default); the table to $DENS3R_EVAL_DIR/table.md.
 #
 #   bash scripts/eval-default.sh                  # the bundled model
@@ -94,13 +95,17 @@ if [ -f "$work/real/motorcycle/cameras.json" ]; then
   $B reconstruct "${W[@]}" --size 512 "$work/real/motorcycle/images" -o "$work/recon_motorcycle" --no-mesh --no-cache > /dev/null
   $B eval cameras "$work/recon_motorcycle/scene" "$work/real/motorcycle" --json > "$work/json/cameras_motorcycle.json"
 fi
+# Its surface: the renderer's smooth noise (no SIFT keypoints), and the bundled gravel photograph.
 if [ -f .cache/data/meshes/bunny00.off ]; then
-  [ -f "$work/bunny/cameras.json" ] || $B render --mesh .cache/data/meshes/bunny00.off --views 10 --width 512 --height 384 -o "$work/bunny"
-  rm -rf "$work/recon_bunny"
-  t0=$(date +%s)
-  $B reconstruct "${W[@]}" --size 512 "$work/bunny/images" -o "$work/recon_bunny" --no-cache > /dev/null
-  echo "{\"seconds\": $(( $(date +%s) - t0 ))}" > "$work/json/time_recon_bunny.json"
-  $B eval cameras "$work/recon_bunny/scene" "$work/bunny" --json > "$work/json/cameras_bunny.json"
+  for tex in noise gravel; do
+    if [ $tex = noise ]; then b=bunny; topt=(); else b=bunny_gravel; topt=(--texture data-samples/textures/gravel.png); fi
+    [ -f "$work/$b/cameras.json" ] || $B render --mesh .cache/data/meshes/bunny00.off --views 10 --width 512 --height 384 "${topt[@]}" -o "$work/$b"
+    rm -rf "$work/recon_$b"
+    t0=$(date +%s)
+    $B reconstruct "${W[@]}" --size 512 "$work/$b/images" -o "$work/recon_$b" --no-cache > "$work/recon_$b.log"
+    echo "{\"seconds\": $(( $(date +%s) - t0 ))}" > "$work/json/time_recon_$b.json"
+    $B eval cameras "$work/recon_$b/scene" "$work/$b" --json > "$work/json/cameras_$b.json"
+  done
 fi
 
 python3 - "$work" "$model" "$size" <<'PY'
@@ -136,7 +141,7 @@ for g, ns in groups.items():
         out.append(f"| | {b} | {f(mean(rows,'abs_rel'))} | {f(mean(rows,'delta1'))} | {f(mean(rows,'normal_mean'),1)} | "
                    f"{f(mean(rows,'normal_median'),1)} | {f(pct(mean(rows,'within_11_25')),1)} |")
 out.append("")
-for n, label in [("cameras_motorcycle.json", "motorcycle pair (reconstruct, 2 views)"), ("cameras_bunny.json", "bunny orbit (reconstruct, 10 views, 512 px)")]:
+for n, label in [("cameras_motorcycle.json", "motorcycle pair (reconstruct, 2 views)"), ("cameras_bunny.json", "bunny orbit, noise surface (reconstruct, 10 views, 512 px)"), ("cameras_bunny_gravel.json", "bunny orbit, gravel photo surface (reconstruct, 10 views, 512 px)")]:
     c = J(n)
     if c:
         out.append(f"- {label}: relative rotation error median {c['rotation_median_deg']:.2f} deg (mean {c['rotation_mean_deg']:.2f}, "
@@ -145,9 +150,10 @@ for n, label in [("cameras_motorcycle.json", "motorcycle pair (reconstruct, 2 vi
 t = J("time_predict.json")
 if t:
     out.append(f"- predict of one 512 px photo (741x500 in, 512x352 network input; load, network, every output file): {t['seconds']:.2f} s wall, best of 3")
-t = J("time_recon_bunny.json")
-if t:
-    out.append(f"- reconstruct of the 10-view orbit: {t['seconds']} s wall")
+for n in ["bunny", "bunny_gravel"]:
+    t = J(f"time_recon_{n}.json")
+    if t:
+        out.append(f"- reconstruct of the 10-view {n.replace('_', ' ')} orbit: {t['seconds']} s wall")
 open(os.path.join(work, "table.md"), "w").write("\n".join(out) + "\n")
 print("\n".join(out))
 PY

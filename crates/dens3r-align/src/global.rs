@@ -93,6 +93,11 @@ pub struct AlignOptions {
     /// Known focal lengths per image (pixels at its size; from EXIF or the user), used as they
     /// are and never optimised; images without an entry, or with `None`, are estimated.
     pub focals: Vec<Option<f64>>,
+    /// Known camera-to-world rotations per image, in one common frame of their own (e.g.
+    /// averaged from keypoint-matched pairs, [`crate::average_rotations`]): turned as one into
+    /// the initial cameras' frame and then kept, never optimised; images without an entry, or
+    /// with `None`, are estimated.
+    pub rotations: Vec<Option<DMat3>>,
 }
 
 impl Default for AlignOptions {
@@ -106,6 +111,7 @@ impl Default for AlignOptions {
             grid_points: 4096,
             optimize_focal: true,
             focals: Vec::new(),
+            rotations: Vec::new(),
         }
     }
 }
@@ -114,6 +120,11 @@ impl AlignOptions {
     /// Image `k`'s known focal ([`Self::focals`]), when it is a usable one (finite, positive).
     fn known_focal(&self, k: usize) -> Option<f64> {
         self.focals.get(k).copied().flatten().filter(|f| f.is_finite() && *f > 0.0)
+    }
+
+    /// Image `k`'s known rotation ([`Self::rotations`]).
+    fn known_rotation(&self, k: usize) -> Option<DMat3> {
+        self.rotations.get(k).copied().flatten().filter(|r| r.is_finite())
     }
 }
 
@@ -253,6 +264,16 @@ pub fn global_align(
     for (k, f) in init.focal.iter_mut().enumerate() {
         if let Some(known) = opts.known_focal(k) {
             *f = known;
+        }
+    }
+    // Known rotations: the one rotation `g` taking their frame into the initial cameras' frame
+    // (least squares over the images that have one), then kept.
+    let known: Vec<(usize, DMat3)> = (0..n).filter_map(|k| opts.known_rotation(k).map(|r| (k, r))).collect();
+    if !known.is_empty() {
+        let sum = known.iter().fold(DMat3::ZERO, |acc, &(k, r)| acc + init.poses[k].r * r.transpose());
+        let g = nearest_rotation(sum);
+        for &(k, r) in &known {
+            init.poses[k].r = g * r;
         }
     }
     let grids: Vec<Vec<(usize, usize)>> = sizes.iter().map(|&(wk, hk)| grid(wk, hk, opts.grid_points)).collect();
@@ -654,7 +675,8 @@ impl Problem {
             let mut sg = vec![0.0; pairs];
             let mut fg = vec![0.0; n];
             for (k, g) in grads.into_iter().enumerate() {
-                st.poses[k].update(g.pose, lr, t);
+                let turn = if opts.known_rotation(k).is_some() { DVec3::ZERO } else { g.pose.0 };
+                st.poses[k].update((turn, g.pose.1), lr, t);
                 let step = adam_d[k].step(&g.logd, lr, t);
                 st.logd[k].iter_mut().zip(step).for_each(|(d, s)| *d -= s);
                 fg[k] = g.logf;

@@ -8,6 +8,7 @@
 //! pointmap; [`keypoints`] (SIFT) and [`epipolar`] (the essential matrix) place a pair by
 //! classical matches when the network's descriptors do not match.
 
+pub mod cycle_focal;
 pub mod epipolar;
 pub mod global;
 pub mod homography;
@@ -17,9 +18,11 @@ pub mod matching;
 pub mod pairs;
 mod ransac;
 pub mod resection;
+pub mod rotations;
 pub mod two_view;
 mod union_find;
 
 pub use global::{global_align, AlignOptions, AlignedView, Alignment, ConfTransform, GlobalAlignError, PairPrediction};
 pub use pairs::{make_pairs, verified_subgraph, PairGraph};
+pub use rotations::{average_rotations, consistent_rotations};
 pub use two_view::{relative_pose, RelativePose};

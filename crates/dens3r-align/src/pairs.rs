@@ -1,4 +1,5 @@
-//! Which image pairs to run (DUSt3R's `make_pairs` scene graphs and the official Dens3R modes).
+//! Which image pairs to run (DUSt3R's `make_pairs` scene graphs and the official Dens3R modes),
+//! and which of them to keep once some are placed.
 
 /// A scene graph over `n` images.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

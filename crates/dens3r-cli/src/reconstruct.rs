@@ -3,6 +3,7 @@
 
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
+use dens3r_align::cycle_focal::CycleFocalOptions;
 use dens3r_align::match_pose::MatchPoseOptions;
 use dens3r_align::matching::MatchOptions;
 use dens3r_align::{AlignOptions, PairGraph};
@@ -60,6 +61,11 @@ pub struct ReconstructArgs {
     /// Ignore the photos' EXIF focal lengths: estimate every focal not given by --focal.
     #[arg(long)]
     no_exif_focal: bool,
+    /// Keep the network's focal even where the keypoint pairs' cycles give one (by default,
+    /// photos of one size with no focal known take the focal at which the rotations of the
+    /// pairs placed by keypoints close their cycles, when those pick one clearly).
+    #[arg(long)]
+    no_cycle_focal: bool,
     /// TSDF voxel in scene units (default: twice the pixel footprint at the median depth).
     #[arg(long)]
     voxel: Option<f32>,
@@ -160,7 +166,10 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         matching: MatchOptions::default(),
         min_track: a.min_track,
         match_pose: (!a.no_match_pose).then(MatchPoseOptions::default),
-        keypoints: (!a.no_keypoints).then(KeypointOptions::default),
+        keypoints: (!a.no_keypoints).then(|| KeypointOptions {
+            cycle_focal: (!a.no_cycle_focal).then(CycleFocalOptions::default),
+            ..KeypointOptions::default()
+        }),
         drop_unplaced: !a.keep_unplaced,
     };
     let (pbar, abar) = (bar("pairs", 0, "pairs"), bar("align", a.iterations, "iterations"));
@@ -214,17 +223,29 @@ fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, en
         tracks
     );
     println!(
-        "pairs placed by SIFT keypoints: {} of {}{} in {:.1}s; by the network's matches: {}{}; unplaced pairs left out: {}{}",
+        "pairs placed by SIFT keypoints: {} of {}{}{} in {:.1}s; by the network's matches: {}{}; unplaced pairs left out: {}{}",
         s.posed_by_keypoints,
         s.pairs,
         if a.no_keypoints { " (--no-keypoints)" } else { "" },
+        if s.keypoint_inconsistent > 0 {
+            format!(" ({} more dropped: their rotation contradicted the others)", s.keypoint_inconsistent)
+        } else {
+            String::new()
+        },
         s.keypoint_seconds,
         s.posed_by_matches,
         if a.no_match_pose { " (--no-match-pose)" } else { "" },
         s.pairs_left_out,
         if a.keep_unplaced { " (--keep-unplaced)" } else { "" }
     );
-    let known = if a.focal.is_some() { "all given by --focal" } else { "the rest estimated" };
+    let known = match (&s.cycle_focal, a.focal) {
+        (_, Some(_)) => "all given by --focal".to_string(),
+        (Some(c), None) => format!(
+            "all from the keypoint pairs' {} cycles, which close within {:.1} deg there against {:.1} at the network's {:.1}",
+            c.cycles, c.residual_deg, c.start_residual_deg, c.start_focal
+        ),
+        (None, None) => "the rest estimated".to_string(),
+    };
     println!(
         "alignment: residual {:.4} -> {:.4} (scene units) in {:.1}s; focals {} ({} of {} known, {known})",
         rec.alignment.loss.0,

@@ -4,16 +4,20 @@ use crate::cache::PairCache;
 use crate::input::InputImage;
 use crate::predictor::{PairPredictor, ViewOutput, Wanted};
 use crate::ReconError;
+use dens3r_align::cycle_focal::{focal_from_cycles, CycleFocal, CycleFocalOptions};
 use dens3r_align::keypoints::{detect, match_mutual, Keypoints};
 use dens3r_align::match_pose::{pose_from_keypoints, pose_from_matches, KeypointPoseOptions, MatchPoseOptions};
 use dens3r_align::matching::{reciprocal_matches, tracks, Descriptors, Match, MatchOptions};
-use dens3r_align::{global_align, make_pairs, verified_subgraph, AlignOptions, Alignment, PairGraph, PairPrediction};
+use dens3r_align::{
+    average_rotations, consistent_rotations, global_align, make_pairs, verified_subgraph, AlignOptions, Alignment,
+    PairGraph, PairPrediction,
+};
 use dens3r_geom::focal::{focal_or_fallback, median};
 use dens3r_geom::transform::Sim3;
 use dens3r_geom::{DVec3, Raster, Vec3};
 use dens3r_io::panics::catch_quietly;
 use dens3r_scene::export::TrackPoint;
-use glam::DVec2;
+use glam::{DMat3, DVec2};
 use image::RgbImage;
 use rayon::prelude::*;
 use std::collections::{HashMap, HashSet};
@@ -54,11 +58,30 @@ pub struct KeypointOptions {
     pub ratio: f32,
     /// When a placement is trusted.
     pub pose: KeypointPoseOptions,
+    /// A placement whose rotation is further than this (degrees) from what the placements
+    /// with more inliers imply is dropped ([`dens3r_align::consistent_rotations`]).
+    pub max_disagreement_deg: f64,
+    /// Where no image has a known focal and all share a size (one camera), the focal at which
+    /// the keypoint pairs' rotations close their cycles replaces the network's estimate, when
+    /// the cycles pick one clearly ([`focal_from_cycles`]); `None` keeps the network's.
+    pub cycle_focal: Option<CycleFocalOptions>,
+    /// The cameras the placed pairs connect take the rotations that agree best with those
+    /// pairs ([`dens3r_align::average_rotations`]), and the alignment keeps them: a pair's
+    /// keypoint rotation is far more accurate than what aligning the network's pointmaps
+    /// makes of it.
+    pub fix_rotations: bool,
 }
 
 impl Default for KeypointOptions {
     fn default() -> Self {
-        Self { max_keypoints: 4000, ratio: 0.8, pose: KeypointPoseOptions::default() }
+        Self {
+            max_keypoints: 4000,
+            ratio: 0.8,
+            pose: KeypointPoseOptions::default(),
+            max_disagreement_deg: 15.0,
+            cycle_focal: Some(CycleFocalOptions::default()),
+            fix_rotations: true,
+        }
     }
 }
 
@@ -123,6 +146,15 @@ pub struct ReconStats {
     /// Ordered pairs placed by keypoint matches (see [`ReconOptions::keypoints`]); these are
     /// not counted in `posed_by_matches`.
     pub posed_by_keypoints: usize,
+    /// Ordered pairs keypoints placed but whose rotation contradicted the stronger placements
+    /// ([`KeypointOptions::max_disagreement_deg`]); not counted in `posed_by_keypoints`.
+    pub keypoint_inconsistent: usize,
+    /// The focal the keypoint pairs' cycles gave every image ([`KeypointOptions::cycle_focal`]),
+    /// used as a known focal by the alignment.
+    pub cycle_focal: Option<CycleFocal>,
+    /// Cameras whose rotation was averaged from the keypoint pairs and kept by the alignment
+    /// ([`KeypointOptions::fix_rotations`]).
+    pub fixed_rotations: usize,
     /// Seconds detecting and matching keypoints and placing pairs by them.
     pub keypoint_seconds: f64,
     /// Ordered pairs left out of the alignment: unplaced pairs among images that placed pairs
@@ -211,10 +243,16 @@ pub fn reconstruct(
     // The photos as the maps see them: SIFT's input, the tracks' colours and the scene's frames.
     let rgb: Vec<RgbImage> = images.iter().map(|im| im.rgb()).collect();
     let mut placed = HashMap::new();
+    let mut rotations = Vec::new();
     if let Some(kp) = &opts.keypoints {
         let t = Instant::now();
         let warnings = std::sync::Mutex::new(Vec::new());
-        placed = place_by_keypoints(images, &rgb, &mut preds, &order, &mut matches, kp, &warnings);
+        let kpp = place_by_keypoints(images, &rgb, &mut preds, &order, &mut matches, kp, &warnings);
+        placed = kpp.placed;
+        stats.keypoint_inconsistent = kpp.inconsistent;
+        stats.cycle_focal = kpp.cycle_focal;
+        stats.fixed_rotations = kpp.rotations.iter().filter(|r| r.is_some()).count();
+        rotations = kpp.rotations;
         stats.warnings.extend(warnings.into_inner().unwrap());
         stats.posed_by_keypoints = placed.len();
         stats.keypoint_seconds = t.elapsed().as_secs_f64();
@@ -240,8 +278,10 @@ pub fn reconstruct(
 
     let t = Instant::now();
     let iters = opts.align.iterations;
-    // Known focals (EXIF, `--focal`) are kept; the rest are estimated.
-    let align = AlignOptions { focals: images.iter().map(|im| im.focal).collect(), ..opts.align.clone() };
+    // Known focals (EXIF, `--focal`, or the keypoint cycles') are kept; the rest are estimated.
+    let cycle = stats.cycle_focal.as_ref().map(|c| c.focal);
+    let align =
+        AlignOptions { focals: images.iter().map(|im| im.focal.or(cycle)).collect(), rotations, ..opts.align.clone() };
     let alignment = global_align(&sizes, &preds, &align, |it, _| progress(Stage::Align, it, iters))?;
     stats.align_seconds = t.elapsed().as_secs_f64();
     stats.warnings.extend(alignment.warnings.iter().cloned());
@@ -344,7 +384,8 @@ type Placed = (Raster<Vec3>, Raster<f32>, Vec<Match>, Sim3);
 /// replacing their cross-view pointmaps as [`place_by_matches`] does; a placed pair's matches
 /// (the keypoint inliers, at the nearest pixels) replace the network's in `matches`, so tracks
 /// and match pictures follow the geometry used. Returns the ordered pairs placed, with their
-/// similarities (as [`place_by_matches`]).
+/// similarities (as [`place_by_matches`]), the pairs dropped as inconsistent and the focal
+/// their cycles gave.
 fn place_by_keypoints(
     images: &[InputImage],
     rgb: &[RgbImage],
@@ -353,7 +394,7 @@ fn place_by_keypoints(
     matches: &mut Vec<(usize, usize, Vec<Match>)>,
     opts: &KeypointOptions,
     warnings: &std::sync::Mutex<Vec<String>>,
-) -> HashMap<(usize, usize), Sim3> {
+) -> KeypointPlacement {
     let index: HashMap<(usize, usize), usize> = order.iter().enumerate().map(|(e, &p)| (p, e)).collect();
     // A panic inside the SIFT crate costs that image its keypoints, not the run.
     let kps: Vec<Keypoints> = images
@@ -373,8 +414,7 @@ fn place_by_keypoints(
     // about 70 px at 512 px), and the epipolar geometry needs the one focal the global
     // alignment will start from.
     let known: Vec<Option<f64>> = images.iter().map(|im| im.focal).collect();
-    let focals = pooled_focals(preds, &known);
-    let own: Vec<Raster<Vec3>> = preds.iter().map(|p| pinhole(&p.pts_i, focals[p.i])).collect();
+    let mut focals = pooled_focals(preds, &known);
     let unordered: Vec<(usize, usize)> = order.iter().filter(|p| p.0 < p.1).copied().collect();
     let pair_kp: HashMap<(usize, usize), (Vec<DVec2>, Vec<DVec2>)> = unordered
         .par_iter()
@@ -383,6 +423,23 @@ fn place_by_keypoints(
             ((i, j), m.iter().map(|&(p, q)| (kps[i].xy[p], kps[j].xy[q])).unzip())
         })
         .collect();
+    // One camera, no focal known: the focal that closes the keypoint pairs' cycles, where
+    // they pick one clearly.
+    let one_size = rgb.iter().all(|im| im.dimensions() == rgb[0].dimensions());
+    let mut cycle_focal = None;
+    if let (Some(co), true, true) = (&opts.cycle_focal, one_size, known.iter().all(Option::is_none)) {
+        let c = DVec2::new(rgb[0].width() as f64 / 2.0, rgb[0].height() as f64 / 2.0);
+        let mut cyc: Vec<(usize, usize, Vec<DVec2>, Vec<DVec2>)> = pair_kp
+            .iter()
+            .map(|(&(i, j), (a, b))| (i, j, a.iter().map(|q| *q - c).collect(), b.iter().map(|q| *q - c).collect()))
+            .collect();
+        cyc.sort_by_key(|p| (p.0, p.1));
+        cycle_focal = focal_from_cycles(images.len(), &cyc, focals[0], co);
+        if let Some(cf) = &cycle_focal {
+            focals = vec![cf.focal; images.len()];
+        }
+    }
+    let own: Vec<Raster<Vec3>> = preds.iter().map(|p| pinhole(&p.pts_i, focals[p.i])).collect();
     let placed: Vec<Option<Placed>> = order
         .par_iter()
         .map(|&(i, j)| {
@@ -412,8 +469,29 @@ fn place_by_keypoints(
             Some((pose.points, preds[rev].conf_i.clone(), kept, pose.transform))
         })
         .collect();
+    // A placement whose rotation contradicts the stronger ones around it (repeated texture
+    // matched across the object) is dropped.
+    let edges: Vec<(usize, usize, DMat3, f64)> = placed
+        .iter()
+        .zip(order)
+        .filter_map(|(p, &(i, j))| p.as_ref().map(|p| (i, j, p.3.rotation, p.2.len() as f64)))
+        .collect();
+    let consistent = consistent_rotations(images.len(), &edges, opts.max_disagreement_deg);
+    // One rotation per camera from the pairs kept: the alignment keeps them.
+    let kept_edges: Vec<(usize, usize, DMat3, f64)> =
+        edges.iter().zip(&consistent).filter(|(_, &c)| c).map(|(e, _)| *e).collect();
+    let rotations =
+        if opts.fix_rotations { average_rotations(images.len(), &kept_edges, 30) } else { vec![None; images.len()] };
+    let mut verdicts = consistent.into_iter();
+    let (mut placed, mut inconsistent) = (placed, 0);
+    for p in placed.iter_mut().filter(|p| p.is_some()) {
+        if !verdicts.next().unwrap_or(true) {
+            *p = None;
+            inconsistent += 1;
+        }
+    }
     if placed.iter().all(Option::is_none) {
-        return HashMap::new();
+        return KeypointPlacement { placed: HashMap::new(), inconsistent, cycle_focal, rotations };
     }
     for (p, o) in preds.iter_mut().zip(own) {
         p.pts_i = o;
@@ -439,7 +517,19 @@ fn place_by_keypoints(
         }
     }
     matches.sort_by_key(|m| (m.0, m.1));
-    done
+    KeypointPlacement { placed: done, inconsistent, cycle_focal, rotations }
+}
+
+/// What [`place_by_keypoints`] did.
+struct KeypointPlacement {
+    /// Ordered pairs placed, with the similarity taking the second view into the first's frame.
+    placed: HashMap<(usize, usize), Sim3>,
+    /// Ordered pairs dropped as inconsistent with the others.
+    inconsistent: usize,
+    /// The focal the pairs' cycles gave, if they gave one.
+    cycle_focal: Option<CycleFocal>,
+    /// Camera-to-world rotations averaged over the pairs placed (the largest group of them).
+    rotations: Vec<Option<DMat3>>,
 }
 
 /// One focal per image: its `known` focal where given; else the median of the Weiszfeld

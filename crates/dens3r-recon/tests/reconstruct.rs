@@ -11,8 +11,8 @@ use dens3r_geom::transform::{axis_angle, rotation_angle_deg, Sim3};
 use dens3r_geom::{DMat3, DVec3, Intrinsics, PinholeCamera, Raster, Vec3};
 use dens3r_mesh::metrics::{mesh_metrics, MeshMetricsOptions};
 use dens3r_recon::{
-    list_images, load_images, reconstruct, write_outputs, InputImage, OutputOptions, PairCache, PairPredictor,
-    ReconOptions, ViewOutput, Wanted,
+    list_images, load_images, reconstruct, write_outputs, InputImage, KeypointOptions, OutputOptions, PairCache,
+    PairPredictor, ReconOptions, ViewOutput, Wanted,
 };
 use dens3r_render::path::room_walk;
 use dens3r_render::procedural::{room, ROOM_HI, ROOM_LO};
@@ -569,12 +569,21 @@ fn unplaced_pairs_do_not_pull_placed_cameras() {
     // The four neighbour pairs (both orders) placed, the three two-step pairs not, and left out.
     assert_eq!((s.posed_by_keypoints, s.pairs_left_out), (8, 6));
     assert!(med < 1.5 && worst < 4.0, "{med} {worst}");
-    let kept = ReconOptions { drop_unplaced: false, ..opts };
+    // Kept, with the rotations free in the alignment, they pull; with the rotations the
+    // placed pairs average to held fixed (the default), they cannot.
+    let free = KeypointOptions { fix_rotations: false, ..KeypointOptions::default() };
+    let kept = ReconOptions { drop_unplaced: false, keypoints: Some(free), ..opts.clone() };
     let all = reconstruct(&images, &net, &cache, &kept, |_, _, _| {}).unwrap();
     let (med_all, worst_all) = rotation_errors(&t, &all.alignment);
-    eprintln!("every pair aligned: median {med_all:.3} deg, worst {worst_all:.3} deg");
-    assert_eq!(all.stats.pairs_left_out, 0);
+    eprintln!("every pair aligned, rotations free: median {med_all:.3} deg, worst {worst_all:.3} deg");
+    assert_eq!((all.stats.pairs_left_out, all.stats.fixed_rotations), (0, 0));
     assert!(med_all > 20.0 && med_all > 5.0 * med, "{med_all} vs {med}");
+    let kept = ReconOptions { drop_unplaced: false, ..opts };
+    let fixed = reconstruct(&images, &net, &cache, &kept, |_, _, _| {}).unwrap();
+    let (med_fixed, worst_fixed) = rotation_errors(&t, &fixed.alignment);
+    eprintln!("every pair aligned, rotations fixed: median {med_fixed:.3} deg, worst {worst_fixed:.3} deg");
+    assert_eq!(fixed.stats.fixed_rotations, n);
+    assert!(med_fixed < 1.5 && worst_fixed < 4.0, "{med_fixed} {worst_fixed}");
 }
 
 /// SIFT on the bundled orbit's renders as `reconstruct` prepares them (512 px): flat
