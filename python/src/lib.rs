@@ -12,6 +12,7 @@ use dens3r_fusion::tsdf::TsdfParams;
 use dens3r_geom::{DMat4, Intrinsics, PinholeCamera, Raster, Vec3};
 use dens3r_heads::{Backbone, Dens3rBackbone};
 use dens3r_mesh::TriMesh;
+use dens3r_recon::mono::FocalSource;
 use dens3r_scene::{Frame, Scene, SceneWriter};
 use image::{DynamicImage, RgbImage};
 use numpy::ndarray::{ArrayD, IxDyn};
@@ -127,17 +128,26 @@ impl Model {
 }
 
 /// One view's maps as a dict; `own_frame`: its points are in its own camera's frame, so its
-/// depth and intrinsics are meaningful.
-fn view_dict<'py>(py: Python<'py>, v: &ViewMaps, own_frame: bool) -> PyResult<Bound<'py, PyDict>> {
+/// depth and intrinsics are meaningful; `known`: a focal (pixels of the maps) its camera takes.
+fn view_dict<'py>(py: Python<'py>, v: &ViewMaps, own_frame: bool, known: Option<f64>) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
     d.set_item("rgb", rgb_array(py, &v.rgb)?)?;
     d.set_item("pts3d", vec3_array(py, &v.points)?)?;
     d.set_item("frame", v.frame)?;
     if own_frame {
         d.set_item("depth", scalar_array(py, &v.depth)?)?;
-        let (cam, estimated) = dens3r_recon::mono::mono_camera(v);
+        let (mut cam, estimated) = dens3r_recon::mono::mono_camera(v);
+        let source = match known {
+            Some(f) => {
+                (cam.intrinsics.fx, cam.intrinsics.fy) = (f, f);
+                FocalSource::Given
+            }
+            None if estimated => FocalSource::Pointmap,
+            None => FocalSource::Fallback,
+        };
         d.set_item("K", k_array(py, &cam.intrinsics)?)?;
-        d.set_item("focal_estimated", estimated)?;
+        d.set_item("focal_estimated", source == FocalSource::Pointmap)?;
+        d.set_item("focal_source", source.as_str())?;
     }
     if let Some(n) = &v.normals {
         d.set_item("normals", vec3_array(py, n)?)?;
@@ -209,28 +219,42 @@ impl Model {
     /// Predicts one image (its self-pair) or a pair. One image: a dict of `rgb` (H, W, 3)
     /// uint8, `depth` (H, W), `pts3d` and `normals` (H, W, 3, OpenCV camera frame, normals
     /// facing the camera), `conf`, `desc` (H, W, 24), `desc_conf`, `K` (3, 3) and
-    /// `focal_estimated`. A pair: a list of two such dicts, both pointmaps in the first camera's
-    /// frame (the second view has no `depth` / `K`); normals each in their own camera frame.
-    /// Maps are at the network size, or the photo's with `original_size=True`.
-    #[pyo3(signature = (image, image2=None, *, original_size=false))]
+    /// `focal_estimated` and `focal_source` ("given", "pointmap" or "fallback", as `cameras.json`
+    /// records it). A pair: a list of two such dicts, both pointmaps in the first camera's frame
+    /// (the second view has no `depth` / `K`); normals each in their own camera frame. Maps are
+    /// at the network size, or the photo's with `original_size=True`. `focal` (pixels of the
+    /// photo as given) sets a single image's `K`, scaled to the maps, as `dens3r predict --focal`.
+    #[pyo3(signature = (image, image2=None, *, original_size=false, focal=None))]
     fn predict<'py>(
         &self,
         py: Python<'py>,
         image: &Bound<'py, PyAny>,
         image2: Option<&Bound<'py, PyAny>>,
         original_size: bool,
+        focal: Option<f64>,
     ) -> PyResult<Bound<'py, PyAny>> {
+        if focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
+            return Err(PyValueError::new_err("focal: must be a positive number of pixels of the photo"));
+        }
+        if focal.is_some() && image2.is_some() {
+            return Err(PyValueError::new_err(
+                "focal: applies to a single image, not a pair (use reconstruct(focal=...))",
+            ));
+        }
         let res = if original_size { Resolution::Original } else { Resolution::Network };
         let first = self.prepare(image)?;
         match image2 {
             None => {
                 let pred = py.detach(|| predict_mono(self.net.model(), &first, res, dens3r_backbone::HeadOutputs::ALL));
-                Ok(view_dict(py, &pred, true)?.into_any())
+                // Pixels of the maps: the photo's at original size, else scaled by the resize.
+                let (o, r) = (first.info.original, first.info.resized);
+                let scale = if original_size { 1.0 } else { f64::from(r.0.max(r.1)) / f64::from(o.0.max(o.1).max(1)) };
+                Ok(view_dict(py, &pred, true, focal.map(|f| f * scale))?.into_any())
             }
             Some(i2) => {
                 let second = self.prepare(i2)?;
                 let [a, b] = py.detach(|| predict_pair(self.net.model(), &first, &second, res));
-                Ok(PyList::new(py, [view_dict(py, &a, true)?, view_dict(py, &b, false)?])?.into_any())
+                Ok(PyList::new(py, [view_dict(py, &a, true, None)?, view_dict(py, &b, false, None)?])?.into_any())
             }
         }
     }

@@ -225,3 +225,19 @@ def test_errors_are_exceptions(model, tmp_path):
     with pytest.raises(dens3r.Dens3rError, match="at least 2 photos"):
         dens3r.reconstruct([PHOTO], tmp_path / "r", model=model, progress=False)
     assert not (tmp_path / "r" / "scene").exists()
+
+
+def test_predict_takes_a_known_focal(model, tmp_path):
+    # coffee.png is 600x400: the maps are 512 wide, so 900 photo pixels are 768 map pixels.
+    out = model.predict(str(PHOTO), focal=900.0)
+    assert out["focal_source"] == "given" and not out["focal_estimated"]
+    assert out["K"][0, 0] == out["K"][1, 1] == pytest.approx(900.0 * 512 / 600, rel=1e-12)
+    cli("predict", PHOTO, "--focal", "900", "-o", tmp_path / "s")
+    s = dens3r.read_scene(tmp_path / "s")
+    np.testing.assert_allclose(out["K"], s["K"][0], rtol=1e-12)
+    assert model.predict(str(PHOTO), focal=900.0, original_size=True)["K"][0, 0] == pytest.approx(900.0)
+    assert model.predict(str(PHOTO))["focal_source"] == "pointmap"
+    with pytest.raises(ValueError, match="positive"):
+        model.predict(str(PHOTO), focal=-1.0)
+    with pytest.raises(ValueError, match="single image"):
+        model.predict(str(PHOTO), str(PHOTO), focal=900.0)
