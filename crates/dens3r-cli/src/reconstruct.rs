@@ -223,7 +223,7 @@ fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, en
         tracks
     );
     println!(
-        "pairs placed by SIFT keypoints: {} of {}{}{} in {:.1}s; by the network's matches: {}{}; unplaced pairs left out: {}{}",
+        "pairs placed by SIFT keypoints: {} of {}{}{} in {:.1}s{}; by the network's matches: {}{}; unplaced pairs left out: {}{}",
         s.posed_by_keypoints,
         s.pairs,
         if a.no_keypoints { " (--no-keypoints)" } else { "" },
@@ -233,6 +233,11 @@ fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, en
             String::new()
         },
         s.keypoint_seconds,
+        if s.fixed_rotations > 0 {
+            format!(" (the rotations of the {} cameras they join averaged over them and kept)", s.fixed_rotations)
+        } else {
+            String::new()
+        },
         s.posed_by_matches,
         if a.no_match_pose { " (--no-match-pose)" } else { "" },
         s.pairs_left_out,
