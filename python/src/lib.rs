@@ -12,7 +12,7 @@ use dens3r_fusion::tsdf::TsdfParams;
 use dens3r_geom::{DMat4, Intrinsics, PinholeCamera, Raster, Vec3};
 use dens3r_heads::{Backbone, Dens3rBackbone};
 use dens3r_mesh::TriMesh;
-use dens3r_recon::mono::FocalSource;
+use dens3r_recon::mono::{mono_camera_known, FocalSource};
 use dens3r_scene::{Frame, Scene, SceneWriter};
 use image::{DynamicImage, RgbImage};
 use numpy::ndarray::{ArrayD, IxDyn};
@@ -136,15 +136,7 @@ fn view_dict<'py>(py: Python<'py>, v: &ViewMaps, own_frame: bool, known: Option<
     d.set_item("frame", v.frame)?;
     if own_frame {
         d.set_item("depth", scalar_array(py, &v.depth)?)?;
-        let (mut cam, estimated) = dens3r_recon::mono::mono_camera(v);
-        let source = match known {
-            Some(f) => {
-                (cam.intrinsics.fx, cam.intrinsics.fy) = (f, f);
-                FocalSource::Given
-            }
-            None if estimated => FocalSource::Pointmap,
-            None => FocalSource::Fallback,
-        };
+        let (cam, source) = mono_camera_known(v, known.map(|f| (f, FocalSource::Given)));
         d.set_item("K", k_array(py, &cam.intrinsics)?)?;
         d.set_item("focal_estimated", source == FocalSource::Pointmap)?;
         d.set_item("focal_source", source.as_str())?;
@@ -247,8 +239,7 @@ impl Model {
             None => {
                 let pred = py.detach(|| predict_mono(self.net.model(), &first, res, dens3r_backbone::HeadOutputs::ALL));
                 // Pixels of the maps: the photo's at original size, else scaled by the resize.
-                let (o, r) = (first.info.original, first.info.resized);
-                let scale = if original_size { 1.0 } else { f64::from(r.0.max(r.1)) / f64::from(o.0.max(o.1).max(1)) };
+                let scale = if original_size { 1.0 } else { first.info.resize_factor() };
                 Ok(view_dict(py, &pred, true, focal.map(|f| f * scale))?.into_any())
             }
             Some(i2) => {

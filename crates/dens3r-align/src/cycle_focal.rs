@@ -5,8 +5,7 @@
 //! too little, and a loop of pairs around the object no longer comes back to where it started.
 
 use crate::epipolar::{essential_ransac, EpipolarOptions};
-use crate::rotations::average_rotations;
-use dens3r_geom::transform::rotation_angle_deg;
+use crate::rotations::{average_rotations, rotation_residuals};
 use glam::{DMat3, DVec2};
 use rayon::prelude::*;
 
@@ -106,45 +105,46 @@ pub fn focal_from_cycles(
             .zip(&weights)
             .filter_map(|(&k, &w)| rots[k].map(|(r, _)| (pairs[k].0, pairs[k].1, r, w)))
             .collect();
-        let w = average_rotations(n, &edges, 10);
-        let mut d = edges.iter().map(|&(i, j, r, _)| match (w[i], w[j]) {
-            (Some(wi), Some(wj)) => rotation_angle_deg(&((wi.transpose() * wj).transpose() * r)),
-            _ => opts.cap_deg,
-        });
+        let mut d = rotation_residuals(&average_rotations(n, &edges, 10), &edges).into_iter();
         used.iter()
-            .map(|&k| if rots[k].is_some() { d.next().unwrap_or(opts.cap_deg) } else { opts.cap_deg }.min(opts.cap_deg))
+            .map(|&k| {
+                if rots[k].is_some() { d.next().flatten() } else { None }.unwrap_or(opts.cap_deg).min(opts.cap_deg)
+            })
             .collect()
     };
-    let cost = |f: f64| disagreements(&rotations(f)).iter().sum::<f64>() / cycles as f64;
+    // A focal's cost (mean capped disagreement per cycle) with the disagreements it came from.
+    let score = |f: f64| {
+        let d = disagreements(&rotations(f));
+        (d.iter().sum::<f64>() / cycles as f64, d)
+    };
     let (lo, hi) = (f0 * opts.range.0, f0 * opts.range.1);
     let steps = opts.grid.max(3);
     let grid: Vec<f64> = (0..steps).map(|k| lo * (hi / lo).powf(k as f64 / (steps - 1) as f64)).collect();
-    let costs: Vec<f64> = grid.iter().map(|&f| cost(f)).collect();
-    let k = (0..steps).min_by(|&x, &y| costs[x].total_cmp(&costs[y]))?;
+    let mut scored: Vec<(f64, Vec<f64>)> = grid.iter().map(|&f| score(f)).collect();
+    let k = (0..steps).min_by(|&x, &y| scored[x].0.total_cmp(&scored[y].0))?;
     // Golden-section search (in log focal) between the grid's neighbours of its best.
     let (mut a, mut b) = (grid[k.saturating_sub(1)].ln(), grid[(k + 1).min(steps - 1)].ln());
     let g = (5f64.sqrt() - 1.0) / 2.0;
     let (mut c, mut d) = (b - g * (b - a), a + g * (b - a));
-    let (mut fc, mut fd) = (cost(c.exp()), cost(d.exp()));
+    let (mut sc, mut sd) = (score(c.exp()), score(d.exp()));
     for _ in 0..10 {
-        if fc <= fd {
-            (b, d, fd) = (d, c, fc);
+        if sc.0 <= sd.0 {
+            (b, d, sd) = (d, c, sc);
             c = b - g * (b - a);
-            fc = cost(c.exp());
+            sc = score(c.exp());
         } else {
-            (a, c, fc) = (c, d, fd);
+            (a, c, sc) = (c, d, sd);
             d = a + g * (b - a);
-            fd = cost(d.exp());
+            sd = score(d.exp());
         }
     }
-    let (focal, _) = [(grid[k], costs[k]), (c.exp(), fc), (d.exp(), fd)]
+    let (focal, (_, at_best)) = [(grid[k], scored.swap_remove(k)), (c.exp(), sc), (d.exp(), sd)]
         .into_iter()
-        .min_by(|x, y| x.1.total_cmp(&y.1))
+        .min_by(|x, y| x.1 .0.total_cmp(&y.1 .0))
         .expect("three candidates");
     // Judged on the pairs that focal explains (under the cap there; matched repeated texture
     // is not): their cycles must close at least twice as well as at f0, and worse 15% to
     // either side (by a quarter at least, by half on average).
-    let at_best = disagreements(&rotations(focal));
     let explained: Vec<usize> = (0..used.len()).filter(|&e| at_best[e] < opts.cap_deg).collect();
     let closing = explained.len().saturating_sub(used.len() - cycles);
     if closing == 0 {

@@ -23,7 +23,13 @@ pub fn consistent_rotations(n: usize, edges: &[(usize, usize, DMat3, f64)], max_
 /// forest's own edges, which only count as `Some(0.0)`). `None` for an edge naming an image
 /// outside `0..n`.
 pub fn rotation_disagreements(n: usize, edges: &[(usize, usize, DMat3, f64)]) -> Vec<Option<f64>> {
-    let w = spanning_rotations(n, edges);
+    rotation_residuals(&spanning_rotations(n, edges), edges)
+}
+
+/// How far (degrees) each edge's rotation (`edges` as in [`consistent_rotations`]) is from the
+/// one between its cameras' rotations `w` (camera-to-world, e.g. [`average_rotations`]');
+/// `None` where either camera has none.
+pub fn rotation_residuals(w: &[Option<DMat3>], edges: &[(usize, usize, DMat3, f64)]) -> Vec<Option<f64>> {
     edges
         .iter()
         .map(|&(i, j, r, _)| {

@@ -24,6 +24,13 @@ impl PrepInfo {
     pub fn input_size(&self) -> (u32, u32) {
         (self.crop.2 - self.crop.0, self.crop.3 - self.crop.1)
     }
+
+    /// Pixels of the network input per pixel of the photo: the resize factor (cropping keeps a
+    /// focal length in pixels unchanged, so this converts one).
+    pub fn resize_factor(&self) -> f64 {
+        let (o, r) = (self.original, self.resized);
+        f64::from(r.0.max(r.1)) / f64::from(o.0.max(o.1).max(1))
+    }
 }
 
 /// A preprocessed image.

@@ -279,8 +279,7 @@ fn predict_one(
         }
         // A known focal in pixels of the maps written: the photo's at --original-size, else
         // scaled by the resize (cropping keeps it).
-        let (o, r) = (prep.info.original, prep.info.resized);
-        let scale = if a.original_size { 1.0 } else { f64::from(r.0.max(r.1)) / f64::from(o.0.max(o.1).max(1)) };
+        let scale = if a.original_size { 1.0 } else { prep.info.resize_factor() };
         let known = focal.map(|(f, s)| (f * scale, s));
         if write_mono_frame(writer, name, &pred, known)? == FocalSource::Fallback {
             eprintln!(

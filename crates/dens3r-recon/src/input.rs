@@ -47,8 +47,7 @@ impl InputImage {
 
     /// Pixels of the maps per pixel of the photo (the resize factor; cropping keeps the focal).
     pub fn photo_to_map(&self) -> f64 {
-        let (o, r) = (self.prep.info.original, self.prep.info.resized);
-        f64::from(r.0.max(r.1)) / f64::from(o.0.max(o.1).max(1))
+        self.prep.info.resize_factor()
     }
 
     /// The network input in the photo's own orientation (the colours of the scene frame).

@@ -27,6 +27,21 @@ pub fn mono_camera(pred: &MonoPrediction) -> (PinholeCamera, bool) {
     }
 }
 
+/// The camera of a single-image prediction with a `known` focal (pixels of its maps) and its
+/// source, else [`mono_camera`]'s; and where its focal came from.
+pub fn mono_camera_known(pred: &MonoPrediction, known: Option<(f64, FocalSource)>) -> (PinholeCamera, FocalSource) {
+    let (mut cam, estimated) = mono_camera(pred);
+    let source = match known.filter(|(f, _)| f.is_finite() && *f > 0.0) {
+        Some((f, s)) => {
+            (cam.intrinsics.fx, cam.intrinsics.fy) = (f, f);
+            s
+        }
+        None if estimated => FocalSource::Pointmap,
+        None => FocalSource::Fallback,
+    };
+    (cam, source)
+}
+
 /// Where a frame's focal length came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FocalSource {
@@ -65,16 +80,7 @@ pub fn write_mono_frame(
     pred: &MonoPrediction,
     known: Option<(f64, FocalSource)>,
 ) -> Result<FocalSource, ReconError> {
-    let (mut cam, estimated) = mono_camera(pred);
-    let known = known.filter(|(f, _)| f.is_finite() && *f > 0.0);
-    let source = match known {
-        Some((f, s)) => {
-            (cam.intrinsics.fx, cam.intrinsics.fy) = (f, f);
-            s
-        }
-        None if estimated => FocalSource::Pointmap,
-        None => FocalSource::Fallback,
-    };
+    let (cam, source) = mono_camera_known(pred, known);
     let mut frame = Frame::new(name, &cam);
     frame.extra.insert("focal_source".into(), serde_json::json!(source.as_str()));
     frame.extra.insert("focal_estimated".into(), serde_json::json!(source == FocalSource::Pointmap));
@@ -91,9 +97,9 @@ pub fn write_mono_frame(
         writer.write_conf(name, c)?;
     }
     dens3r_scene::write_rgb_png(&root.join("viz").join(format!("{name}_depth.png")), &depth_viz(&pred.depth))?;
-    let points = match known {
-        Some(_) => depth_to_pointmap(&pred.depth, &cam.intrinsics),
-        None => pred.points.clone(),
+    let points = match source {
+        FocalSource::Exif | FocalSource::Given => depth_to_pointmap(&pred.depth, &cam.intrinsics),
+        FocalSource::Pointmap | FocalSource::Fallback => pred.points.clone(),
     };
     let finite = || points.data().iter().zip(pred.rgb.pixels()).filter(|(p, _)| p.is_finite());
     let mut cloud = TriMesh::new(finite().map(|(p, _)| *p).collect(), Vec::new());
