@@ -69,8 +69,9 @@ def reconstruct(
 
     ``photos``: a folder or a list of image files. ``model``: a loaded :class:`Model` (default:
     the bundled dens3r-s). ``options``: ``graph`` ("complete", "swin", "logwin", "oneref"),
-    ``window``, ``cyclic``, ``iterations``, ``fixed_focal``, ``voxel``, ``min_conf``, ``mesh``,
-    ``cache``, ``match_pictures``, ``gpu``. ``progress``: True for tqdm bars (when tqdm is
+    ``window``, ``cyclic``, ``iterations``, ``fixed_focal``, ``focal``, ``voxel``, ``min_conf``
+    (default: the model's, :attr:`Model.min_conf`), ``masks`` (a folder of object masks, one per
+    photo by file stem: only the object is fused), ``mesh``, ``cache``, ``match_pictures``, ``gpu``. ``progress``: True for tqdm bars (when tqdm is
     installed), False for none, or a callable ``(stage, done, total)``.
 
     Returns :func:`read_scene` of ``OUTPUT/scene`` plus ``output``, ``mesh`` (vertices, faces,

@@ -118,6 +118,10 @@ struct Model {
     /// checkpoints instead); None for other weights.
     #[pyo3(get)]
     notice: Option<String>,
+    /// The confidence under which `reconstruct` fuses no pixel by default (the config's
+    /// `"min_conf"`, else 3).
+    #[pyo3(get)]
+    min_conf: f32,
 }
 
 impl Model {
@@ -186,7 +190,15 @@ impl Model {
                 dens3r_recon::model::load_network(&files.weights, files.config.as_deref(), gpu).map_err(err)?;
             let hash = dens3r_heads::features::file_hash(&files.weights).map_err(err)?;
             let net = Dens3rBackbone::new(model, None, hash).map_err(err)?;
-            Ok(Model { net: Box::new(net), weights: files.weights, size, keep_portrait, notice: files.default_notice })
+            let min_conf = dens3r_recon::model::mesh_min_conf(files.config.as_deref()).map_err(err)?;
+            Ok(Model {
+                net: Box::new(net),
+                weights: files.weights,
+                size,
+                keep_portrait,
+                notice: files.default_notice,
+                min_conf,
+            })
         })
     }
 
@@ -621,8 +633,10 @@ fn pair_graph(graph: &str, window: usize, cyclic: bool) -> PyResult<dens3r_align
 /// `summary` (alignment residuals, pairs, warnings). `progress(stage, done, total)` is called
 /// with stage "predict", "align" or "fuse". `focal` (pixels of the photos) fixes every focal;
 /// without it a photo's EXIF 35 mm equivalent focal length is kept where it has one.
+/// `min_conf` defaults to the model's (`Model.min_conf`); `masks` is a folder of object masks,
+/// one per photo by file stem, as `reconstruct --masks` (only the object is fused).
 #[pyfunction]
-#[pyo3(signature = (photos, output, *, model=None, graph="complete".to_string(), window=3, cyclic=false, iterations=300, fixed_focal=false, focal=None, voxel=None, min_conf=3.0, mesh=true, cache=true, match_pictures=20, gpu=false, progress=None))]
+#[pyo3(signature = (photos, output, *, model=None, graph="complete".to_string(), window=3, cyclic=false, iterations=300, fixed_focal=false, focal=None, voxel=None, min_conf=None, masks=None, mesh=true, cache=true, match_pictures=20, gpu=false, progress=None))]
 #[allow(clippy::too_many_arguments)]
 fn reconstruct<'py>(
     py: Python<'py>,
@@ -636,7 +650,8 @@ fn reconstruct<'py>(
     fixed_focal: bool,
     focal: Option<f64>,
     voxel: Option<f32>,
-    min_conf: f32,
+    min_conf: Option<f32>,
+    masks: Option<PathBuf>,
     mesh: bool,
     cache: bool,
     match_pictures: usize,
@@ -677,6 +692,9 @@ fn reconstruct<'py>(
         if images.len() < 2 {
             return Err(err(format!("reconstruction needs at least 2 photos, got {}", images.len())));
         }
+        if let Some(dir) = &masks {
+            dens3r_recon::attach_masks(&mut images, dir).map_err(err)?;
+        }
         let id = format!("{} size {}", dens3r_recon::predictor::weights_id(&model.weights), model.size);
         let predictor = NetworkPredictor::new(model.net.model(), id);
         let cache = PairCache::new(cache.then(|| output.join("cache")));
@@ -684,7 +702,7 @@ fn reconstruct<'py>(
             graph,
             align: dens3r_align::AlignOptions { iterations, optimize_focal: !fixed_focal, ..Default::default() },
             matching: dens3r_align::matching::MatchOptions::default(),
-            min_track: 2,
+            tracks: dens3r_recon::TrackOptions::default(),
             match_pose: Some(dens3r_align::match_pose::MatchPoseOptions::default()),
             keypoints: Some(dens3r_recon::KeypointOptions::default()),
             drop_unplaced: true,
@@ -694,6 +712,7 @@ fn reconstruct<'py>(
             dens3r_recon::Stage::Align => report("align", done, iterations.max(total)),
         })
         .map_err(err)?;
+        let min_conf = min_conf.unwrap_or(model.min_conf);
         let out_opts = OutputOptions { voxel, min_conf, gpu, mesh, match_pictures, ..Default::default() };
         let summary =
             write_outputs(&rec, &paths, &output, &out_opts, |done, total| report("fuse", done, total)).map_err(err)?;
@@ -705,6 +724,7 @@ fn reconstruct<'py>(
             "pairs_placed_by_keypoints": rec.stats.posed_by_keypoints,
             "pairs_left_out": rec.stats.pairs_left_out,
             "tracks": rec.points.len(),
+            "triangulated_points": rec.stats.triangulated_points,
             "warnings": rec.stats.warnings.iter().chain(&summary.warnings).collect::<Vec<_>>(),
             "voxel": summary.voxel,
             "triangles": summary.triangles,

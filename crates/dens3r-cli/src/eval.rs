@@ -124,6 +124,11 @@ pub struct MeshArgs {
     /// Sampling seed.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Place PRED (a reconstruction, known up to scale) into GT's frame first: the similarity
+    /// that best takes the cameras of scene folder PRED_SCENE onto those of GT_SCENE (matched
+    /// by frame name), e.g. `reconstruct`'s OUT/scene and the render that made its photos.
+    #[arg(long, num_args = 2, value_names = ["PRED_SCENE", "GT_SCENE"])]
+    align_cameras: Option<Vec<PathBuf>>,
     /// Print JSON instead of text.
     #[arg(long)]
     json: bool,
@@ -351,8 +356,20 @@ fn mesh(a: MeshArgs) -> Result<()> {
     if !(1..=MAX_MESH_SAMPLES).contains(&a.samples) {
         bail!("--samples {}: expected 1..={MAX_MESH_SAMPLES} (1e5 is the usual; 1e7 needs about 1.2 GB)", a.samples);
     }
-    let pred = dens3r_mesh::read_mesh(&a.pred)?;
+    let mut pred = dens3r_mesh::read_mesh(&a.pred)?;
     let gt = dens3r_mesh::read_mesh(&a.gt)?;
+    let mut placed = None;
+    if let Some([ps, gs]) = a.align_cameras.as_deref() {
+        let (sim, n) = eval::camera_similarity(ps, gs)?;
+        for v in &mut pred.positions {
+            *v = sim.apply(v.as_dvec3()).as_vec3();
+        }
+        if let Some(ns) = &mut pred.normals {
+            let r = sim.rotation.as_mat3();
+            ns.iter_mut().for_each(|n| *n = r * *n);
+        }
+        placed = Some((sim.scale, n));
+    }
     let opts = MeshMetricsOptions { samples: a.samples, thresholds: a.thresholds, seed: a.seed };
     let m = mesh_metrics(&pred, &gt, &opts).map_err(anyhow::Error::msg)?;
     if a.json {
@@ -363,9 +380,15 @@ fn mesh(a: MeshArgs) -> Result<()> {
                 |f| json!({"threshold": f.threshold, "precision": f.precision, "recall": f.recall, "fscore": f.fscore}),
             )
             .collect();
-        let j = json!({"chamfer_l1": m.chamfer_l1, "accuracy": m.accuracy, "completeness": m.completeness, "normal_consistency": m.normal_consistency, "fscores": f});
+        let mut j = json!({"chamfer_l1": m.chamfer_l1, "accuracy": m.accuracy, "completeness": m.completeness, "normal_consistency": m.normal_consistency, "fscores": f});
+        if let Some((scale, n)) = placed {
+            j["placed_by_cameras"] = json!({"cameras": n, "scale": scale});
+        }
         println!("{}", serde_json::to_string_pretty(&j)?);
         return Ok(());
+    }
+    if let Some((scale, n)) = placed {
+        println!("placed by {n} cameras: scale {scale:.4}");
     }
     println!(
         "chamfer-L1          {:.6}  (accuracy {:.6}, completeness {:.6})",

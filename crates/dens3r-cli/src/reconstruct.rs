@@ -10,7 +10,7 @@ use dens3r_align::{AlignOptions, PairGraph};
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
     list_images, load_images, reconstruct, write_outputs, KeypointOptions, NetworkPredictor, OutputOptions,
-    OutputSummary, PairCache, ReconOptions, Reconstruction, Stage,
+    OutputSummary, PairCache, ReconOptions, Reconstruction, Stage, TrackOptions,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -69,9 +69,15 @@ pub struct ReconstructArgs {
     /// TSDF voxel in scene units (default: twice the pixel footprint at the median depth).
     #[arg(long)]
     voxel: Option<f32>,
-    /// Pixels below this confidence are not fused (DUSt3R's demo: 3).
-    #[arg(long, default_value_t = 3.0)]
-    min_conf: f32,
+    /// Pixels below this confidence are not fused (default: the model's `"min_conf"` in its
+    /// config.json, else DUSt3R's demo threshold, 3).
+    #[arg(long)]
+    min_conf: Option<f32>,
+    /// Object masks: a folder with one picture per photo, named by the photo's file stem
+    /// (white = object, black = background, or a cut-out's transparency), at the photo's size.
+    /// Only the object's pixels are fused into the mesh; the scene folder keeps them in masks/.
+    #[arg(long, value_name = "DIR")]
+    masks: Option<PathBuf>,
     /// Stop before the voxel grid exceeds this many MB.
     #[arg(long, default_value_t = 4096.0)]
     budget_mb: f64,
@@ -134,8 +140,8 @@ fn checked_graph(a: &ReconstructArgs) -> Result<PairGraph> {
     if a.focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
         bail!("--focal must be a positive number of pixels (e.g. 1000 for a 4000-pixel-wide photo at 70 degrees)");
     }
-    if !a.min_conf.is_finite() {
-        bail!("--min-conf {}: expected a finite confidence (e.g. 1.5; confidences are 1 + exp(x))", a.min_conf);
+    if let Some(m) = a.min_conf.filter(|m| !m.is_finite()) {
+        bail!("--min-conf {m}: expected a finite confidence (e.g. 1.5; confidences are 1 + exp(x))");
     }
     Ok(graph)
 }
@@ -157,6 +163,13 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     if images.len() < 2 {
         bail!("reconstruction needs at least 2 photos, got {}", images.len());
     }
+    if let Some(dir) = &a.masks {
+        dens3r_recon::attach_masks(&mut images, dir)?;
+    }
+    let min_conf = match a.min_conf {
+        Some(m) => m,
+        None => dens3r_recon::model::mesh_min_conf(config.as_deref())?,
+    };
     let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu)?;
     let predictor = NetworkPredictor::new(&model, format!("{} size {}", weights_id(&weights), a.model.size));
     let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
@@ -164,7 +177,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         graph,
         align: AlignOptions { iterations: a.iterations, optimize_focal: !a.fixed_focal, ..Default::default() },
         matching: MatchOptions::default(),
-        min_track: a.min_track,
+        tracks: TrackOptions { min_track: a.min_track, ..TrackOptions::default() },
         match_pose: (!a.no_match_pose).then(MatchPoseOptions::default),
         keypoints: (!a.no_keypoints).then(|| KeypointOptions {
             cycle_focal: (!a.no_cycle_focal).then(CycleFocalOptions::default),
@@ -186,7 +199,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     abar.finish_and_clear();
     let out_opts = OutputOptions {
         voxel: a.voxel,
-        min_conf: a.min_conf,
+        min_conf,
         budget_bytes: (a.budget_mb * 1e6) as usize,
         gpu: a.gpu,
         mesh: !a.no_mesh,
@@ -199,12 +212,19 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         fbar.set_position(done as u64);
     })?;
     fbar.finish_and_clear();
-    report(&a, &rec, &summary, predictor.encoded_images(), t0);
+    report(&a, &rec, &summary, min_conf, predictor.encoded_images(), t0);
     Ok(())
 }
 
 /// Prints what was reconstructed and where it went.
-fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, encoded: usize, t0: Instant) {
+fn report(
+    a: &ReconstructArgs,
+    rec: &Reconstruction,
+    summary: &OutputSummary,
+    min_conf: f32,
+    encoded: usize,
+    t0: Instant,
+) {
     let s = &rec.stats;
     for w in s.warnings.iter().chain(&summary.warnings) {
         eprintln!("warning: {w}");
@@ -260,13 +280,18 @@ fn report(a: &ReconstructArgs, rec: &Reconstruction, summary: &OutputSummary, en
         s.known_focals,
         rec.names.len()
     );
+    println!(
+        "tracks: {tracks} points ({} triangulated from the cameras, the rest placed by one view's depth)",
+        s.triangulated_points
+    );
     match &summary.mesh {
         Some(m) => println!(
-            "mesh: {} triangles at voxel {:.4} in {:.1}s ({}) -> {}",
+            "mesh: {} triangles at voxel {:.4} in {:.1}s ({}; pixels of confidence {min_conf} or more{}) -> {}",
             summary.triangles,
             summary.voxel,
             summary.fuse_seconds,
             summary.gpu_adapter.as_deref().map_or("CPU".to_string(), |g| format!("GPU: {g}")),
+            if a.masks.is_some() { ", within the masks" } else { "" },
             m.display()
         ),
         None if a.no_mesh => println!("mesh: skipped (--no-mesh)"),

@@ -25,6 +25,9 @@ pub struct InputImage {
     /// equivalent focal length ([`exif_focal_px`]), or given by [`set_focal`](Self::set_focal).
     /// Reconstruction keeps a known focal fixed instead of estimating it.
     pub focal: Option<f64>,
+    /// The object's pixels at [`size`](Self::size), when a mask was given
+    /// ([`crate::masks::attach_masks`]): only these are fused into the mesh.
+    pub mask: Option<dens3r_geom::Raster<bool>>,
 }
 
 impl InputImage {
@@ -101,8 +104,14 @@ pub fn load_images(paths: &[PathBuf], size: u32, keep_portrait: bool) -> Result<
         let img = decode_oriented(p, &bytes)?;
         let prep = preprocess(&img, size, !keep_portrait).map_err(|e| ReconError::input(p, e.to_string()))?;
         let focal = exif_focal_px(&bytes, (img.width(), img.height()));
-        let mut im =
-            InputImage { name: unique_name(p, &mut names), path: p.clone(), prep, hash: fnv1a(&bytes, 0), focal: None };
+        let mut im = InputImage {
+            name: unique_name(p, &mut names),
+            path: p.clone(),
+            prep,
+            hash: fnv1a(&bytes, 0),
+            focal: None,
+            mask: None,
+        };
         im.set_focal(focal);
         out.push(im);
     }

@@ -12,18 +12,22 @@
 
 pub mod cache;
 pub mod input;
+pub mod masks;
 pub mod model;
 pub mod mono;
 pub mod output;
 pub mod pipeline;
 pub mod predictor;
+pub mod tracks;
 pub mod viz;
 
 pub use cache::PairCache;
 pub use input::{list_images, load_images, InputImage};
+pub use masks::attach_masks;
 pub use output::{write_outputs, OutputOptions, OutputSummary};
 pub use pipeline::{reconstruct, KeypointOptions, ReconOptions, Reconstruction, Stage};
 pub use predictor::{NetworkPredictor, PairPredictor, ViewOutput, Wanted};
+pub use tracks::TrackOptions;
 
 use std::path::Path;
 

@@ -89,3 +89,47 @@ pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<
     let device = dens3r_backbone::device::network_device(gpu)?;
     dens3r_backbone::verify::load_model(weights, config, &device).map_err(|e| ReconError::Other(e.to_string()))
 }
+
+/// DUSt3R's demo threshold: pixels under this confidence are not fused into its meshes.
+pub const DEFAULT_MIN_CONF: f32 = 3.0;
+
+/// The confidence under which `reconstruct` fuses no pixel for this model: the `"min_conf"` of
+/// its `config.json` (a model trained elsewhere has its own confidence scale), else
+/// [`DEFAULT_MIN_CONF`]. A config that cannot be read, or a value that is not a finite number,
+/// is an error naming the file.
+pub fn mesh_min_conf(config: Option<&Path>) -> Result<f32, ReconError> {
+    let Some(c) = config.filter(|c| c.is_file()) else {
+        return Ok(DEFAULT_MIN_CONF);
+    };
+    let text = std::fs::read_to_string(c).map_err(|e| ReconError::input(c, format!("cannot read ({e})")))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| ReconError::input(c, format!("invalid JSON ({e})")))?;
+    match v.get("min_conf") {
+        None => Ok(DEFAULT_MIN_CONF),
+        Some(m) => m.as_f64().map(|m| m as f32).filter(|m| m.is_finite()).ok_or_else(|| {
+            ReconError::input(
+                c,
+                format!("\"min_conf\" is {m}, not a finite number (the confidence under which no pixel is fused)"),
+            )
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_config_sets_the_mesh_confidence_threshold() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = dir.path().join("config.json");
+        assert_eq!(mesh_min_conf(None).unwrap(), 3.0);
+        std::fs::write(&c, r#"{"enc_depth": 12}"#).unwrap();
+        assert_eq!(mesh_min_conf(Some(&c)).unwrap(), 3.0);
+        std::fs::write(&c, r#"{"enc_depth": 12, "min_conf": 1.0}"#).unwrap();
+        assert_eq!(mesh_min_conf(Some(&c)).unwrap(), 1.0);
+        std::fs::write(&c, r#"{"min_conf": "low"}"#).unwrap();
+        let e = mesh_min_conf(Some(&c)).unwrap_err().to_string();
+        assert!(e.contains("config.json") && e.contains("min_conf"), "{e}");
+    }
+}

@@ -108,6 +108,9 @@ pub fn write_outputs(
         if let Some(n) = &rec.normals[k] {
             w.write_normals(name, n)?;
         }
+        if let Some(m) = rec.masks.get(k).and_then(Option::as_ref) {
+            w.write_mask(name, m)?;
+        }
     }
     w.finish()?;
     let scene = Scene::open(&scene_dir)?;
@@ -130,15 +133,25 @@ pub fn write_outputs(
     Ok(summary)
 }
 
-/// The default voxel: twice the pixel footprint at the median depth of all views.
+/// The default voxel: twice the pixel footprint at the median depth of all views (within
+/// their masks, where given).
 pub fn auto_voxel(rec: &Reconstruction) -> Option<f32> {
     let mut per_view: Vec<f64> = rec
         .alignment
         .views
         .iter()
-        .filter_map(|v| {
-            let mut d: Vec<f64> =
-                v.depth.data().iter().filter(|d| **d > 0.0 && d.is_finite()).map(|&d| d as f64).collect();
+        .enumerate()
+        .filter_map(|(k, v)| {
+            let mask = rec.masks.get(k).and_then(Option::as_ref);
+            let kept = |i: usize| mask.is_none_or(|m| m.data()[i]);
+            let mut d: Vec<f64> = v
+                .depth
+                .data()
+                .iter()
+                .enumerate()
+                .filter(|&(i, d)| *d > 0.0 && d.is_finite() && kept(i))
+                .map(|(_, &d)| d as f64)
+                .collect();
             dens3r_geom::focal::median(&mut d).map(|m| 2.0 * m / v.camera.intrinsics.fx)
         })
         .collect();
@@ -176,7 +189,7 @@ fn fuse(
                 name: Cow::Borrowed(rec.names[k].as_str()),
                 camera: v.camera,
                 depth: Cow::Borrowed(&v.depth),
-                mask: None,
+                mask: rec.masks.get(k).and_then(Option::as_ref).map(Cow::Borrowed),
                 color: Some(Cow::Borrowed(&rec.rgb[k])),
                 conf: Some(Cow::Borrowed(&v.conf)),
                 normals: None,

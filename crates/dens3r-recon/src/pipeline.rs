@@ -3,11 +3,12 @@
 use crate::cache::PairCache;
 use crate::input::InputImage;
 use crate::predictor::{PairPredictor, ViewOutput, Wanted};
+use crate::tracks::{track_points, TrackOptions};
 use crate::ReconError;
 use dens3r_align::cycle_focal::{focal_from_cycles, CycleFocal, CycleFocalOptions};
 use dens3r_align::keypoints::{detect, match_mutual, Keypoints};
 use dens3r_align::match_pose::{pose_from_keypoints, pose_from_matches, KeypointPoseOptions, MatchPoseOptions};
-use dens3r_align::matching::{reciprocal_matches, tracks, Descriptors, Match, MatchOptions};
+use dens3r_align::matching::{reciprocal_matches, Descriptors, Match, MatchOptions};
 use dens3r_align::{
     average_rotations, consistent_rotations, global_align, make_pairs, verified_subgraph, AlignOptions, Alignment,
     PairGraph, PairPrediction,
@@ -32,8 +33,8 @@ pub struct ReconOptions {
     pub align: AlignOptions,
     /// Descriptor matching (skipped when the model has no descriptor head).
     pub matching: MatchOptions,
-    /// Shortest track kept as a 3-D point (2 = every reciprocal match).
-    pub min_track: usize,
+    /// Tracks: which become 3-D points, triangulated where the cameras allow.
+    pub tracks: TrackOptions,
     /// Place each pair's second view by its matches (PnP-RANSAC on the first view's points)
     /// and its own-frame pointmap where enough matches agree ([`dens3r_align::match_pose`]),
     /// instead of the network's cross-view pointmap; `None` keeps the network's everywhere.
@@ -91,7 +92,7 @@ impl Default for ReconOptions {
             graph: PairGraph::Complete,
             align: AlignOptions::default(),
             matching: MatchOptions::default(),
-            min_track: 2,
+            tracks: TrackOptions::default(),
             match_pose: Some(MatchPoseOptions::default()),
             keypoints: Some(KeypointOptions::default()),
             drop_unplaced: true,
@@ -123,6 +124,8 @@ pub struct Reconstruction {
     pub matches: Vec<(usize, usize, Vec<Match>)>,
     /// Tracks as 3-D points (for COLMAP's points3D).
     pub points: Vec<TrackPoint>,
+    /// The photos' object masks at the maps' size, where given ([`InputImage::mask`]).
+    pub masks: Vec<Option<Raster<bool>>>,
     /// Counts, timings and warnings.
     pub stats: ReconStats,
 }
@@ -162,6 +165,8 @@ pub struct ReconStats {
     pub pairs_left_out: usize,
     /// Images whose focal was known (EXIF or given) and kept.
     pub known_focals: usize,
+    /// Track points triangulated from the cameras (the rest took a view's aligned depth).
+    pub triangulated_points: usize,
     /// Things the user should know (fallbacks, cache problems).
     pub warnings: Vec<String>,
 }
@@ -297,7 +302,8 @@ pub fn reconstruct(
             })
         })
         .collect();
-    let points = track_points(&alignment, &rgb, &matches, opts.min_track);
+    let (points, triangulated) = track_points(&alignment, &rgb, &matches, &opts.tracks);
+    stats.triangulated_points = triangulated.iter().filter(|&&t| t).count();
     Ok(Reconstruction {
         names: images.iter().map(|im| im.name.clone()).collect(),
         rgb,
@@ -305,6 +311,7 @@ pub fn reconstruct(
         normals,
         matches,
         points,
+        masks: images.iter().map(|im| im.mask.clone()).collect(),
         stats,
     })
 }
@@ -597,52 +604,6 @@ fn match_conf(v: &ViewOutput) -> &[f32] {
 
 fn descriptors(m: &dens3r_backbone::predict::DescriptorMap) -> Descriptors<'_> {
     Descriptors { width: m.width, height: m.height, dim: m.dim, data: &m.data }
-}
-
-/// Tracks with one keypoint per image become 3-D points: each keypoint's aligned depth gives a
-/// world point; the most confident one is kept, and its mean reprojection error recorded.
-fn track_points(
-    a: &Alignment,
-    rgb: &[RgbImage],
-    matches: &[(usize, usize, Vec<Match>)],
-    min_track: usize,
-) -> Vec<TrackPoint> {
-    tracks(matches, min_track.max(2))
-        .into_iter()
-        .filter(|t| t.windows(2).all(|w| w[0].0 != w[1].0)) // sorted: repeats are adjacent
-        .filter_map(|t| {
-            let world = |&(k, (x, y)): &(usize, (usize, usize))| {
-                let v = &a.views[k];
-                let d = *v.depth.get(x, y);
-                (d > 0.0 && d.is_finite()).then(|| {
-                    let c = v.camera.intrinsics.unproject(x as f64, y as f64) * d as f64;
-                    (v.camera.cam_to_world.transform_point3(c), *v.conf.get(x, y))
-                })
-            };
-            let (best, (xyz, _)) = t
-                .iter()
-                .enumerate()
-                .filter_map(|(o, kp)| world(kp).map(|w| (o, w)))
-                .max_by(|a, b| a.1 .1.total_cmp(&b.1 .1))?;
-            let mut err = 0.0;
-            for &(k, (x, y)) in &t {
-                let cam = &a.views[k].camera;
-                let c: DVec3 = cam.world_to_cam().transform_point3(xyz);
-                if c.z <= 0.0 {
-                    return None;
-                }
-                let (u, v) = cam.intrinsics.project(c);
-                err += ((u - x as f64).powi(2) + (v - y as f64).powi(2)).sqrt();
-            }
-            let (k, (x, y)) = t[best];
-            Some(TrackPoint {
-                xyz,
-                rgb: rgb[k].get_pixel(x as u32, y as u32).0,
-                error: err / t.len() as f64,
-                observations: t.iter().map(|&(k, (x, y))| (k, (x as f64, y as f64))).collect(),
-            })
-        })
-        .collect()
 }
 
 #[cfg(test)]

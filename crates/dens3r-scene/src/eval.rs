@@ -161,6 +161,31 @@ pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, CameraMetrics), S
     Ok((truth.len(), camera_metrics(&est, &truth)))
 }
 
+/// The similarity (scale, rotation, translation) taking scene `pred`'s frame to scene `gt`'s:
+/// least squares over the centres of the cameras both hold (frames matched by name), with
+/// the number of those cameras. Puts a reconstruction, known only up to scale, where its
+/// ground truth is, e.g. to score its mesh. An error for fewer than 3 shared cameras or
+/// centres on one line.
+pub fn camera_similarity(pred: &Path, gt: &Path) -> Result<(dens3r_geom::transform::Sim3, usize), SceneError> {
+    let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
+    let (src, dst): (Vec<_>, Vec<_>) = g
+        .frames()
+        .iter()
+        .filter_map(|gf| p.frame(&gf.name).map(|pf| (pf.camera().center(), gf.camera().center())))
+        .unzip();
+    let n = src.len();
+    let sim = dens3r_geom::umeyama(&src, &dst, None, true).map_err(|e| {
+        SceneError::new(
+            pred,
+            format!(
+                "cannot place this scene's cameras on those of {} ({n} shared by name; at least 3 not on one line are needed): {e}",
+                gt.display()
+            ),
+        )
+    })?;
+    Ok((sim, n))
+}
+
 /// Depth and normal metrics of each frame of one image-blind baseline.
 pub type BaselineScores = (Vec<DepthMetrics>, Vec<NormalMetrics>);
 

@@ -215,3 +215,56 @@ fn an_existing_scene_is_replaced_whole_or_not_at_all() {
     assert_eq!(files, ["cameras.json", "depth/c.npy", "images/c.png"]);
     assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 1);
 }
+
+/// A reconstruction known up to a similarity (scale 0.4, a turn, a shift) of the truth's
+/// cameras: `camera_similarity` finds that similarity's inverse from the camera centres, and
+/// refuses cameras on one line.
+#[test]
+fn camera_similarity_places_a_scene_on_its_truth() {
+    use dens3r_geom::transform::{axis_angle, Sim3};
+    let dir = tempfile::tempdir().unwrap();
+    let (gt, pred) = (dir.path().join("gt"), dir.path().join("pred"));
+    let to_pred = Sim3 {
+        scale: 0.4,
+        rotation: axis_angle(DVec3::new(1.0, 2.0, 0.5), 0.7),
+        translation: DVec3::new(3.0, -1.0, 2.0),
+    };
+    let write = |root: &Path, eyes: &[DVec3], sim: &Sim3| {
+        let mut w = SceneWriter::create(root).unwrap();
+        let rgb = image::RgbImage::new(W as u32, H as u32);
+        for (i, &e) in eyes.iter().enumerate() {
+            let c2w = look_at(e, DVec3::ZERO, DVec3::Z).unwrap();
+            let mut cam = cam();
+            // The similarity applied to the pose: rotation turned, centre moved and scaled.
+            let r = sim.rotation * glam::DMat3::from_mat4(c2w);
+            cam.cam_to_world = glam::DMat4::from_cols(
+                r.x_axis.extend(0.0),
+                r.y_axis.extend(0.0),
+                r.z_axis.extend(0.0),
+                sim.apply(e).extend(1.0),
+            );
+            w.add_frame(Frame::new(&format!("v{i}"), &cam), &rgb).unwrap();
+        }
+        w.finish().unwrap();
+    };
+    let eyes: Vec<DVec3> = (0..6)
+        .map(|k| {
+            let a = k as f64;
+            DVec3::new(2.0 * a.cos(), 2.0 * a.sin(), 0.5 + 0.1 * a)
+        })
+        .collect();
+    write(&gt, &eyes, &Sim3::rigid(glam::DMat3::IDENTITY, DVec3::ZERO));
+    write(&pred, &eyes, &to_pred);
+    let (sim, n) = dens3r_scene::eval::camera_similarity(&pred, &gt).unwrap();
+    assert_eq!(n, 6);
+    let back = to_pred.inverse();
+    assert!((sim.scale - back.scale).abs() < 1e-9, "{} vs {}", sim.scale, back.scale);
+    for &e in &eyes {
+        assert!((sim.apply(to_pred.apply(e)) - e).length() < 1e-9);
+    }
+    let line: Vec<DVec3> = (0..4).map(|k| DVec3::new(k as f64, 1.0, 1.0)).collect();
+    write(&gt, &line, &Sim3::rigid(glam::DMat3::IDENTITY, DVec3::ZERO));
+    write(&pred, &line, &to_pred);
+    let e = dens3r_scene::eval::camera_similarity(&pred, &gt).unwrap_err().to_string();
+    assert!(e.contains("at least 3 not on one line"), "{e}");
+}
