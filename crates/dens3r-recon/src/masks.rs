@@ -4,9 +4,9 @@
 
 use crate::input::{InputImage, IMAGE_EXTENSIONS};
 use crate::ReconError;
-use dens3r_backbone::preprocess::decode_oriented;
+use dens3r_backbone::preprocess::{decode_oriented, preprocess};
 use dens3r_geom::Raster;
-use image::imageops::{crop_imm, resize, rotate270, rotate90, FilterType};
+use image::imageops::rotate90;
 use image::{DynamicImage, GrayImage};
 use std::path::{Path, PathBuf};
 
@@ -60,12 +60,12 @@ pub fn read_mask(image: &InputImage, path: &Path) -> Result<Raster<bool>, ReconE
             ),
         ));
     }
-    let keep = keep_pixels(&decoded);
-    let keep = if info.rotated { rotate270(&keep) } else { keep };
-    let resized = resize(&keep, info.resized.0.max(1), info.resized.1.max(1), FilterType::Nearest);
-    let (x0, y0, x1, y1) = info.crop;
-    let cropped = crop_imm(&resized, x0, y0, x1 - x0, y1 - y0).to_image();
-    let own = if info.rotated { rotate90(&cropped) } else { cropped };
+    // The photo's own preprocessing (same size and portrait rotation give the same resize and
+    // crop), then back to the photo's orientation as the maps are.
+    let keep = DynamicImage::ImageLuma8(keep_pixels(&decoded));
+    let prep = preprocess(&keep, info.resized.0.max(info.resized.1), info.rotated)?;
+    let luma = image::imageops::grayscale(&prep.rgb);
+    let own = if prep.info.rotated { rotate90(&luma) } else { luma };
     let (w, h) = image.size();
     debug_assert_eq!((own.width() as usize, own.height() as usize), (w, h));
     Raster::from_vec(w, h, own.pixels().map(|p| p.0[0] >= 128).collect())

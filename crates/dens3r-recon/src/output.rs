@@ -50,7 +50,7 @@ impl Default for OutputOptions {
         Self {
             voxel: None,
             trunc_voxels: 4.0,
-            min_conf: 3.0,
+            min_conf: crate::model::DEFAULT_MIN_CONF,
             budget_bytes: 4 << 30,
             gpu: false,
             mesh: true,
