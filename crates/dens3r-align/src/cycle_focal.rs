@@ -73,22 +73,34 @@ pub fn focal_from_cycles(
     if !(f0.is_finite() && f0 > 0.0) {
         return None;
     }
-    let rotations = |f: f64| -> Vec<Option<(DMat3, usize)>> {
-        pairs
+    // Each pair's rotation at focal `f` (and its inlier count), for the pairs `which` lists.
+    let rotations = |f: f64, which: &[usize]| -> Vec<Option<(DMat3, usize)>> {
+        let fitted: Vec<(usize, Option<(DMat3, usize)>)> = which
             .par_iter()
-            .map(|(_, _, a, b)| {
+            .map(|&k| {
+                let (_, _, a, b) = &pairs[k];
                 let na: Vec<DVec2> = a.iter().map(|q| *q / f).collect();
                 let nb: Vec<DVec2> = b.iter().map(|q| *q / f).collect();
-                let p = essential_ransac(&na, &nb, f, &opts.epipolar)?;
-                let c = p.inlier_count();
+                let p = essential_ransac(&na, &nb, f, &opts.epipolar);
                 // x_j = R x_i, so camera j's frame into camera i's is R^T.
-                (c >= opts.min_inliers && c as f64 >= opts.min_inlier_ratio * a.len() as f64)
-                    .then_some((p.rotation.transpose(), c))
+                let r = p.and_then(|p| {
+                    let c = p.inlier_count();
+                    (c >= opts.min_inliers && c as f64 >= opts.min_inlier_ratio * a.len() as f64)
+                        .then_some((p.rotation.transpose(), c))
+                });
+                (k, r)
             })
-            .collect()
+            .collect();
+        let mut out = vec![None; pairs.len()];
+        for (k, r) in fitted {
+            out[k] = r;
+        }
+        out
     };
-    // The pairs and their trust are fixed at f0, so every focal is scored on the same cycles.
-    let start = rotations(f0);
+    // The pairs and their trust are fixed at f0, so every focal is scored on the same cycles
+    // (and only those pairs are fitted again).
+    let all: Vec<usize> = (0..pairs.len()).collect();
+    let start = rotations(f0, &all);
     let used: Vec<usize> = (0..pairs.len()).filter(|&k| start[k].is_some()).collect();
     let weights: Vec<f64> = used.iter().map(|&k| start[k].map_or(0.0, |x| x.1 as f64)).collect();
     let mut sets = crate::union_find::UnionFind::new(n);
@@ -114,7 +126,7 @@ pub fn focal_from_cycles(
     };
     // A focal's cost (mean capped disagreement per cycle) with the disagreements it came from.
     let score = |f: f64| {
-        let d = disagreements(&rotations(f));
+        let d = disagreements(&rotations(f, &used));
         (d.iter().sum::<f64>() / cycles as f64, d)
     };
     let (lo, hi) = (f0 * opts.range.0, f0 * opts.range.1);
@@ -152,7 +164,7 @@ pub fn focal_from_cycles(
     }
     let mean = |d: &[f64]| explained.iter().map(|&e| d[e]).sum::<f64>() / closing as f64;
     let (residual, start_residual) = (mean(&at_best), mean(&disagreements(&start)));
-    let sides: Vec<f64> = [0.85, 1.15].iter().map(|&s| mean(&disagreements(&rotations(focal * s)))).collect();
+    let sides: Vec<f64> = [0.85, 1.15].iter().map(|&s| mean(&disagreements(&rotations(focal * s, &used)))).collect();
     let floor = residual.max(0.5);
     let sharp = sides.iter().all(|&r| r >= 1.25 * floor) && sides.iter().sum::<f64>() >= 3.0 * floor;
     (residual <= 0.5 * start_residual && sharp).then_some(CycleFocal {

@@ -29,15 +29,19 @@ pub enum SynthKind {
     Objects,
     /// Each scene a room or an object set, by a coin flip of its seed.
     Mixed,
+    /// Clutter in a tote, on a table or on the floor, seen from above (55-90 degrees down),
+    /// as a robot's bin-picking camera or a phone held over a desk sees it.
+    Tabletop,
 }
 
 impl SynthKind {
-    /// `rooms`, `objects` or `mixed`.
+    /// `rooms`, `objects`, `mixed` or `tabletop`.
     pub fn parse(s: &str) -> Option<Self> {
         match s {
             "rooms" => Some(Self::Rooms),
             "objects" => Some(Self::Objects),
             "mixed" => Some(Self::Mixed),
+            "tabletop" => Some(Self::Tabletop),
             _ => None,
         }
     }
@@ -104,7 +108,7 @@ pub struct SynthScene {
     pub world: World,
     /// One camera per view (OpenCV, camera-to-world).
     pub cameras: Vec<PinholeCamera>,
-    /// `room` or `objects`.
+    /// `room`, `objects` or `tabletop`.
     pub kind: &'static str,
 }
 
@@ -126,13 +130,20 @@ pub fn synth_scene(
     assets: &Assets,
 ) -> Result<SynthScene, WorldError> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let room = match kind {
-        SynthKind::Rooms => true,
-        SynthKind::Objects => false,
-        SynthKind::Mixed => rng.gen_bool(0.5),
+    // (Mixed draws its coin first, as it always has: the sets made before Tabletop existed
+    // stay the same.)
+    let name = match kind {
+        SynthKind::Rooms => "room",
+        SynthKind::Objects => "objects",
+        SynthKind::Mixed if rng.gen_bool(0.5) => "room",
+        SynthKind::Mixed => "objects",
+        SynthKind::Tabletop => "tabletop",
     };
-    let (objects, poses) =
-        if room { room_scene(&mut rng, views, assets) } else { object_scene(&mut rng, views, assets) };
+    let (objects, poses) = match name {
+        "room" => room_scene(&mut rng, views, assets),
+        "objects" => object_scene(&mut rng, views, assets),
+        _ => tabletop_scene(&mut rng, views, assets),
+    };
     let mut world = World::new(objects)?;
     // Light from above at a random azimuth, random ambient and gloss.
     let (az, el) = (rng.gen_range(0.0..std::f32::consts::TAU), rng.gen_range(0.3..1.4f32));
@@ -152,7 +163,7 @@ pub fn synth_scene(
             PinholeCamera { intrinsics, width: w, height: h, cam_to_world: pose }
         })
         .collect();
-    Ok(SynthScene { world, cameras, kind: if room { "room" } else { "objects" } })
+    Ok(SynthScene { world, cameras, kind: name })
 }
 
 fn material(rng: &mut ChaCha8Rng, assets: &Assets, scale: f32) -> Material {
@@ -351,6 +362,110 @@ fn object_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Obj
         })
         .collect();
     (objs, poses)
+}
+
+fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object>, Vec<DMat4>) {
+    let mut objs = Vec::new();
+    let mut add = |name: String, shape: Shape, rotation: Quat, translation: Vec3, class_id: u16, material: Material| {
+        objs.push(Object { name, shape, rotation, translation, class_id, material });
+    };
+    let floor = quad(Vec3::new(-6.0, -6.0, 0.0), Vec3::Y * 12.0, Vec3::X * 12.0);
+    let m = material(rng, assets, 1.0);
+    add("floor".into(), Shape::Mesh(Arc::new(floor)), Quat::IDENTITY, Vec3::ZERO, 1, m);
+    // The surface the clutter lies on: a table top (a solid block) or the floor, with a tote on
+    // it or not.
+    let half = Vec3::new(rng.gen_range(0.25..0.6), rng.gen_range(0.2..0.45), 0.0);
+    let base = if rng.gen_bool(0.5) { rng.gen_range(0.4..0.9f32) } else { 0.0 };
+    if base > 0.0 {
+        let grow = rng.gen_range(1.0..2.0f32);
+        let top = Vec3::new(half.x * grow, half.y * grow, base / 2.0);
+        let m = material(rng, assets, 1.0);
+        add("table".into(), Shape::Cuboid { half: top }, Quat::IDENTITY, Vec3::Z * top.z, 4, m);
+    }
+    if rng.gen_bool(0.6) {
+        let (depth, flare) = (rng.gen_range(0.1..0.3f32), rng.gen_range(0.0..0.08f32));
+        let m = material(rng, assets, 0.5);
+        // A few millimetres up: its floor is not coplanar with the one it stands on.
+        let at = Vec3::Z * (base + 0.003);
+        add("tote".into(), Shape::Mesh(Arc::new(tote(half, depth, flare))), Quat::IDENTITY, at, 2, m);
+    }
+    // Clutter: flat packages, books and the usual objects, piled a little.
+    let n = rng.gen_range(4..=16);
+    for i in 0..n {
+        let at = Vec3::new(
+            rng.gen_range(-0.8..0.8) * half.x,
+            rng.gen_range(-0.8..0.8) * half.y,
+            base + 0.003 + if rng.gen_bool(0.3) { rng.gen_range(0.0..0.06) } else { 0.0 },
+        );
+        let s = rng.gen_range(0.15..0.5) * half.x.max(half.y) / 0.4;
+        let material = material(rng, assets, s);
+        if rng.gen_bool(0.45) {
+            let h = Vec3::new(rng.gen_range(0.2..0.5), rng.gen_range(0.12..0.35), rng.gen_range(0.02..0.1)) * s;
+            let tilt =
+                Quat::from_rotation_x(rng.gen_range(-0.25..0.25)) * Quat::from_rotation_y(rng.gen_range(-0.25..0.25));
+            add(format!("package_{i}"), Shape::Cuboid { half: h }, spin(rng) * tilt, at + Vec3::Z * h.z, 4, material);
+        } else {
+            let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
+            add(format!("{name}_{i}"), shape, rotation, translation, class_id, material);
+        }
+    }
+    // Things on the floor around it.
+    for i in 0..rng.gen_range(0..=4) {
+        let a = rng.gen_range(0.0..std::f32::consts::TAU);
+        let at = Vec3::new(a.cos(), a.sin(), 0.0) * (half.x.max(half.y) * 2.2 + rng.gen_range(0.0..1.5));
+        let s = rng.gen_range(0.2..0.6);
+        let material = material(rng, assets, s);
+        let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
+        add(format!("floor_{name}_{i}"), shape, rotation, translation, class_id, material);
+    }
+    // Cameras above, looking down at the clutter from 55-90 degrees, a small arc apart; near
+    // straight down the image's up is a direction of the scene, not the world's up.
+    let centre = DVec3::new(0.0, 0.0, base as f64);
+    let dist = half.x.max(half.y) as f64 * rng.gen_range(1.3..3.2);
+    let el0 = rng.gen_range(55.0..90.0f64);
+    let span = rng.gen_range(5.0..90.0f64).to_radians();
+    let a0 = rng.gen_range(0.0..std::f64::consts::TAU);
+    let yaw = rng.gen_range(0.0..std::f64::consts::TAU);
+    let poses = (0..views)
+        .map(|k| {
+            let t = if views > 1 { k as f64 / (views - 1) as f64 } else { 0.0 };
+            let a = a0 + span * t + rng.gen_range(-0.05..0.05);
+            let el = (el0 + rng.gen_range(-6.0..6.0)).clamp(50.0, 89.5).to_radians();
+            let r = dist * rng.gen_range(0.85..1.15);
+            let eye = centre + DVec3::new(el.cos() * a.cos(), el.cos() * a.sin(), el.sin()) * r;
+            let j = half.as_dvec3() * 0.3;
+            let target = centre + DVec3::new(rng.gen_range(-j.x..j.x), rng.gen_range(-j.y..j.y), 0.0);
+            let up = if el > 80f64.to_radians() {
+                let y = yaw + rng.gen_range(-0.1..0.1);
+                DVec3::new(y.cos(), y.sin(), 0.0)
+            } else {
+                DVec3::Z
+            };
+            let roll = if rng.gen_bool(0.3) { rng.gen_range(-0.15..0.15f64) } else { 0.0 };
+            let pose = look_at(eye, target, up).unwrap_or(DMat4::from_translation(eye));
+            pose * DMat4::from_rotation_z(roll)
+        })
+        .collect();
+    (objs, poses)
+}
+
+/// An open box (a tote): a floor `2 half.x` by `2 half.y` at z = 0 and walls `depth` high
+/// that lean out by `flare`; each face its own vertices (sharp edges).
+fn tote(half: Vec3, depth: f32, flare: f32) -> TriMesh {
+    let lo = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(x, y)| Vec3::new(x * half.x, y * half.y, 0.0));
+    let hi = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+        .map(|(x, y)| Vec3::new(x * (half.x + flare), y * (half.y + flare), depth));
+    let mut positions = lo.to_vec();
+    let mut indices = vec![[0, 1, 2], [0, 2, 3]];
+    for i in 0..4 {
+        let j = (i + 1) % 4;
+        let k = positions.len() as u32;
+        positions.extend([lo[i], lo[j], hi[j], hi[i]]);
+        indices.extend([[k, k + 2, k + 1], [k, k + 3, k + 2]]);
+    }
+    let mut m = TriMesh::new(positions, indices);
+    m.compute_vertex_normals();
+    m
 }
 
 /// A camera at `eye` looking at `target` (world up +z), rolled by a few degrees sometimes.

@@ -26,7 +26,7 @@ pub struct SynthOptions {
     pub scenes: usize,
     /// Seed of the whole set (scene `k` is drawn from `scene_seed(seed, k)`).
     pub seed: u64,
-    /// `rooms`, `objects` or `mixed`.
+    /// `rooms`, `objects`, `mixed` or `tabletop`.
     pub kind: String,
     /// Landscape image size `(W, H)` (portrait scenes swap it).
     pub size: (usize, usize),
@@ -39,8 +39,9 @@ pub struct SynthOptions {
 impl SynthOptions {
     /// Checks the options; returns the kind.
     pub fn check(&self) -> Result<SynthKind, TrainError> {
-        let kind = SynthKind::parse(&self.kind)
-            .ok_or_else(|| TrainError::invalid(format!("--kind {:?}: expected rooms, objects or mixed", self.kind)))?;
+        let kind = SynthKind::parse(&self.kind).ok_or_else(|| {
+            TrainError::invalid(format!("--kind {:?}: expected rooms, objects, mixed or tabletop", self.kind))
+        })?;
         let (w, h) = self.size;
         if !(16..=4096).contains(&w) || !(16..=4096).contains(&h) {
             return Err(TrainError::invalid(format!("--size {w}x{h}: each side must be 16..4096 pixels")));
@@ -83,6 +84,8 @@ pub struct SynthSummary {
     pub rooms: usize,
     /// See `rooms`.
     pub objects: usize,
+    /// See `rooms`.
+    pub tabletops: usize,
 }
 
 /// The folder of scene `k` under `out`.
@@ -144,10 +147,10 @@ pub fn synthesise(
             write_pairs(&tmp)?;
             std::fs::rename(&tmp, &dir).map_err(|e| TrainError::file(&dir, format!("cannot rename ({e})")))?;
             summary.rendered += 1;
-            if scene.kind == "room" {
-                summary.rooms += 1;
-            } else {
-                summary.objects += 1;
+            match scene.kind {
+                "room" => summary.rooms += 1,
+                "objects" => summary.objects += 1,
+                _ => summary.tabletops += 1,
             }
         }
         let s = Scene::open(&dir)?;

@@ -251,3 +251,36 @@ fn crops_and_aspects_keep_the_camera_model() {
     }
     assert_eq!(shorts.len(), 8, "every short side 112..224 drawn: {shorts:?}");
 }
+
+/// Tabletop scenes are seen from above: every camera looks 45+ degrees down, most of each
+/// view is an up-facing surface (the tote's or table's floor, packages lying flat), every
+/// pixel hits something, and the mixed sets made before the kind existed are unchanged (a
+/// mixed scene never comes out a tabletop).
+#[test]
+fn tabletop_scenes_look_down_on_flat_clutter() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = tmp.path().join("a");
+    let o = SynthOptions { kind: "tabletop".into(), size: (64, 48), ..opts(4, 11) };
+    let s = synthesise(&a, &o, &assets(), &mut |_, _| {}).unwrap();
+    assert_eq!((s.tabletops, s.rooms, s.objects), (4, 0, 0));
+    let mut up = Vec::new();
+    for k in 0..4 {
+        let scene = Scene::open(&scene_dir(&a, k)).unwrap();
+        for f in scene.frames() {
+            let pose = f.pose();
+            let forward = pose.transform_vector3(DVec3::Z);
+            let down = (-forward.z).asin().to_degrees();
+            assert!(down > 45.0, "scene {k} {}: looks {down:.1} deg down", f.name);
+            let depth = scene.depth(f).unwrap().unwrap();
+            assert!(depth.data().iter().all(|&z| z.is_finite() && z > 0.0), "scene {k}: background seen");
+            let normals = scene.normals(f).unwrap().unwrap();
+            let n = normals.data().len() as f64;
+            up.push(normals.data().iter().filter(|v| pose.transform_vector3(v.as_dvec3()).z > 0.9).count() as f64 / n);
+        }
+    }
+    up.sort_by(f64::total_cmp);
+    assert!(up[up.len() / 2] > 0.6, "median share of up-facing pixels {:.2}", up[up.len() / 2]);
+    let m = tmp.path().join("m");
+    let s = synthesise(&m, &opts(6, 11), &assets(), &mut |_, _| {}).unwrap();
+    assert_eq!((s.tabletops, s.rooms + s.objects), (0, 6));
+}
