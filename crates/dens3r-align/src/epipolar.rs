@@ -30,19 +30,6 @@ pub struct EpipolarPose {
 }
 
 impl EpipolarPose {
-    /// The same geometry read the other way (view `a`'s pose relative to view `b`): rotation
-    /// `R^T`, translation `-R^T t`, the same inliers, each alternative inverted.
-    pub fn inverse(&self) -> Self {
-        let inv = |(r, t): (DMat3, DVec3)| (r.transpose(), -(r.transpose() * t));
-        let (rotation, translation) = inv((self.rotation, self.translation));
-        Self {
-            rotation,
-            translation,
-            inliers: self.inliers.clone(),
-            alternatives: self.alternatives.iter().copied().map(inv).collect(),
-        }
-    }
-
     /// How many correspondences agree.
     pub fn inlier_count(&self) -> usize {
         self.inliers.iter().filter(|&&m| m).count()

@@ -10,7 +10,7 @@
 //! cross-view pointmap stays. (A 3-D/3-D fit, not PnP: the DLT behind PnP with an unknown
 //! focal is degenerate when the matches lie on one plane, as a wall's do.)
 
-use crate::epipolar::{essential_ransac, triangulate, EpipolarOptions, EpipolarPose};
+use crate::epipolar::{essential_ransac, triangulate, EpipolarOptions};
 use crate::matching::Match;
 use crate::resection::SplitMix;
 use dens3r_geom::align::umeyama;
@@ -149,27 +149,6 @@ impl Default for KeypointPoseOptions {
     }
 }
 
-/// The epipolar geometry of keypoint correspondences `(a[k] in view 1, b[k] in view 2)`,
-/// pixels) at the views' focals `(f1, f2)` (principal point at the centre of images of sizes
-/// `size1`, `size2`): the essential matrix's pose, its alternatives and inliers
-/// ([`essential_ransac`]); `None` when too few matches agree. The pose of the pair read the
-/// other way is its [`EpipolarPose::inverse`].
-pub fn keypoint_epipolar(
-    (size1, size2): ((usize, usize), (usize, usize)),
-    (f1, f2): (f64, f64),
-    a: &[DVec2],
-    b: &[DVec2],
-    opts: &KeypointPoseOptions,
-) -> Option<EpipolarPose> {
-    let norm =
-        |(w, h): (usize, usize), f: f64, q: DVec2| DVec2::new((q.x - w as f64 / 2.0) / f, (q.y - h as f64 / 2.0) / f);
-    let na: Vec<DVec2> = a.iter().map(|&q| norm(size1, f1, q)).collect();
-    let nb: Vec<DVec2> = b.iter().map(|&q| norm(size2, f2, q)).collect();
-    let pose = essential_ransac(&na, &nb, (f1 * f2).sqrt(), &opts.epipolar)?;
-    let inliers = pose.inlier_count();
-    (inliers >= opts.min_inliers && inliers as f64 >= opts.min_inlier_ratio * a.len() as f64).then_some(pose)
-}
-
 /// Places view 2 by keypoint correspondences `(a[k] in view 1, b[k] in view 2)`, pixels) and
 /// their epipolar geometry, so that its rotation owes nothing to the network's depth: the
 /// essential matrix at the views' focals `(f1, f2)` (pixels; principal point at the centre)
@@ -182,25 +161,9 @@ pub fn keypoint_epipolar(
 pub fn pose_from_keypoints(
     pts1: &Raster<Vec3>,
     own2: &Raster<Vec3>,
-    focals: (f64, f64),
-    a: &[DVec2],
-    b: &[DVec2],
-    opts: &KeypointPoseOptions,
-) -> Option<(MatchedPose, Vec<bool>)> {
-    let sizes = ((pts1.width(), pts1.height()), (own2.width(), own2.height()));
-    let pose = keypoint_epipolar(sizes, focals, a, b, opts)?;
-    place_by_epipolar(pts1, own2, focals, a, b, &pose, opts)
-}
-
-/// [`pose_from_keypoints`] with the epipolar geometry already fitted ([`keypoint_epipolar`]):
-/// the network's depths at the inliers pick among the pose's alternatives and give the scale.
-pub fn place_by_epipolar(
-    pts1: &Raster<Vec3>,
-    own2: &Raster<Vec3>,
     (f1, f2): (f64, f64),
     a: &[DVec2],
     b: &[DVec2],
-    pose: &EpipolarPose,
     opts: &KeypointPoseOptions,
 ) -> Option<(MatchedPose, Vec<bool>)> {
     let norm = |p: &Raster<Vec3>, f: f64, q: DVec2| {
@@ -208,7 +171,11 @@ pub fn place_by_epipolar(
     };
     let na: Vec<DVec2> = a.iter().map(|&q| norm(pts1, f1, q)).collect();
     let nb: Vec<DVec2> = b.iter().map(|&q| norm(own2, f2, q)).collect();
+    let pose = essential_ransac(&na, &nb, (f1 * f2).sqrt(), &opts.epipolar)?;
     let inliers = pose.inlier_count();
+    if inliers < opts.min_inliers || (inliers as f64) < opts.min_inlier_ratio * a.len() as f64 {
+        return None;
+    }
     let depth_at = |p: &Raster<Vec3>, q: DVec2| -> Option<f64> {
         let (x, y) = (q.x.round(), q.y.round());
         if x < 0.0 || y < 0.0 || x >= p.width() as f64 || y >= p.height() as f64 {
@@ -263,7 +230,7 @@ pub fn place_by_epipolar(
     let rt = r.transpose();
     let transform = Sim3 { scale: s1 / s2, rotation: rt, translation: -s1 * (rt * t) };
     let points = own2.map(|q| if q.is_finite() { transform.apply(q.as_dvec3()).as_vec3() } else { Vec3::NAN });
-    Some((MatchedPose { transform, points, inliers, usable: a.len() }, pose.inliers.clone()))
+    Some((MatchedPose { transform, points, inliers, usable: a.len() }, pose.inliers))
 }
 
 #[cfg(test)]
@@ -439,43 +406,6 @@ mod tests {
         let angle = dens3r_geom::transform::rotation_angle_deg(&(p.transform.rotation * rot));
         assert!(angle < 0.5, "rotation error {angle} deg");
         assert!((p.transform.scale / 2.0 - 1.0).abs() < 0.02, "scale {}", p.transform.scale);
-    }
-
-    /// One epipolar fit serves both readings of a pair: its inverse is what a fit of the
-    /// swapped matches gives (same rotation, same inliers), and view 1 placed in view 2's frame
-    /// by it turns opposite to view 2 placed in view 1's, recovers the true rotation, and the
-    /// scales are reciprocal.
-    #[test]
-    fn one_fit_places_a_pair_both_ways() {
-        let (pts1, own2, rot, t, _) = scene();
-        let (a, _) = keypoints(&pts1, rot, t, 0);
-        let (a, mut b) = keypoints(&pts1, rot, t, a.len() / 4);
-        // Detector noise (+-0.1 px), so that two fits of the same matches would differ.
-        let mut rng = SplitMix(7);
-        for q in &mut b {
-            *q += DVec2::new(rng.below(21) as f64 / 100.0 - 0.1, rng.below(21) as f64 / 100.0 - 0.1);
-        }
-        let opts = KeypointPoseOptions::default();
-        let fit = keypoint_epipolar(((160, 120), (160, 120)), (200.0, 200.0), &a, &b, &opts).expect("a fit");
-        let (fwd, _) = place_by_epipolar(&pts1, &own2, (200.0, 200.0), &a, &b, &fit, &opts).expect("forward");
-        let (rev, inl) = place_by_epipolar(&own2, &pts1, (200.0, 200.0), &b, &a, &fit.inverse(), &opts).expect("back");
-        let swapped = keypoint_epipolar(((160, 120), (160, 120)), (200.0, 200.0), &b, &a, &opts).expect("a fit");
-        let inv = fit.inverse();
-        let apart = dens3r_geom::transform::rotation_angle_deg(&(inv.rotation.transpose() * swapped.rotation));
-        assert!(apart < 1e-3 && (inv.translation - swapped.translation).length() < 1e-4, "{apart} deg apart");
-        assert_eq!(inv.inliers, swapped.inliers);
-        let loop_deg = dens3r_geom::transform::rotation_angle_deg(&(fwd.transform.rotation * rev.transform.rotation));
-        assert!(loop_deg < 1e-6, "the two readings disagree by {loop_deg} deg");
-        let err = dens3r_geom::transform::rotation_angle_deg(&(rev.transform.rotation.transpose() * rot));
-        // 0.36 deg measured: a tenth of a pixel is a lot for 160x120 views.
-        assert!(err < 1.0, "rotation error {err} deg");
-        assert!(
-            (fwd.transform.scale * rev.transform.scale - 1.0).abs() < 0.03,
-            "{} {}",
-            fwd.transform.scale,
-            rev.transform.scale
-        );
-        assert_eq!(inl, fit.inliers);
     }
 
     /// Correspondences with no common geometry place nothing.

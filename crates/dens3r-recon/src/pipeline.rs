@@ -6,11 +6,8 @@ use crate::predictor::{PairPredictor, ViewOutput, Wanted};
 use crate::tracks::{track_points, TrackOptions};
 use crate::ReconError;
 use dens3r_align::cycle_focal::{focal_from_cycles, CycleFocal, CycleFocalOptions};
-use dens3r_align::epipolar::EpipolarPose;
 use dens3r_align::keypoints::{detect, match_mutual, Keypoints};
-use dens3r_align::match_pose::{
-    keypoint_epipolar, place_by_epipolar, pose_from_matches, KeypointPoseOptions, MatchPoseOptions,
-};
+use dens3r_align::match_pose::{pose_from_keypoints, pose_from_matches, KeypointPoseOptions, MatchPoseOptions};
 use dens3r_align::matching::{reciprocal_matches, Descriptors, Match, MatchOptions};
 use dens3r_align::{
     average_rotations, consistent_rotations, global_align, make_pairs, verified_subgraph, AlignOptions, Alignment,
@@ -390,7 +387,7 @@ fn mirror_placements(
 /// matches that placed it and the similarity that did.
 type Placed = (Raster<Vec3>, Raster<f32>, Vec<Match>, Sim3);
 
-/// Places ordered pairs by SIFT keypoint matches ([`dens3r_align::match_pose::pose_from_keypoints`]) where enough agree,
+/// Places ordered pairs by SIFT keypoint matches ([`pose_from_keypoints`]) where enough agree,
 /// replacing their cross-view pointmaps as [`place_by_matches`] does; a placed pair's matches
 /// (the keypoint inliers, at the nearest pixels) replace the network's in `matches`, so tracks
 /// and match pictures follow the geometry used. Returns the ordered pairs placed, with their
@@ -450,31 +447,19 @@ fn place_by_keypoints(
         }
     }
     let own: Vec<Raster<Vec3>> = preds.iter().map(|p| pinhole(&p.pts_i, focals[p.i])).collect();
-    // The epipolar geometry once per unordered pair; the pair read the other way takes its
-    // inverse (what fitting the swapped matches again would give).
-    let epipolar: HashMap<(usize, usize), EpipolarPose> = pair_kp
-        .par_iter()
-        .filter_map(|(&(i, j), (a, b))| {
-            let (e, rev) = (*index.get(&(i, j))?, *index.get(&(j, i))?);
-            let sizes = ((own[e].width(), own[e].height()), (own[rev].width(), own[rev].height()));
-            keypoint_epipolar(sizes, (focals[i], focals[j]), a, b, &opts.pose).map(|p| ((i, j), p))
-        })
-        .collect();
     let placed: Vec<Option<Placed>> = order
         .par_iter()
         .map(|&(i, j)| {
             let rev = *index.get(&(j, i))?;
             let e = index[&(i, j)];
-            // Matched and fitted once per unordered pair, read both ways.
-            let (a, b, fit) = if i < j {
-                let (a, b) = pair_kp.get(&(i, j))?.clone();
-                (a, b, epipolar.get(&(i, j))?.clone())
+            // Matched once per unordered pair, read both ways.
+            let (a, b) = if i < j {
+                pair_kp.get(&(i, j))?.clone()
             } else {
                 let (b, a) = pair_kp.get(&(j, i))?.clone();
-                (a, b, epipolar.get(&(j, i))?.inverse())
+                (a, b)
             };
-            let focals = (focals[i], focals[j]);
-            let (pose, inl) = place_by_epipolar(&own[e], &own[rev], focals, &a, &b, &fit, &opts.pose)?;
+            let (pose, inl) = pose_from_keypoints(&own[e], &own[rev], (focals[i], focals[j]), &a, &b, &opts.pose)?;
             let px = |r: &Raster<Vec3>, q: DVec2| {
                 let x = (q.x.round().max(0.0) as usize).min(r.width() - 1);
                 let y = (q.y.round().max(0.0) as usize).min(r.height() - 1);
