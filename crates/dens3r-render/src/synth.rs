@@ -310,7 +310,7 @@ fn room_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Objec
     let mut poses = Vec::with_capacity(views);
     for _ in 0..views {
         let dir = DVec3::new(heading.cos(), heading.sin(), pitch0 + rng.gen_range(-0.15..0.15));
-        poses.push(camera(rng, eye, eye + dir));
+        poses.push(camera(rng, eye, eye + dir, DVec3::Z));
         heading += rng.gen_range(-0.5..0.5) * step.sqrt();
         let walk = DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(-0.2..0.2));
         eye = inner(eye + walk.normalize_or_zero() * step);
@@ -358,7 +358,7 @@ fn object_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Obj
             let eye = center + DVec3::new(el.cos() * a.cos(), el.cos() * a.sin(), el.sin()) * r;
             let target =
                 center + DVec3::new(rng.gen_range(-0.2..0.2), rng.gen_range(-0.2..0.2), rng.gen_range(-0.1..0.1));
-            camera(rng, eye, target)
+            camera(rng, eye, target, DVec3::Z)
         })
         .collect();
     (objs, poses)
@@ -441,9 +441,7 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
             } else {
                 DVec3::Z
             };
-            let roll = if rng.gen_bool(0.3) { rng.gen_range(-0.15..0.15f64) } else { 0.0 };
-            let pose = look_at(eye, target, up).unwrap_or(DMat4::from_translation(eye));
-            pose * DMat4::from_rotation_z(roll)
+            camera(rng, eye, target, up)
         })
         .collect();
     (objs, poses)
@@ -452,9 +450,9 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
 /// An open box (a tote): a floor `2 half.x` by `2 half.y` at z = 0 and walls `depth` high
 /// that lean out by `flare`; each face its own vertices (sharp edges).
 fn tote(half: Vec3, depth: f32, flare: f32) -> TriMesh {
-    let lo = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(x, y)| Vec3::new(x * half.x, y * half.y, 0.0));
-    let hi = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
-        .map(|(x, y)| Vec3::new(x * (half.x + flare), y * (half.y + flare), depth));
+    let corners = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)];
+    let lo = corners.map(|(x, y)| Vec3::new(x * half.x, y * half.y, 0.0));
+    let hi = corners.map(|(x, y)| Vec3::new(x * (half.x + flare), y * (half.y + flare), depth));
     let mut positions = lo.to_vec();
     let mut indices = vec![[0, 1, 2], [0, 2, 3]];
     for i in 0..4 {
@@ -468,10 +466,11 @@ fn tote(half: Vec3, depth: f32, flare: f32) -> TriMesh {
     m
 }
 
-/// A camera at `eye` looking at `target` (world up +z), rolled by a few degrees sometimes.
-fn camera(rng: &mut ChaCha8Rng, eye: DVec3, target: DVec3) -> DMat4 {
-    let pose = look_at(eye, target, DVec3::Z)
-        .unwrap_or_else(|| look_at(eye, target + DVec3::X * 1e-3, DVec3::Z).unwrap_or(DMat4::from_translation(eye)));
+/// A camera at `eye` looking at `target` (the image's up towards `up`), rolled by a few
+/// degrees sometimes.
+fn camera(rng: &mut ChaCha8Rng, eye: DVec3, target: DVec3, up: DVec3) -> DMat4 {
+    let pose = look_at(eye, target, up)
+        .unwrap_or_else(|| look_at(eye, target + DVec3::X * 1e-3, up).unwrap_or(DMat4::from_translation(eye)));
     let roll = if rng.gen_bool(0.3) { rng.gen_range(-0.15..0.15f64) } else { 0.0 };
     pose * DMat4::from_rotation_z(roll)
 }
