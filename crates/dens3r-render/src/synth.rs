@@ -351,11 +351,7 @@ fn object_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Obj
     let a0 = rng.gen_range(0.0..std::f64::consts::TAU);
     let poses = (0..views)
         .map(|k| {
-            let t = if views > 1 { k as f64 / (views - 1) as f64 } else { 0.0 };
-            let a = a0 + span * t + rng.gen_range(-0.05..0.05);
-            let el = (el0 + rng.gen_range(-8.0..8.0)).clamp(5.0, 80.0).to_radians();
-            let r = radius * rng.gen_range(0.85..1.15);
-            let eye = center + DVec3::new(el.cos() * a.cos(), el.cos() * a.sin(), el.sin()) * r;
+            let (eye, _) = orbit_eye(rng, center, (a0, span, k, views), (el0, 8.0, 5.0, 80.0), radius);
             let target =
                 center + DVec3::new(rng.gen_range(-0.2..0.2), rng.gen_range(-0.2..0.2), rng.gen_range(-0.1..0.1));
             camera(rng, eye, target, DVec3::Z)
@@ -428,11 +424,7 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
     let yaw = rng.gen_range(0.0..std::f64::consts::TAU);
     let poses = (0..views)
         .map(|k| {
-            let t = if views > 1 { k as f64 / (views - 1) as f64 } else { 0.0 };
-            let a = a0 + span * t + rng.gen_range(-0.05..0.05);
-            let el = (el0 + rng.gen_range(-6.0..6.0)).clamp(50.0, 89.5).to_radians();
-            let r = dist * rng.gen_range(0.85..1.15);
-            let eye = centre + DVec3::new(el.cos() * a.cos(), el.cos() * a.sin(), el.sin()) * r;
+            let (eye, el) = orbit_eye(rng, centre, (a0, span, k, views), (el0, 6.0, 50.0, 89.5), dist);
             let j = half.as_dvec3() * 0.3;
             let target = centre + DVec3::new(rng.gen_range(-j.x..j.x), rng.gen_range(-j.y..j.y), 0.0);
             let up = if el > 80f64.to_radians() {
@@ -445,6 +437,23 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
         })
         .collect();
     (objs, poses)
+}
+
+/// View `k` of `views` on an arc around `centre`: azimuth from `a0` over `span` (radians),
+/// elevation `el0` degrees +- `jitter`, clamped to `lo..hi`, distance `radius` +-15%, each
+/// jittered. Returns the eye and its elevation (radians).
+fn orbit_eye(
+    rng: &mut ChaCha8Rng,
+    centre: DVec3,
+    (a0, span, k, views): (f64, f64, usize, usize),
+    (el0, jitter, lo, hi): (f64, f64, f64, f64),
+    radius: f64,
+) -> (DVec3, f64) {
+    let t = if views > 1 { k as f64 / (views - 1) as f64 } else { 0.0 };
+    let a = a0 + span * t + rng.gen_range(-0.05..0.05);
+    let el = (el0 + rng.gen_range(-jitter..jitter)).clamp(lo, hi).to_radians();
+    let r = radius * rng.gen_range(0.85..1.15);
+    (centre + DVec3::new(el.cos() * a.cos(), el.cos() * a.sin(), el.sin()) * r, el)
 }
 
 /// An open box (a tote): a floor `2 half.x` by `2 half.y` at z = 0 and walls `depth` high
