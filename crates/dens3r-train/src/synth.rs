@@ -40,7 +40,7 @@ impl SynthOptions {
     /// Checks the options; returns the kind.
     pub fn check(&self) -> Result<SynthKind, TrainError> {
         let kind = SynthKind::parse(&self.kind).ok_or_else(|| {
-            TrainError::invalid(format!("--kind {:?}: expected rooms, objects, mixed or tabletop", self.kind))
+            TrainError::invalid(format!("--kind {:?}: expected rooms, objects, mixed, tabletop or bin", self.kind))
         })?;
         let (w, h) = self.size;
         if !(16..=4096).contains(&w) || !(16..=4096).contains(&h) {
@@ -86,6 +86,8 @@ pub struct SynthSummary {
     pub objects: usize,
     /// See `rooms`.
     pub tabletops: usize,
+    /// See `rooms`.
+    pub bins: usize,
 }
 
 /// The folder of scene `k` under `out`.
@@ -150,6 +152,7 @@ pub fn synthesise(
             match scene.kind {
                 "room" => summary.rooms += 1,
                 "objects" => summary.objects += 1,
+                "bin" => summary.bins += 1,
                 _ => summary.tabletops += 1,
             }
         }

@@ -284,3 +284,38 @@ fn tabletop_scenes_look_down_on_flat_clutter() {
     let s = synthesise(&m, &opts(6, 11), &assets(), &mut |_, _| {}).unwrap();
     assert_eq!((s.tabletops, s.rooms + s.objects), (0, 6));
 }
+
+#[test]
+fn bin_scenes_look_into_a_tote_that_fills_the_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = tmp.path().join("a");
+    let o = SynthOptions { kind: "bin".into(), size: (64, 48), ..opts(6, 12) };
+    let s = synthesise(&a, &o, &assets(), &mut |_, _| {}).unwrap();
+    assert_eq!((s.bins, s.tabletops, s.rooms, s.objects), (6, 0, 0, 0));
+    let mut tote = Vec::new();
+    for k in 0..6 {
+        let scene = Scene::open(&scene_dir(&a, k)).unwrap();
+        assert_eq!(scene.classes().unwrap().get(&2).map(String::as_str), Some("wall"), "the tote's class");
+        for f in scene.frames() {
+            // Generator: at most 35 deg off vertical.
+            let down = (-f.pose().transform_vector3(DVec3::Z).z).asin().to_degrees();
+            assert!(down > 54.9, "scene {k} {}: looks {down:.1} deg down", f.name);
+            let depth = scene.depth(f).unwrap().unwrap();
+            assert!(depth.data().iter().all(|&z| z.is_finite() && z > 0.0), "scene {k} {}: background seen", f.name);
+            let labels = scene.labels(f).unwrap().unwrap();
+            tote.push(labels.data().iter().filter(|&&c| c == 2).count() as f64 / labels.data().len() as f64);
+            // The nearest floor pixel (class 1, around the tote) lies beyond the nearest of the
+            // tote (class 2, its rim): the camera hovers over the tote.
+            let nearest = |c: u16| {
+                labels.data().iter().zip(depth.data()).filter(|(&l, _)| l == c).map(|(_, &z)| z).reduce(f32::min)
+            };
+            if let (Some(t), Some(fl)) = (nearest(2), nearest(1)) {
+                assert!(fl > t, "scene {k} {}: floor at {fl:.2} nearer than the tote's rim at {t:.2}", f.name);
+            }
+        }
+    }
+    tote.sort_by(f64::total_cmp);
+    // Measured 0.32-0.63 (median 0.44) on these scenes.
+    assert!(tote[tote.len() / 2] > 0.3, "median share of tote pixels {:.2}", tote[tote.len() / 2]);
+    assert!(tote[0] > 0.15, "a view that hardly sees the tote ({:.2})", tote[0]);
+}
