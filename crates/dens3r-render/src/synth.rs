@@ -404,10 +404,8 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
         let s = rng.gen_range(0.15..0.5) * half.x.max(half.y) / 0.4;
         let material = material(rng, assets, s);
         if rng.gen_bool(0.45) {
-            let h = Vec3::new(rng.gen_range(0.2..0.5), rng.gen_range(0.12..0.35), rng.gen_range(0.02..0.1)) * s;
-            let tilt =
-                Quat::from_rotation_x(rng.gen_range(-0.25..0.25)) * Quat::from_rotation_y(rng.gen_range(-0.25..0.25));
-            add(format!("package_{i}"), Shape::Cuboid { half: h }, spin(rng) * tilt, at + Vec3::Z * h.z, 4, material);
+            let (shape, rotation, lift) = flat_package(rng, s, 0.1, 0.25);
+            add(format!("package_{i}"), shape, rotation, at + Vec3::Z * lift, 4, material);
         } else {
             let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
             add(format!("{name}_{i}"), shape, rotation, translation, class_id, material);
@@ -504,10 +502,8 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
         let s = size * rng.gen_range(0.25..0.55);
         let material = material(rng, assets, s);
         if rng.gen_bool(0.65) {
-            let h = Vec3::new(rng.gen_range(0.2..0.5), rng.gen_range(0.12..0.35), rng.gen_range(0.02..0.12)) * s;
-            let tilt =
-                Quat::from_rotation_x(rng.gen_range(-0.3..0.3)) * Quat::from_rotation_y(rng.gen_range(-0.3..0.3));
-            add(format!("package_{i}"), Shape::Cuboid { half: h }, spin(rng) * tilt, at + Vec3::Z * h.z, 4, material);
+            let (shape, rotation, lift) = flat_package(rng, s, 0.12, 0.3);
+            add(format!("package_{i}"), shape, rotation, at + Vec3::Z * lift, 4, material);
         } else {
             let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
             add(format!("{name}_{i}"), shape, rotation, translation, class_id, material);
@@ -557,6 +553,15 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
         })
         .collect();
     (objs, poses)
+}
+
+/// A flat package (a book, a box of tea) of size about `s`, at most `thick * s` thick, lying
+/// nearly flat (tilted up to `tilt` radians each way) at a random heading: its shape,
+/// rotation and the lift of its centre above the surface it lies on.
+fn flat_package(rng: &mut ChaCha8Rng, s: f32, thick: f32, tilt: f32) -> (Shape, Quat, f32) {
+    let h = Vec3::new(rng.gen_range(0.2..0.5), rng.gen_range(0.12..0.35), rng.gen_range(0.02..thick)) * s;
+    let tilt = Quat::from_rotation_x(rng.gen_range(-tilt..tilt)) * Quat::from_rotation_y(rng.gen_range(-tilt..tilt));
+    (Shape::Cuboid { half: h }, spin(rng) * tilt, h.z)
 }
 
 /// View `k` of `views` on an arc around `centre`: azimuth from `a0` over `span` (radians),
