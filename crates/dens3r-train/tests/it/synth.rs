@@ -7,9 +7,9 @@ use dens3r_geom::camera::{rigid_inverse, Intrinsics};
 use dens3r_geom::{look_at, PinholeCamera};
 use dens3r_render::synth::Assets;
 use dens3r_render::{render_cameras_to_scene, Material, Object, Shape, Texture, World};
-use dens3r_scene::Scene;
+use dens3r_scene::{Frame, Scene};
 use dens3r_train::pair::{correspondences, crop_window, View};
-use dens3r_train::synth::{read_pairs, scene_dir, synthesise, SynthOptions, PAIRS_FILE};
+use dens3r_train::synth::{read_pairs, scene_dir, synthesise, SynthOptions, SynthSummary, PAIRS_FILE};
 use dens3r_train::{Dataset, TrainConfig};
 use glam::{DMat4, DVec3, Quat};
 use rand::SeedableRng;
@@ -252,27 +252,40 @@ fn crops_and_aspects_keep_the_camera_model() {
     assert_eq!(shorts.len(), 8, "every short side 112..224 drawn: {shorts:?}");
 }
 
+/// `scenes` scenes of `kind` (64x48, 3 views, seed `seed`), opened, and what `synthesise`
+/// counted; the temp dir holds them.
+fn small_set(kind: &str, scenes: usize, seed: u64) -> (tempfile::TempDir, Vec<Scene>, SynthSummary) {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = tmp.path().join("a");
+    let o = SynthOptions { kind: kind.into(), size: (64, 48), ..opts(scenes, seed) };
+    let s = synthesise(&a, &o, &assets(), &mut |_, _| {}).unwrap();
+    let opened = (0..scenes).map(|k| Scene::open(&scene_dir(&a, k)).unwrap()).collect();
+    (tmp, opened, s)
+}
+
+/// View `f` of scene `k` looks more than `min_down` degrees below the horizon and every pixel
+/// hits something; returns its depth.
+fn assert_seen_from_above(scene: &Scene, k: usize, f: &Frame, min_down: f64) -> dens3r_geom::Raster<f32> {
+    let down = (-f.pose().transform_vector3(DVec3::Z).z).asin().to_degrees();
+    assert!(down > min_down, "scene {k} {}: looks {down:.1} deg down", f.name);
+    let depth = scene.depth(f).unwrap().unwrap();
+    assert!(depth.data().iter().all(|&z| z.is_finite() && z > 0.0), "scene {k} {}: background seen", f.name);
+    depth
+}
+
 /// Tabletop scenes are seen from above: every camera looks 45+ degrees down, most of each
 /// view is an up-facing surface (the tote's or table's floor, packages lying flat), every
 /// pixel hits something, and the mixed sets made before the kind existed are unchanged (a
 /// mixed scene never comes out a tabletop).
 #[test]
 fn tabletop_scenes_look_down_on_flat_clutter() {
-    let tmp = tempfile::tempdir().unwrap();
-    let a = tmp.path().join("a");
-    let o = SynthOptions { kind: "tabletop".into(), size: (64, 48), ..opts(4, 11) };
-    let s = synthesise(&a, &o, &assets(), &mut |_, _| {}).unwrap();
+    let (tmp, scenes, s) = small_set("tabletop", 4, 11);
     assert_eq!((s.tabletops, s.rooms, s.objects), (4, 0, 0));
     let mut up = Vec::new();
-    for k in 0..4 {
-        let scene = Scene::open(&scene_dir(&a, k)).unwrap();
+    for (k, scene) in scenes.iter().enumerate() {
         for f in scene.frames() {
+            assert_seen_from_above(scene, k, f, 45.0);
             let pose = f.pose();
-            let forward = pose.transform_vector3(DVec3::Z);
-            let down = (-forward.z).asin().to_degrees();
-            assert!(down > 45.0, "scene {k} {}: looks {down:.1} deg down", f.name);
-            let depth = scene.depth(f).unwrap().unwrap();
-            assert!(depth.data().iter().all(|&z| z.is_finite() && z > 0.0), "scene {k}: background seen");
             let normals = scene.normals(f).unwrap().unwrap();
             let n = normals.data().len() as f64;
             up.push(normals.data().iter().filter(|v| pose.transform_vector3(v.as_dvec3()).z > 0.9).count() as f64 / n);
@@ -287,21 +300,14 @@ fn tabletop_scenes_look_down_on_flat_clutter() {
 
 #[test]
 fn bin_scenes_look_into_a_tote_that_fills_the_frame() {
-    let tmp = tempfile::tempdir().unwrap();
-    let a = tmp.path().join("a");
-    let o = SynthOptions { kind: "bin".into(), size: (64, 48), ..opts(6, 12) };
-    let s = synthesise(&a, &o, &assets(), &mut |_, _| {}).unwrap();
+    let (_tmp, scenes, s) = small_set("bin", 6, 12);
     assert_eq!((s.bins, s.tabletops, s.rooms, s.objects), (6, 0, 0, 0));
     let mut tote = Vec::new();
-    for k in 0..6 {
-        let scene = Scene::open(&scene_dir(&a, k)).unwrap();
+    for (k, scene) in scenes.iter().enumerate() {
         assert_eq!(scene.classes().unwrap().get(&2).map(String::as_str), Some("wall"), "the tote's class");
         for f in scene.frames() {
             // Generator: at most 35 deg off vertical.
-            let down = (-f.pose().transform_vector3(DVec3::Z).z).asin().to_degrees();
-            assert!(down > 54.9, "scene {k} {}: looks {down:.1} deg down", f.name);
-            let depth = scene.depth(f).unwrap().unwrap();
-            assert!(depth.data().iter().all(|&z| z.is_finite() && z > 0.0), "scene {k} {}: background seen", f.name);
+            let depth = assert_seen_from_above(scene, k, f, 54.9);
             let labels = scene.labels(f).unwrap().unwrap();
             tote.push(labels.data().iter().filter(|&&c| c == 2).count() as f64 / labels.data().len() as f64);
             // The nearest floor pixel (class 1, around the tote) lies beyond the nearest of the
