@@ -43,12 +43,17 @@ impl Loader<'_> {
     fn norm(&self, p: &str, d: usize) -> LayerNorm {
         LayerNorm { gamma: self.get(&format!("{p}.weight"), [d]), beta: self.get(&format!("{p}.bias"), [d]), eps: 1e-6 }
     }
+    /// A `k x k` convolution padded by `k / 2`.
     fn conv(&self, p: &str, inp: usize, out: usize, k: usize, stride: usize, bias: bool) -> Conv {
+        self.conv_padded(p, inp, out, k, stride, k / 2, bias)
+    }
+    #[allow(clippy::too_many_arguments)]
+    fn conv_padded(&self, p: &str, inp: usize, out: usize, k: usize, stride: usize, pad: usize, bias: bool) -> Conv {
         Conv::new(
             self.get(&format!("{p}.weight"), [out, inp, k, k]),
             bias.then(|| self.get(&format!("{p}.bias"), [out])),
             stride,
-            k / 2,
+            pad,
         )
     }
     fn conv_t(&self, p: &str, ch: usize, k: usize) -> ConvTranspose {
@@ -506,9 +511,9 @@ impl Dens3r {
         let c = &config;
         let encoder = match c.encoder {
             EncoderKind::Vit => {
-                let patch = l.conv("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, true);
+                let patch = l.conv_padded("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, 0, true);
                 Encoder::Vit {
-                    patch: Box::new(Conv::new(patch.weight, patch.bias, c.patch, 0)),
+                    patch: Box::new(patch),
                     blocks: (0..c.enc_depth)
                         .map(|i| {
                             EncoderBlock::load(l, &format!("enc_blocks.{i}"), c.enc_dim, c.enc_heads, c.mlp_hidden.0)

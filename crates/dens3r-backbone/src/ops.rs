@@ -79,10 +79,12 @@ impl LayerNorm {
 /// A 2-D convolution with square kernel, stride and padding.
 #[derive(Debug, Clone)]
 pub struct Conv {
-    /// `(out, in, k, k)`.
-    pub weight: Tensor<4>,
-    /// `(out)`.
-    pub bias: Option<Tensor<1>>,
+    /// `(out, in, k, k)` weight and `(out)` bias for burn's convolution; `None` where a
+    /// raw-buffer kernel serves the flex CPU device (it holds the weights in its own layout, so
+    /// the model does not keep them twice).
+    burn: Option<(Tensor<4>, Option<Tensor<1>>)>,
+    /// Output channels.
+    pub out_ch: usize,
     /// Stride.
     pub stride: usize,
     /// Zero padding on every side.
@@ -112,8 +114,8 @@ impl Conv {
                 let w = || cpu::to_vec(weight.clone());
                 match (kh, kw, stride, padding) {
                     // Winograd's per-tile transforms cost ~ in + out channels per product of
-                    // in x out, so narrow outputs favour the shifted products; Winograd still won
-                    // at 128 -> 32 channels (193 vs 227 ms in `microbench`), hence 16.
+                    // in x out, so narrow outputs favour the shifted products; F(4x4) Winograd
+                    // still won at 128 -> 16 channels on 384x512 (68 vs 127 ms), hence 16.
                     (3, 3, 1, 1) if out >= 16 => Some(FastConv::Winograd(WinogradKernel::new(&w(), out, inp), b())),
                     (3, 3, 1, 1) => Some(FastConv::Shifted(cpu::conv::taps_from_weight(&w(), out, inp), b())),
                     (1, 1, 1, 0) => Some(FastConv::Pointwise(w(), b())),
@@ -122,14 +124,16 @@ impl Conv {
             })
             .flatten()
             .map(Arc::new);
-        Self { weight, bias, stride, padding, fast }
+        let burn = fast.is_none().then_some((weight, bias));
+        Self { burn, out_ch: out, stride, padding, fast }
     }
 
     /// Applies the convolution to `(B, C, H, W)`.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        if let Some(fast) = self.fast.as_ref().filter(|_| cpu::serves(&x.device())) {
+        if let Some(fast) = &self.fast {
+            assert!(cpu::serves(&x.device()), "a convolution built on the flex CPU device got an input elsewhere");
             let [b, c, h, w] = x.dims();
-            let out_ch = self.weight.dims()[0];
+            let out_ch = self.out_ch;
             let device = x.device();
             let data = cpu::to_vec(x);
             let mut out = Vec::with_capacity(b * out_ch * h * w);
@@ -144,8 +148,9 @@ impl Conv {
             }
             return cpu::from_vec(out, [b, out_ch, h, w], &device);
         }
+        let (weight, bias) = self.burn.clone().expect("a convolution keeps burn's weights without a raw kernel");
         let opts = ConvOptions::new([self.stride; 2], [self.padding; 2], [1, 1], 1);
-        conv2d(x, self.weight.clone(), self.bias.clone(), opts)
+        conv2d(x, weight, bias, opts)
     }
 }
 
