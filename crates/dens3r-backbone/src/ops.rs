@@ -2,7 +2,11 @@
 //! the crate calls these, so a backend quirk is fixed in one place.
 
 use crate::config::RopeScaling;
-use crate::cpu::{self, linear::LinearKernel, winograd::WinogradKernel};
+use crate::cpu::{
+    self,
+    linear::LinearKernel,
+    winograd::{Tiles, WinogradKernel},
+};
 use burn::tensor::module::{attention, conv2d, conv_transpose2d, interpolate};
 use burn::tensor::ops::{
     AttentionModuleOptions, ConvOptions, ConvTransposeOptions, InterpolateMode, InterpolateOptions,
@@ -116,7 +120,13 @@ impl Conv {
                     // Winograd's per-tile transforms cost ~ in + out channels per product of
                     // in x out, so narrow outputs favour the shifted products; F(4x4) Winograd
                     // still won at 128 -> 16 channels on 384x512 (68 vs 127 ms), hence 16.
-                    (3, 3, 1, 1) if out >= 16 => Some(FastConv::Winograd(WinogradKernel::new(&w(), out, inp), b())),
+                    // F(4x4) kernels take 4x the weights' memory (F(2x2): 16/9), so the wide
+                    // DPT input projections (512-1024 channels in, run at 1/8-1/32 of the image,
+                    // where F(4x4) saves little time) keep F(2x2).
+                    (3, 3, 1, 1) if out >= 16 => {
+                        let tiles = if inp * out <= 256 * 256 { Tiles::F4 } else { Tiles::F2 };
+                        Some(FastConv::Winograd(WinogradKernel::with_tiles(&w(), out, inp, tiles), b()))
+                    }
                     (3, 3, 1, 1) => Some(FastConv::Shifted(cpu::conv::taps_from_weight(&w(), out, inp), b())),
                     (1, 1, 1, 0) => Some(FastConv::Pointwise(w(), b())),
                     _ => None,

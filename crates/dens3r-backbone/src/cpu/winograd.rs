@@ -9,8 +9,9 @@
 //! the input's scale (tested against a direct loop). [`Tiles::F2`], F(2x2, 3x3) with 16
 //! products per 4 outputs, is kept for the comparison in the tests.
 //!
-//! Work is split into bands of tile rows so memory stays bounded (two bands per thread in
-//! flight) and the bands run in parallel on rayon.
+//! Work is split into bands of tile rows so memory stays bounded and the bands run in
+//! parallel on rayon, each writing its rows of the output in place; the transformed inputs and
+//! products live in per-thread scratch buffers reused from band to band.
 
 use gemm::Parallelism;
 use rayon::prelude::*;
@@ -125,14 +126,13 @@ impl WinogradKernel {
             (0..th).step_by(rows_per_band).map(|r0| (r0, rows_per_band.min(th - r0))).collect();
         let threads = rayon::current_num_threads();
         let inner = if bands.len() >= threads { Parallelism::None } else { Parallelism::Rayon(0) };
-        let outs: Vec<Vec<f32>> = bands
-            .par_iter()
-            .map(|&(r0, nr)| {
-                let nt = nr * tw;
-                let mut v = vec![0.0f32; N * N * cin * nt];
-                let band = Band { h, w, r0, nr, tw };
-                super::with_avx2(|| input_transform(tf, x, cin, &band, &mut v));
-                let mut m = vec![0.0f32; N * N * cout * nt];
+        let mut y = vec![0.0f32; cout * h * w];
+        let out = OutPtr(y.as_mut_ptr());
+        bands.par_iter().for_each(|&(r0, nr)| {
+            let nt = nr * tw;
+            let band = Band { h, w, r0, nr, tw };
+            with_scratch(N * N * cin * nt, N * N * cout * nt, |v, m| {
+                super::with_avx2(|| input_transform(tf, x, cin, &band, v));
                 for xi in 0..N * N {
                     let lhs = &self.u[xi * cout * cin..][..cout * cin];
                     let rhs = &v[xi * cin * nt..][..cin * nt];
@@ -163,23 +163,41 @@ impl WinogradKernel {
                         );
                     }
                 }
-                let rows = (M * (r0 + nr)).min(h) - M * r0;
-                let mut y = vec![0.0f32; cout * rows * w];
-                super::with_avx2(|| output_transform(tf, &m, cout, &band, bias, &mut y));
-                y
-            })
-            .collect();
-        // Stitch the bands' rows into (out, h, w).
-        let mut y = vec![0.0f32; cout * h * w];
-        for (&(r0, _), band) in bands.iter().zip(&outs) {
-            let y0 = M * r0;
-            let rows = band.len() / (cout * w);
-            for o in 0..cout {
-                y[(o * h + y0) * w..][..rows * w].copy_from_slice(&band[o * rows * w..][..rows * w]);
-            }
-        }
+                super::with_avx2(|| output_transform(tf, m, cout, &band, bias, &out));
+            });
+        });
         y
     }
+}
+
+/// The output `(cout, h, w)` written by the bands in parallel: each band writes only its own
+/// rows `M * r0 ..` of every channel, so the writes never overlap.
+struct OutPtr(*mut f32);
+
+// SAFETY: bands write disjoint row ranges of the buffer, which outlives the parallel loop.
+unsafe impl Sync for OutPtr {}
+
+thread_local! {
+    /// Per-thread transformed inputs and products, reused across bands and convolutions (every
+    /// element is written before it is read), so they are not zeroed and faulted in anew.
+    static SCRATCH: std::cell::RefCell<(Vec<f32>, Vec<f32>)> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+}
+
+/// Runs `f` on scratch buffers of `nv` and `nm` values: the thread's own, or fresh ones when
+/// they are in use (a band's nested product can steal another band onto the same thread).
+fn with_scratch(nv: usize, nm: usize, f: impl FnOnce(&mut [f32], &mut [f32])) {
+    SCRATCH.with(|s| match s.try_borrow_mut() {
+        Ok(mut s) => {
+            let (v, m) = &mut *s;
+            for (buf, n) in [(&mut *v, nv), (&mut *m, nm)] {
+                if buf.len() < n {
+                    buf.resize(n, 0.0);
+                }
+            }
+            f(&mut v[..nv], &mut m[..nm]);
+        }
+        Err(_) => f(&mut vec![0.0; nv], &mut vec![0.0; nm]),
+    })
 }
 
 /// `G g G^T` of every `(out, in)` kernel, in f64 (the F(4x4) coefficients are not exact in
@@ -313,7 +331,7 @@ fn input_transform<const M: usize, const N: usize>(
     }
 }
 
-/// `A^T m A` plus bias for every output channel and tile of a band, into `y (cout, rows, w)`.
+/// `A^T m A` plus bias for every output channel and tile of a band, into its rows of `y`.
 #[inline(always)]
 fn output_transform<const M: usize, const N: usize>(
     tf: &Transforms<M, N>,
@@ -321,16 +339,18 @@ fn output_transform<const M: usize, const N: usize>(
     cout: usize,
     b: &Band,
     bias: Option<&[f32]>,
-    y: &mut [f32],
+    y: &OutPtr,
 ) {
-    let (w, tw) = (b.w, b.tw);
+    let (h, w, tw) = (b.h, b.w, b.tw);
     let nt = b.nr * tw;
     let plane = cout * nt;
-    let rows = y.len() / (cout * w);
+    let rows = (M * (b.r0 + b.nr)).min(h) - M * b.r0;
     let mut orow = vec![0.0f32; M * M * tw];
     for o in 0..cout {
         let bv = bias.map_or(0.0, |b| b[o]);
-        let out = &mut y[o * rows * w..][..rows * w];
+        // SAFETY: rows M * r0 .. M * r0 + rows of channel o lie inside the (cout, h, w)
+        // buffer, and no other band writes them (see `OutPtr`).
+        let out = unsafe { std::slice::from_raw_parts_mut(y.0.add((o * h + M * b.r0) * w), rows * w) };
         for tr in 0..b.nr {
             for g in (0..tw).step_by(LANES) {
                 let base = o * nt + tr * tw + g;
