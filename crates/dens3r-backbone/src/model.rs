@@ -43,17 +43,12 @@ impl Loader<'_> {
     fn norm(&self, p: &str, d: usize) -> LayerNorm {
         LayerNorm { gamma: self.get(&format!("{p}.weight"), [d]), beta: self.get(&format!("{p}.bias"), [d]), eps: 1e-6 }
     }
-    /// A `k x k` convolution padded by `k / 2`.
     fn conv(&self, p: &str, inp: usize, out: usize, k: usize, stride: usize, bias: bool) -> Conv {
-        self.conv_padded(p, inp, out, k, stride, k / 2, bias)
-    }
-    #[allow(clippy::too_many_arguments)]
-    fn conv_padded(&self, p: &str, inp: usize, out: usize, k: usize, stride: usize, pad: usize, bias: bool) -> Conv {
         Conv::new(
             self.get(&format!("{p}.weight"), [out, inp, k, k]),
             bias.then(|| self.get(&format!("{p}.bias"), [out])),
             stride,
-            pad,
+            k / 2,
         )
     }
     fn conv_t(&self, p: &str, ch: usize, k: usize) -> ConvTranspose {
@@ -511,7 +506,9 @@ impl Dens3r {
         let c = &config;
         let encoder = match c.encoder {
             EncoderKind::Vit => {
-                let patch = l.conv_padded("patch_embed.proj", 3, c.enc_dim, c.patch, c.patch, 0, true);
+                let (wp, bp) = ("patch_embed.proj.weight", "patch_embed.proj.bias");
+                let patch =
+                    Conv::new(l.get(wp, [c.enc_dim, 3, c.patch, c.patch]), Some(l.get(bp, [c.enc_dim])), c.patch, 0);
                 Encoder::Vit {
                     patch: Box::new(patch),
                     blocks: (0..c.enc_depth)

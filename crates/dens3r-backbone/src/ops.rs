@@ -2,11 +2,7 @@
 //! the crate calls these, so a backend quirk is fixed in one place.
 
 use crate::config::RopeScaling;
-use crate::cpu::{
-    self,
-    linear::LinearKernel,
-    winograd::{Tiles, WinogradKernel},
-};
+use crate::cpu::{self, linear::LinearKernel, winograd::WinogradKernel};
 use burn::tensor::module::{attention, conv2d, conv_transpose2d, interpolate};
 use burn::tensor::ops::{
     AttentionModuleOptions, ConvOptions, ConvTransposeOptions, InterpolateMode, InterpolateOptions,
@@ -83,18 +79,23 @@ impl LayerNorm {
 /// A 2-D convolution with square kernel, stride and padding.
 #[derive(Debug, Clone)]
 pub struct Conv {
-    /// `(out, in, k, k)` weight and `(out)` bias for burn's convolution; `None` where a
-    /// raw-buffer kernel serves the flex CPU device (it holds the weights in its own layout, so
-    /// the model does not keep them twice).
-    burn: Option<(Tensor<4>, Option<Tensor<1>>)>,
+    kernel: ConvKernel,
     /// Output channels.
     pub out_ch: usize,
     /// Stride.
     pub stride: usize,
     /// Zero padding on every side.
     pub padding: usize,
-    /// Raw-buffer kernel for the flex CPU device, when the shape has one.
-    fast: Option<Arc<FastConv>>,
+}
+
+/// Where a convolution's weights live: burn's tensors, or a raw-buffer kernel for the flex CPU
+/// device, which holds them in its own layout (so the model does not keep them twice).
+#[derive(Debug, Clone)]
+enum ConvKernel {
+    /// `(out, in, k, k)` weight and `(out)` bias for burn's convolution.
+    Burn(Box<(Tensor<4>, Option<Tensor<1>>)>),
+    /// The flex CPU kernel chosen for the shape.
+    Cpu(Arc<FastConv>),
 }
 
 /// The CPU kernel chosen for a convolution's shape.
@@ -120,47 +121,45 @@ impl Conv {
                     // Winograd's per-tile transforms cost ~ in + out channels per product of
                     // in x out, so narrow outputs favour the shifted products; F(4x4) Winograd
                     // still won at 128 -> 16 channels on 384x512 (68 vs 127 ms), hence 16.
-                    // F(4x4) kernels take 4x the weights' memory (F(2x2): 16/9), so the wide
-                    // DPT input projections (512-1024 channels in, run at 1/8-1/32 of the image,
-                    // where F(4x4) saves little time) keep F(2x2).
-                    (3, 3, 1, 1) if out >= 16 => {
-                        let tiles = if inp * out <= 256 * 256 { Tiles::F4 } else { Tiles::F2 };
-                        Some(FastConv::Winograd(WinogradKernel::with_tiles(&w(), out, inp, tiles), b()))
-                    }
+                    (3, 3, 1, 1) if out >= 16 => Some(FastConv::Winograd(WinogradKernel::new(&w(), out, inp), b())),
                     (3, 3, 1, 1) => Some(FastConv::Shifted(cpu::conv::taps_from_weight(&w(), out, inp), b())),
                     (1, 1, 1, 0) => Some(FastConv::Pointwise(w(), b())),
                     _ => None,
                 }
             })
-            .flatten()
-            .map(Arc::new);
-        let burn = fast.is_none().then_some((weight, bias));
-        Self { burn, out_ch: out, stride, padding, fast }
+            .flatten();
+        let kernel = match fast {
+            Some(f) => ConvKernel::Cpu(Arc::new(f)),
+            None => ConvKernel::Burn(Box::new((weight, bias))),
+        };
+        Self { kernel, out_ch: out, stride, padding }
     }
 
     /// Applies the convolution to `(B, C, H, W)`.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        if let Some(fast) = &self.fast {
-            assert!(cpu::serves(&x.device()), "a convolution built on the flex CPU device got an input elsewhere");
-            let [b, c, h, w] = x.dims();
-            let out_ch = self.out_ch;
-            let device = x.device();
-            let data = cpu::to_vec(x);
-            let mut out = Vec::with_capacity(b * out_ch * h * w);
-            for img in data.chunks_exact(c * h * w) {
-                out.extend(match fast.as_ref() {
-                    FastConv::Winograd(k, bias) => k.forward(img, h, w, bias.as_deref()),
-                    FastConv::Shifted(taps, bias) => {
-                        cpu::conv::conv3x3_shifted(img, taps, bias.as_deref(), c, out_ch, h, w)
-                    }
-                    FastConv::Pointwise(wt, bias) => cpu::conv::conv1x1(img, wt, bias.as_deref(), c, out_ch, h * w),
-                });
+        let fast = match &self.kernel {
+            ConvKernel::Burn(wb) => {
+                let opts = ConvOptions::new([self.stride; 2], [self.padding; 2], [1, 1], 1);
+                return conv2d(x, wb.0.clone(), wb.1.clone(), opts);
             }
-            return cpu::from_vec(out, [b, out_ch, h, w], &device);
+            ConvKernel::Cpu(fast) => fast,
+        };
+        assert!(cpu::serves(&x.device()), "a convolution built on the flex CPU device got an input elsewhere");
+        let [b, c, h, w] = x.dims();
+        let out_ch = self.out_ch;
+        let device = x.device();
+        let data = cpu::to_vec(x);
+        let mut out = Vec::with_capacity(b * out_ch * h * w);
+        for img in data.chunks_exact(c * h * w) {
+            out.extend(match fast.as_ref() {
+                FastConv::Winograd(k, bias) => k.forward(img, h, w, bias.as_deref()),
+                FastConv::Shifted(taps, bias) => {
+                    cpu::conv::conv3x3_shifted(img, taps, bias.as_deref(), c, out_ch, h, w)
+                }
+                FastConv::Pointwise(wt, bias) => cpu::conv::conv1x1(img, wt, bias.as_deref(), c, out_ch, h * w),
+            });
         }
-        let (weight, bias) = self.burn.clone().expect("a convolution keeps burn's weights without a raw kernel");
-        let opts = ConvOptions::new([self.stride; 2], [self.padding; 2], [1, 1], 1);
-        conv2d(x, weight, bias, opts)
+        cpu::from_vec(out, [b, out_ch, h, w], &device)
     }
 }
 

@@ -83,8 +83,10 @@ pub(crate) fn gemm_by_columns(
     });
 }
 
-struct SendPtr(*mut f32);
-// SAFETY: used only to hand disjoint column ranges of one buffer to rayon workers.
+/// A buffer's start, shared with rayon workers that each write a disjoint range of it.
+pub(crate) struct SendPtr(pub(crate) *mut f32);
+// SAFETY: used only to hand disjoint ranges of one buffer (columns of a product, rows of a
+// convolution's bands) to rayon workers, while the buffer outlives them.
 unsafe impl Sync for SendPtr {}
 
 /// Seeded values in `[-scale, scale]` for the kernels' tests.

@@ -6,8 +6,8 @@
 //! independent matrix products on the `gemm` crate, and the products are transformed back
 //! (`A^T m A`). The transforms are Lavin and Gray's (interpolation points 0, +-1, +-2, inf);
 //! their coefficients are small, so fp32 stays within a few ulps of direct convolution times
-//! the input's scale (tested against a direct loop). [`Tiles::F2`], F(2x2, 3x3) with 16
-//! products per 4 outputs, is kept for the comparison in the tests.
+//! the input's scale (tested against a direct loop). Kernels wider than 256x256 channels use
+//! F(2x2, 3x3) (16 products per 4 outputs; [`WinogradKernel::new`] says why).
 //!
 //! Work is split into bands of tile rows so memory stays bounded and the bands run in
 //! parallel on rayon, each writing its rows of the output in place; the transformed inputs and
@@ -65,7 +65,7 @@ const F2: Transforms<2, 4> = Transforms {
 pub enum Tiles {
     /// F(2x2, 3x3): 16 products per 4 outputs.
     F2,
-    /// F(4x4, 3x3): 36 products per 16 outputs (the default).
+    /// F(4x4, 3x3): 36 products per 16 outputs.
     F4,
 }
 
@@ -82,9 +82,13 @@ pub struct WinogradKernel {
 }
 
 impl WinogradKernel {
-    /// Transforms PyTorch-layout `(out, in, 3, 3)` weights for F(4x4, 3x3).
+    /// Transforms PyTorch-layout `(out, in, 3, 3)` weights: F(4x4, 3x3) for kernels of at most
+    /// 256x256 channels, F(2x2, 3x3) beyond. F(4x4) kernels take 4x the weights' memory
+    /// (F(2x2): 16/9), and the wider ones, a DPT's input projections (512-1024 channels in),
+    /// run at 1/8-1/32 of the image, where F(4x4) saves little time.
     pub fn new(weight: &[f32], out_ch: usize, in_ch: usize) -> Self {
-        Self::with_tiles(weight, out_ch, in_ch, Tiles::F4)
+        let tiles = if out_ch * in_ch <= 256 * 256 { Tiles::F4 } else { Tiles::F2 };
+        Self::with_tiles(weight, out_ch, in_ch, tiles)
     }
 
     /// Transforms PyTorch-layout `(out, in, 3, 3)` weights for the given tile size.
@@ -127,7 +131,8 @@ impl WinogradKernel {
         let threads = rayon::current_num_threads();
         let inner = if bands.len() >= threads { Parallelism::None } else { Parallelism::Rayon(0) };
         let mut y = vec![0.0f32; cout * h * w];
-        let out = OutPtr(y.as_mut_ptr());
+        // Each band writes only its own rows `M * r0 ..` of every channel: disjoint ranges.
+        let out = super::SendPtr(y.as_mut_ptr());
         bands.par_iter().for_each(|&(r0, nr)| {
             let nt = nr * tw;
             let band = Band { h, w, r0, nr, tw };
@@ -169,13 +174,6 @@ impl WinogradKernel {
         y
     }
 }
-
-/// The output `(cout, h, w)` written by the bands in parallel: each band writes only its own
-/// rows `M * r0 ..` of every channel, so the writes never overlap.
-struct OutPtr(*mut f32);
-
-// SAFETY: bands write disjoint row ranges of the buffer, which outlives the parallel loop.
-unsafe impl Sync for OutPtr {}
 
 thread_local! {
     /// Per-thread transformed inputs and products, reused across bands and convolutions (every
@@ -339,7 +337,7 @@ fn output_transform<const M: usize, const N: usize>(
     cout: usize,
     b: &Band,
     bias: Option<&[f32]>,
-    y: &OutPtr,
+    y: &super::SendPtr,
 ) {
     let (h, w, tw) = (b.h, b.w, b.tw);
     let nt = b.nr * tw;
@@ -349,7 +347,7 @@ fn output_transform<const M: usize, const N: usize>(
     for o in 0..cout {
         let bv = bias.map_or(0.0, |b| b[o]);
         // SAFETY: rows M * r0 .. M * r0 + rows of channel o lie inside the (cout, h, w)
-        // buffer, and no other band writes them (see `OutPtr`).
+        // buffer, and no other band writes them.
         let out = unsafe { std::slice::from_raw_parts_mut(y.0.add((o * h + M * b.r0) * w), rows * w) };
         for tr in 0..b.nr {
             for g in (0..tw).step_by(LANES) {
