@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
 """Dens3R forward in PyTorch, written from shared/docs/model-spec.md sections 1.2-1.6, for
 `dens3r bench backbone`: loads the same safetensors the Rust side uses, times one pair forward
-and prints JSON {"seconds", "peak_rss_mb", "max_abs_diff"?}.
+and prints JSON {"seconds", "peak_rss_mb", "max_abs_diff"?}; on CUDA (`--device cuda`) also
+"peak_device_mb" (the caching allocator's peak reserved bytes), in `--dtype` float32, float16
+or bfloat16.
 
     python3 bench/torch_dens3r.py WEIGHTS.safetensors --size 512x384 --threads 2 \
-        [--heads 16,12] [--image img.npy --compare rust_pts3d.npy]
+        [--heads 16,12] [--image img.npy --compare rust_pts3d.npy] [--device cuda --dtype float16]
 """
 import argparse
 import json
@@ -78,7 +80,7 @@ class Dens3r:
         h, w = img.shape[2] // self.patch, img.shape[3] // self.patch
         x = F.conv2d(img, self.w["patch_embed.proj.weight"], self.w["patch_embed.proj.bias"], stride=self.patch)
         x = x.flatten(2).transpose(1, 2)
-        tab = rope_tables(h, w, x.shape[-1] // self.eh)
+        tab = [t.to(x.device, x.dtype) for t in rope_tables(h, w, x.shape[-1] // self.eh)]
         for i in range(self.enc_depth):
             p = f"enc_blocks.{i}"
             x = x + self.self_attn(self.ln(x, p + ".norm1"), p + ".attn", self.eh, tab)
@@ -129,7 +131,7 @@ class Dens3r:
     def decode(self, e1, g1, e2, g2):
         """Both views' decoder outputs (every block; the last through dec_norm)."""
         dd = self.w["decoder_embed.weight"].shape[0]
-        t1, t2 = rope_tables(*g1, dd // self.dh), rope_tables(*g2, dd // self.dh)
+        t1, t2 = ([t.to(e1.device, e1.dtype) for t in rope_tables(*g, dd // self.dh)] for g in (g1, g2))
         f1, f2 = self.lin(e1, "decoder_embed"), self.lin(e2, "decoder_embed")
         out1, out2 = [], []
         for i in range(self.dec_depth):
@@ -199,7 +201,13 @@ class Dens3r:
         return [("encoder", encoder), ("decoder", decoder), ("pointmap", pointmap), ("normal", normal), ("desc", desc)]
 
 
-def profile(model, img, img2, repeat):
+def sync(device):
+    """Waits for the device's queued work (CUDA runs asynchronously)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def profile(model, img, img2, repeat, device):
     """Per stage: fastest seconds of `repeat` runs, and FLOPs (torch's FlopCounterMode: matmuls,
     convolutions, attention; 2 per multiply-add) of one run; plus this machine's f32 GEMM rate."""
     from torch.utils.flop_counter import FlopCounterMode
@@ -212,15 +220,20 @@ def profile(model, img, img2, repeat):
                     run()
                 flops[name] = fc.get_total_flops()
             else:
+                sync(device)
                 t0 = time.perf_counter()
                 run()
+                sync(device)
                 secs[name] = min(secs.get(name, float("inf")), time.perf_counter() - t0)
-    a, b = torch.rand(2048, 2048), torch.rand(2048, 2048)
+    n, k = (8192, 20) if device.type == "cuda" else (2048, 5)
+    a, b = torch.rand(n, n, device=device, dtype=img.dtype), torch.rand(n, n, device=device, dtype=img.dtype)
     torch.mm(a, b)
+    sync(device)
     t0 = time.perf_counter()
-    for _ in range(5):
+    for _ in range(k):
         torch.mm(a, b)
-    gemm = 5 * 2 * 2048**3 / (time.perf_counter() - t0)
+    sync(device)
+    gemm = k * 2 * n**3 / (time.perf_counter() - t0)
     return {"seconds": secs, "flops": flops, "gemm_flops_per_s": gemm}
 
 
@@ -236,27 +249,41 @@ def main():
     ap.add_argument("--compare", help="view-1 pts3d (H, W, 3) from the Rust side")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--profile", action="store_true", help="also time and count FLOPs per stage (after the timed passes)")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
+    ap.add_argument("--dtype", default="float32", choices=["float32", "float16", "bfloat16"])
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
+    device, dtype = torch.device(a.device), getattr(torch, a.dtype)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("PyTorch sees no CUDA device (a CPU-only torch, or no NVIDIA driver)")
     wd, ht = (int(v) for v in a.size.split("x"))
     eh, dh = (int(v) for v in a.heads.split(","))
-    model = Dens3r(load_file(a.weights), eh, dh)
+    model = Dens3r({k: v.to(device, dtype) for k, v in load_file(a.weights).items()}, eh, dh)
     img = torch.from_numpy(np.load(a.image)) if a.image else torch.rand(1, 3, ht, wd) * 2 - 1
     img2 = torch.from_numpy(np.load(a.image2)) if a.image2 else img
+    img, img2 = img.to(device, dtype), img2.to(device, dtype)
     times = []
     with torch.inference_mode():
-        for _ in range(max(1, a.repeat)):
+        # On a GPU the first pass pays for kernel selection and the allocator's growth.
+        for _ in range(max(1, a.repeat) + (device.type == "cuda")):
+            sync(device)
             t0 = time.perf_counter()
             res = model.forward(img, img2)
+            sync(device)
             times.append(time.perf_counter() - t0)
-    out = {"seconds": min(times), "all_seconds": times, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "threads": a.threads, "torch": torch.__version__}
+    if device.type == "cuda":
+        times = times[1:]
+    out = {"seconds": min(times), "all_seconds": times, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "threads": a.threads, "torch": torch.__version__, "device": str(device), "dtype": a.dtype}
+    if device.type == "cuda":
+        out["peak_device_mb"] = torch.cuda.max_memory_reserved(device) / 2**20
+        out["device_name"] = torch.cuda.get_device_name(device)
     if a.compare:
         ref = np.load(a.compare)
-        out["max_abs_diff_pts3d"] = float(np.abs(res[0][0].numpy() - ref).max())
+        out["max_abs_diff_pts3d"] = float(np.abs(res[0][0].float().cpu().numpy() - ref).max())
         out["max_abs_pts3d"] = float(np.abs(ref).max())
     if a.profile:
         with torch.inference_mode():
-            out["profile"] = profile(model, img, img2, a.repeat)
+            out["profile"] = profile(model, img, img2, a.repeat, device)
     print(json.dumps(out))
 
 

@@ -164,9 +164,10 @@ fn view_dict<'py>(py: Python<'py>, v: &ViewMaps, own_frame: bool, known: Option<
 impl Model {
     /// Loads a network: `weights` is a `.safetensors` / `.pth` checkpoint, a Hugging Face
     /// style folder, a known name (`dens3r models`; downloaded into the cache when missing),
-    /// or None for the bundled dens3r-s. `size` is the long side of the network input.
+    /// or None for the bundled dens3r-s. `size` is the long side of the network input;
+    /// `precision` what the network computes in ("f32", or "f16" / "bf16" for speed on a GPU).
     #[staticmethod]
-    #[pyo3(signature = (weights=None, *, config=None, size=512, keep_portrait=false, gpu=false))]
+    #[pyo3(signature = (weights=None, *, config=None, size=512, keep_portrait=false, gpu=false, precision="f32"))]
     fn load(
         py: Python<'_>,
         weights: Option<PathBuf>,
@@ -174,7 +175,10 @@ impl Model {
         size: u32,
         keep_portrait: bool,
         gpu: bool,
+        precision: &str,
     ) -> PyResult<Model> {
+        let precision: dens3r_backbone::Precision =
+            precision.parse().map_err(|e: String| PyValueError::new_err(format!("precision={precision:?}: {e}")))?;
         let sizes = dens3r_backbone::preprocess::SIZES;
         if !sizes.contains(&size) {
             return Err(PyValueError::new_err(format!(
@@ -186,8 +190,8 @@ impl Model {
                 dens3r_recon::model::fetch_known(k, &mut |line| eprintln!("{line}"), &mut |_, _| {})
             })
             .map_err(err)?;
-            let (model, _) =
-                dens3r_recon::model::load_network(&files.weights, files.config.as_deref(), gpu).map_err(err)?;
+            let (model, _) = dens3r_recon::model::load_network(&files.weights, files.config.as_deref(), gpu, precision)
+                .map_err(err)?;
             let hash = dens3r_heads::features::file_hash(&files.weights).map_err(err)?;
             let net = Dens3rBackbone::new(model, None, hash).map_err(err)?;
             let min_conf = dens3r_recon::model::mesh_min_conf(files.config.as_deref()).map_err(err)?;
@@ -669,7 +673,7 @@ fn reconstruct<'py>(
     let model = match model {
         Some(m) => m,
         None => {
-            loaded = Model::load(py, None, None, 512, false, gpu)?;
+            loaded = Model::load(py, None, None, 512, false, gpu, "f32")?;
             &loaded
         }
     };

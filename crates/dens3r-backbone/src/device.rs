@@ -6,8 +6,9 @@
 //! Commands take the CPU unless asked (`--gpu`): burn's default device is the first GPU
 //! backend compiled in, so nothing here uses `Device::default()`.
 
+use crate::params::Precision;
 use crate::BackboneError;
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, FloatDType, Tensor, TensorData};
 
 /// The CPU inference device (flex, with this crate's kernels).
 pub fn cpu() -> Device {
@@ -23,8 +24,48 @@ pub const GPU_BUILD_HINT: &str =
 /// A GPU is checked by a small upload and read-back, so a missing driver is a one-line error
 /// here rather than a panic in the middle of a run.
 pub fn network_device(gpu: bool) -> Result<Device, BackboneError> {
+    network_device_at(gpu, Precision::F32)
+}
+
+/// The float precision `device` computes in (its default float dtype).
+pub fn precision_of(device: &Device) -> Precision {
+    match device.settings().float_dtype {
+        FloatDType::F16 => Precision::F16,
+        FloatDType::BF16 => Precision::BF16,
+        _ => Precision::F32,
+    }
+}
+
+/// Sets `device`'s default float dtype to `precision` before any tensor is made on it (burn
+/// fixes a device's dtype at its first tensor, for the whole process). An error when the device
+/// cannot compute in it, or already computes in another.
+fn set_precision(device: &mut Device, precision: Precision) -> Result<(), String> {
+    if !device.supports_dtype(precision.dtype()) {
+        return Err(format!(
+            "this device does not compute in {precision}; use another --precision (f32 works everywhere)"
+        ));
+    }
+    match device.configure(precision.dtype()) {
+        Ok(()) => Ok(()),
+        Err(_) if precision_of(device) == precision => Ok(()),
+        Err(_) => Err(format!(
+            "this process already computes in {} on this device, so it cannot switch to {precision}",
+            precision_of(device)
+        )),
+    }
+}
+
+/// [`network_device`] computing in `precision`. `F32` is the reference every parity check
+/// uses; `F16` and `BF16` are opt-in (`--precision`): on a GPU they halve memory traffic and
+/// use its half-precision units, at an error against f32 that `dens3r verify --precision`
+/// measures and prints. On the CPU they run burn's generic kernels, not this crate's f32 ones,
+/// so they are for measuring that error there, not for speed.
+pub fn network_device_at(gpu: bool, precision: Precision) -> Result<Device, BackboneError> {
     if !gpu {
-        return Ok(cpu());
+        let mut d = cpu();
+        set_precision(&mut d, precision)
+            .map_err(|e| BackboneError::invalid(format!("--precision {precision}: {e}")))?;
+        return Ok(d);
     }
     let candidates = gpu_candidates();
     if candidates.is_empty() {
@@ -34,9 +75,12 @@ pub fn network_device(gpu: bool) -> Result<Device, BackboneError> {
     }
     let mut tried = Vec::new();
     for (name, make) in candidates {
-        match probe(make) {
+        match probe(make, precision) {
             Ok(d) => return Ok(d),
-            Err(e) => tried.push(format!("{name}: {e}")),
+            Err(Probe::Precision(e)) => {
+                return Err(BackboneError::invalid(format!("--gpu --precision {precision}: the GPU ({name}): {e}")))
+            }
+            Err(Probe::Failed(e)) => tried.push(format!("{name}: {e}")),
         }
     }
     Err(BackboneError::invalid(format!(
@@ -48,6 +92,18 @@ pub fn network_device(gpu: bool) -> Result<Device, BackboneError> {
 /// The training device: [`network_device`] with autodiff.
 pub fn training_device(gpu: bool) -> Result<Device, BackboneError> {
     network_device(gpu).map(Device::autodiff)
+}
+
+/// The GPU's name as its driver reports it (e.g. "llvmpipe (LLVM 15.0.6, 256 bits)" for
+/// lavapipe, Mesa's CPU Vulkan driver); `None` for the CPU or a backend that does not say.
+pub fn gpu_name(device: &Device) -> Option<String> {
+    if !is_gpu(device) {
+        return None;
+    }
+    #[cfg(any(feature = "wgpu", feature = "cuda"))]
+    return device.identity().map(|i| i.name);
+    #[cfg(not(any(feature = "wgpu", feature = "cuda")))]
+    None
 }
 
 /// Whether `device` is a GPU (not the flex CPU backend).
@@ -69,17 +125,27 @@ fn gpu_candidates() -> Vec<(&'static str, Maker)> {
 
 /// Builds the device and round-trips four numbers through it; backend initialisation panics
 /// (no adapter, no driver) become an error without the panic's message on stderr.
-fn probe(make: Maker) -> Result<Device, String> {
+/// Why a GPU candidate was not taken: it answered but cannot compute in the precision asked,
+/// or it did not answer.
+enum Probe {
+    Precision(String),
+    Failed(String),
+}
+
+fn probe(make: Maker, precision: Precision) -> Result<Device, Probe> {
     let out = dens3r_io::panics::catch_quietly(|| {
-        let d = make();
-        let t = Tensor::<1>::from_data(TensorData::new(vec![1f32, 2.0, 3.0, 4.0], [4]), &d);
-        let back = (t * 2.0).into_data().try_to_vec::<f32>().unwrap_or_default();
-        (d, back)
+        let mut d = make();
+        set_precision(&mut d, precision).map(|()| {
+            let t = Tensor::<1>::from_data(TensorData::new(vec![1f32, 2.0, 3.0, 4.0], [4]), &d);
+            let back = (t * 2.0).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            (d, back)
+        })
     });
     match out {
-        Ok((d, back)) if back == [2.0, 4.0, 6.0, 8.0] => Ok(d),
-        Ok((_, back)) => Err(format!("a test computation gave {back:?}")),
-        Err(e) => Err(e.0),
+        Ok(Err(e)) => Err(Probe::Precision(e)),
+        Ok(Ok((d, back))) if back == [2.0, 4.0, 6.0, 8.0] => Ok(d),
+        Ok(Ok((_, back))) => Err(Probe::Failed(format!("a test computation gave {back:?}"))),
+        Err(e) => Err(Probe::Failed(e.0)),
     }
 }
 

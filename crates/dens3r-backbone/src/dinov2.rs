@@ -182,7 +182,7 @@ impl Dinov2 {
         let (gh, gw) = (h / patch, w / patch);
         let p = self.config.patch;
         let (oh, ow) = (gh * p, gw * p);
-        let host = img.into_data().try_to_vec::<f32>().expect("f32 image tensor");
+        let host = img.into_data().convert::<f32>().try_to_vec::<f32>().expect("f32 image tensor");
         let mut out = Vec::with_capacity(b * c * oh * ow);
         for plane in 0..b * c {
             let ch = plane % c;
@@ -195,7 +195,7 @@ impl Dinov2 {
         let (mut tokens, grid) = self.forward(x, &[self.config.depth]);
         let t = tokens.pop().expect("the last block is hooked");
         let n = grid.0 * grid.1;
-        let data = t.into_data().try_to_vec::<f32>().expect("f32 tokens");
+        let data = t.into_data().convert::<f32>().try_to_vec::<f32>().expect("f32 tokens");
         (Tensor::from_data(TensorData::new(data, [b, n, self.config.dim]), &device), grid)
     }
 

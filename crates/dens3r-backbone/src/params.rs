@@ -212,9 +212,11 @@ impl Params {
     }
 }
 
-/// How parameters are stored in a written checkpoint.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// A float precision: how parameters are stored in a written checkpoint, or what the network
+/// computes in ([`crate::device::network_device_at`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Precision {
+    #[default]
     /// 32-bit float (exact).
     F32,
     /// IEEE half (10-bit mantissa, range +-65504).
@@ -232,6 +234,32 @@ impl Precision {
             "bf16" => Some(Self::BF16),
             _ => None,
         }
+    }
+
+    /// Burn's float dtype for it.
+    pub fn dtype(self) -> burn::tensor::FloatDType {
+        match self {
+            Self::F32 => burn::tensor::FloatDType::F32,
+            Self::F16 => burn::tensor::FloatDType::F16,
+            Self::BF16 => burn::tensor::FloatDType::BF16,
+        }
+    }
+}
+
+impl std::fmt::Display for Precision {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::F32 => "f32",
+            Self::F16 => "f16",
+            Self::BF16 => "bf16",
+        })
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::parse(s).ok_or_else(|| format!("unknown precision '{s}': use f32, f16 or bf16"))
     }
 }
 

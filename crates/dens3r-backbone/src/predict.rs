@@ -59,7 +59,7 @@ pub struct DescriptorMap {
 pub type MonoPrediction = ViewMaps;
 
 fn values<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
-    t.to_data().try_to_vec::<f32>().expect("float tensor")
+    t.to_data().convert::<f32>().try_to_vec::<f32>().expect("float tensor")
 }
 
 /// An `(H, W, C)` network-frame map in the image's own orientation (rotated back if the image

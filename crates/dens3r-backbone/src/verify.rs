@@ -31,13 +31,15 @@ pub struct Comparison {
     pub max_abs: f64,
     /// Largest difference relative to the reference magnitude (floored at 1e-6).
     pub max_rel: f64,
+    /// Largest |reference| value (the array's scale, for errors of reduced precisions).
+    pub ref_max: f64,
     /// Within tolerance (relative for confidences, absolute otherwise).
     pub pass: bool,
 }
 
 fn tensor_values<const D: usize>(t: &Tensor<D>) -> (Vec<usize>, Vec<f32>) {
     let data = t.to_data();
-    (data.shape().to_vec(), data.try_to_vec::<f32>().expect("float tensor"))
+    (data.shape().to_vec(), data.convert::<f32>().try_to_vec::<f32>().expect("float tensor"))
 }
 
 fn load_image(path: &Path, device: &Device) -> Result<Tensor<4>, BackboneError> {
@@ -252,14 +254,15 @@ pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, Backbo
         if *our_shape != shape {
             return Err(BackboneError::file(&path, format!("reference shape {shape:?}, ours {our_shape:?}")));
         }
-        let (mut max_abs, mut max_rel) = (0.0f64, 0.0f64);
+        let (mut max_abs, mut max_rel, mut ref_max) = (0.0f64, 0.0f64, 0.0f64);
         for (a, b) in values.iter().zip(&reference) {
             let d = (*a as f64 - *b as f64).abs();
             max_abs = max_abs.max(if d.is_nan() { f64::INFINITY } else { d });
             max_rel = max_rel.max(d / (*b as f64).abs().max(1e-6));
+            ref_max = ref_max.max((*b as f64).abs());
         }
         let pass = if name.ends_with("conf") { max_rel <= REL_TOL } else { max_abs <= ABS_TOL };
-        results.push(Comparison { name, shape, max_abs, max_rel, pass });
+        results.push(Comparison { name, shape, max_abs, max_rel, ref_max, pass });
     }
     if results.is_empty() {
         return Err(BackboneError::file(

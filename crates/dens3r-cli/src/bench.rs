@@ -2,12 +2,15 @@
 //! PyTorch module written from the spec (`bench/torch_dens3r.py`), same weights, same input,
 //! same thread count, each in its own process so peak memory is its own. Two different
 //! seeded images make the pair; each side runs the forward `--repeat` times and reports the
-//! fastest (this 2-core VM's timings drift by 20% from run to run).
+//! fastest (this 2-core VM's timings drift by 20% from run to run). `--gpu` runs both sides
+//! on the GPU (ours as `--gpu` picks it, PyTorch on CUDA) and reports peak device memory;
+//! `--precision` adds a row per float precision.
 
 use crate::bench_fusion::FusionArgs;
 use crate::bench_peer::{bench_python, child_json, peak_rss_mb, PeerArgs};
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
+use dens3r_backbone::Precision;
 use dens3r_backbone::{Dens3r, ModelConfig, Tensor, TensorData, Weights};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -48,6 +51,10 @@ pub enum BenchCommand {
         repeat: usize,
         #[arg(long)]
         config: Option<PathBuf>,
+        #[arg(long)]
+        gpu: bool,
+        #[arg(long, default_value_t = Precision::F32)]
+        precision: Precision,
     },
 }
 
@@ -68,6 +75,13 @@ pub struct BackboneArgs {
     /// Head counts of --weights (as `predict --config`).
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Both sides on the GPU: ours as `--gpu` picks it (CUDA when built with `cuda`, else
+    /// wgpu), PyTorch on CUDA; memory columns are then each side's peak device memory.
+    #[arg(long)]
+    gpu: bool,
+    /// Precisions to time, comma separated (f32, f16, bf16): each row runs both sides in one.
+    #[arg(long, value_delimiter = ',', default_value = "f32")]
+    precision: Vec<Precision>,
 }
 
 pub fn run(c: BenchCommand) -> Result<()> {
@@ -84,8 +98,9 @@ pub fn run(c: BenchCommand) -> Result<()> {
             w.save_safetensors(&out)?;
             Ok(())
         }
-        BenchCommand::RunRust { weights, width, height, dir, repeat, config } => {
-            run_rust(&weights, config.as_deref(), width, height, &dir, repeat)
+        BenchCommand::RunRust { weights, width, height, dir, repeat, config, gpu, precision } => {
+            let device = dens3r_backbone::device::network_device_at(gpu, precision)?;
+            run_rust(&weights, config.as_deref(), (width, height), &dir, repeat, &device)
         }
     }
 }
@@ -103,33 +118,40 @@ fn seeded_image(width: usize, height: usize, seed: u64) -> Vec<f32> {
         .collect()
 }
 
+/// Times our forward on `device` (in its precision) and prints one JSON line: seconds, peak RSS,
+/// on a GPU the memory its allocator holds after the passes (its pools keep their pages, so
+/// that is the peak reserved), and the per-stage profile.
 fn run_rust(
     weights: &Path,
     config: Option<&Path>,
-    width: usize,
-    height: usize,
+    (width, height): (usize, usize),
     dir: &Path,
     repeat: usize,
+    device: &dens3r_backbone::Device,
 ) -> Result<()> {
-    let device = dens3r_backbone::device::cpu();
+    let gpu = dens3r_backbone::device::is_gpu(device);
     let t0 = Instant::now();
-    let (model, _) = dens3r_backbone::verify::load_model(weights, config, &device).map_err(anyhow::Error::msg)?;
+    let (model, _) = dens3r_backbone::verify::load_model(weights, config, device).map_err(anyhow::Error::msg)?;
     let load_s = t0.elapsed().as_secs_f64();
     // Two different images, shared with the PyTorch side through img1.npy / img2.npy.
     let mut inputs = Vec::new();
     for (i, seed) in [(1, 0x1234_5678_9abc_def1u64), (2, 0x0fed_cba9_8765_4321)] {
         let img = seeded_image(width, height, seed);
         dens3r_scene::npy::write_f32(&dir.join(format!("img{i}.npy")), &[1, 3, height, width], &img)?;
-        inputs.push(Tensor::<4>::from_data(TensorData::new(img, [1, 3, height, width]), &device));
+        inputs.push(Tensor::<4>::from_data(TensorData::new(img, [1, 3, height, width]), device));
     }
     let (x1, x2) = (inputs[0].clone(), inputs[1].clone());
     let mut times = Vec::new();
     let mut pts = Vec::new();
-    for _ in 0..repeat.max(1) {
+    // On a GPU the first pass compiles and tunes kernels: one more pass, not timed.
+    for pass in 0..repeat.max(1) + usize::from(gpu) {
         let t0 = Instant::now();
         let pred = model.forward(x1.clone(), x2.clone());
-        pts = pred.views[0].pts3d.to_data().try_to_vec::<f32>().map_err(|e| anyhow::anyhow!("{e:?}"))?;
-        times.push(t0.elapsed().as_secs_f64());
+        pts =
+            pred.views[0].pts3d.to_data().convert::<f32>().try_to_vec::<f32>().map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        if pass >= usize::from(gpu) {
+            times.push(t0.elapsed().as_secs_f64());
+        }
     }
     let seconds = times.iter().copied().fold(f64::INFINITY, f64::min);
     // Single-image prediction: the official code runs the self-pair; we run forward_mono.
@@ -142,11 +164,13 @@ fn run_rust(
     dens3r_scene::npy::write_f32(&dir.join("pts3d.npy"), &[height, width, 3], &pts)?;
     // Peak memory of the timed passes, before the profile's extra ones.
     let rss = peak_rss_mb();
+    let device_mb = device.memory_pool_usage().filter(|_| gpu).map(|u| u.bytes_reserved as f64 / (1u64 << 20) as f64);
     let stages = profile(&model, x1, x2);
     println!(
         "{}",
         serde_json::json!({"seconds": seconds, "mono_seconds": mono, "all_seconds": times, "load_seconds": load_s,
-            "peak_rss_mb": rss, "stages": stages})
+            "peak_rss_mb": rss, "device_mb": device_mb, "device_name": dens3r_backbone::device::gpu_name(device),
+            "stages": stages})
     );
     Ok(())
 }
@@ -254,7 +278,7 @@ fn bench_weights(a: &BackboneArgs, dir: &Path, exe: &Path) -> Result<BenchWeight
         Some(w) => {
             let given = (w != dens3r_backbone::default_model::NAME).then(|| PathBuf::from(w));
             let (file, config) = crate::model_args::resolve_model(given.as_deref(), a.config.as_deref())?;
-            let model = crate::model_args::load_network(&file, config.as_deref(), false)?;
+            let model = crate::model_args::load_network(&file, config.as_deref(), false, Precision::F32)?;
             dinov2 = model.dinov2().map(|d| d.path.clone());
             let c = &model.config;
             let what = format!(
@@ -284,67 +308,111 @@ fn backbone(a: BackboneArgs) -> Result<()> {
     let heads_json = dir.join("bench_heads.json");
     std::fs::write(&heads_json, serde_json::json!({"enc_num_heads": heads.0, "dec_num_heads": heads.1}).to_string())?;
     let python = bench_python(a.peer.python.clone());
-    let torch_ok = dinov2.is_none()
-        && Command::new(&python)
-            .args(["-c", "import torch, safetensors, numpy"])
-            .output()
-            .is_ok_and(|o| o.status.success());
+    // With --gpu the peer must see CUDA, not merely import torch.
+    let probe = if a.gpu {
+        "import torch, safetensors, numpy; assert torch.cuda.is_available()"
+    } else {
+        "import torch, safetensors, numpy"
+    };
+    let torch_ok =
+        dinov2.is_none() && Command::new(&python).args(["-c", probe]).output().is_ok_and(|o| o.status.success());
     if dinov2.is_some() {
         eprintln!("note: bench/torch_dens3r.py has no DINOv2 encoder: Rust only for this network");
+    } else if !torch_ok && a.gpu {
+        eprintln!("note: {}'s torch sees no CUDA device: Rust only (no GPU peer to compare with)", python.display());
     } else if !torch_ok {
         eprintln!(
             "note: {} has no torch/safetensors/numpy: run scripts/bench-setup.sh for the PyTorch peer; Rust only",
             python.display()
         );
     }
-    println!("{what}, fastest of {}, {threads} threads", a.repeat);
+    let mem = if a.gpu { "dev MB" } else { "MB" };
+    println!(
+        "{what}, fastest of {}, {}",
+        a.repeat,
+        if a.gpu { "GPU".to_string() } else { format!("{threads} threads") }
+    );
     println!(
         "  rust s / torch s: one pair forward of two images; mono s: Rust single-image prediction (forward_mono),"
     );
     println!("  torch/mono: the official single-image cost (the self-pair, = torch s) over it");
+    if a.gpu {
+        println!(
+            "  dev MB: peak device memory (ours: what the allocator holds after the passes; PyTorch: max reserved)"
+        );
+    }
     println!(
-        "{:<10} {:>9} {:>9} {:>11} {:>9} {:>9} {:>10} {:>10} {:>11}",
-        "size", "rust s", "torch s", "torch/rust", "mono s", "torch/mono", "rust MB", "torch MB", "max |diff|"
+        "{:<10} {:>5} {:>9} {:>9} {:>11} {:>9} {:>9} {:>10} {:>10} {:>11}",
+        "size",
+        "prec",
+        "rust s",
+        "torch s",
+        "torch/rust",
+        "mono s",
+        "torch/mono",
+        format!("rust {mem}"),
+        format!("torch {mem}"),
+        "max |diff|"
     );
     let mut profiles = Vec::new();
+    let mut gpu_names = Vec::new();
     for (w, h) in sizes {
-        let r = child_json(
-            Command::new(&exe)
-                .args(["bench", "run-rust"])
-                .arg(&weights)
-                .args([w.to_string(), h.to_string()])
-                .arg(&dir)
-                .arg(a.repeat.to_string())
-                .arg("--config")
-                .arg(&heads_json)
-                .envs(dinov2.iter().map(|p| (dens3r_backbone::verify::DINOV2_ENV, p)))
-                .env("RAYON_NUM_THREADS", threads.to_string()),
-            "Rust",
-        )?;
-        let rs = r["seconds"].as_f64().unwrap_or(f64::NAN);
-        let rm = r["peak_rss_mb"].as_f64().unwrap_or(f64::NAN);
-        let mono = r["mono_seconds"].as_f64().unwrap_or(f64::NAN);
-        let (ts, tm, diff, torch_profile) = if torch_ok {
-            torch_forward(&python, &weights, (w, h), threads, heads, a.repeat, &dir)?
-        } else {
-            (f64::NAN, f64::NAN, f64::NAN, serde_json::Value::Null)
-        };
-        println!(
-            "{:<10} {:>9.2} {:>9.2} {:>10.2}x {:>9.2} {:>8.2}x {:>10.0} {:>10.0} {:>11.2e}",
-            format!("{w}x{h}"),
-            rs,
-            ts,
-            ts / rs,
-            mono,
-            ts / mono,
-            rm,
-            tm,
-            diff
-        );
-        profiles.push((format!("{w}x{h}"), r["stages"].clone(), torch_profile));
+        for &precision in &a.precision {
+            let r = child_json(
+                Command::new(&exe)
+                    .args(["bench", "run-rust"])
+                    .arg(&weights)
+                    .args([w.to_string(), h.to_string()])
+                    .arg(&dir)
+                    .arg(a.repeat.to_string())
+                    .arg("--config")
+                    .arg(&heads_json)
+                    .args(["--precision", &precision.to_string()])
+                    .args(a.gpu.then_some("--gpu"))
+                    .envs(dinov2.iter().map(|p| (dens3r_backbone::verify::DINOV2_ENV, p)))
+                    .env("RAYON_NUM_THREADS", threads.to_string()),
+                "Rust",
+            )?;
+            let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+            let (rs, mono) = (num(&r["seconds"]), num(&r["mono_seconds"]));
+            let rm = num(if a.gpu { &r["device_mb"] } else { &r["peak_rss_mb"] });
+            if let Some(n) = r["device_name"].as_str() {
+                gpu_names.push(format!("ours: {n}"));
+            }
+            let peer = TorchRun { size: (w, h), threads, heads, repeat: a.repeat, gpu: a.gpu, precision };
+            let t = if torch_ok { Some(torch_forward(&python, &weights, &peer, &dir)?) } else { None };
+            let tn = |k: &str| t.as_ref().map_or(f64::NAN, |t| num(&t[k]));
+            let ts = tn("seconds");
+            if let Some(n) = t.as_ref().and_then(|t| t["device_name"].as_str()) {
+                gpu_names.push(format!("PyTorch: {n}"));
+            }
+            println!(
+                "{:<10} {:>5} {:>9.2} {:>9.2} {:>10.2}x {:>9.2} {:>8.2}x {:>10.0} {:>10.0} {:>11.2e}",
+                format!("{w}x{h}"),
+                precision.to_string(),
+                rs,
+                ts,
+                ts / rs,
+                mono,
+                ts / mono,
+                rm,
+                tn(if a.gpu { "peak_device_mb" } else { "peak_rss_mb" }),
+                tn("max_abs_diff_pts3d")
+            );
+            let tp = t.as_ref().map_or(serde_json::Value::Null, |t| t["profile"].clone());
+            profiles.push((format!("{w}x{h} {precision}"), r["stages"].clone(), tp));
+        }
+    }
+    gpu_names.sort();
+    gpu_names.dedup();
+    for n in &gpu_names {
+        println!("  GPU {n}");
+    }
+    if gpu_names.iter().any(|n| n.contains("llvmpipe")) {
+        println!("  note: llvmpipe is lavapipe, Mesa's Vulkan driver on the CPU: these timings are not a GPU's speed");
     }
     for (size, rust, torch) in profiles {
-        print_profile(&size, &rust, &torch);
+        print_profile(&size, &rust, &torch, a.gpu);
     }
     Ok(())
 }
@@ -352,13 +420,14 @@ fn backbone(a: BackboneArgs) -> Result<()> {
 /// The per-stage table: FLOPs (counted on the PyTorch side, 2 per multiply-add of matmuls,
 /// convolutions and attention), each side's seconds and counted FLOPs per second (for the
 /// Rust side an effective rate: its Winograd convolutions do fewer multiplies than counted).
-fn print_profile(size: &str, rust: &serde_json::Value, torch: &serde_json::Value) {
+fn print_profile(size: &str, rust: &serde_json::Value, torch: &serde_json::Value, gpu: bool) {
     let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
     let gemm = num(&torch["gemm_flops_per_s"]) / 1e9;
     println!("\nprofile {size}, one pair forward, stages run one after another (fastest of --repeat on each side)");
     println!("  GFLOP: counted by PyTorch's FlopCounterMode; GFLOP/s = GFLOP / seconds (Rust's Winograd 3x3");
     println!("  convolutions do fewer multiplies than counted, so its rate there is effective, not achieved)");
-    println!("  this machine: f32 GEMM 2048^3 in PyTorch {gemm:.0} GFLOP/s (same run)");
+    let (n, what) = if gpu { (8192, "this GPU") } else { (2048, "this machine") };
+    println!("  {what}: GEMM {n}^3 in PyTorch at this precision {gemm:.0} GFLOP/s (same run)");
     println!("{:<44} {:>8} {:>8} {:>8} {:>8} {:>8}", "stage", "GFLOP", "rust s", "GFLOP/s", "torch s", "GFLOP/s");
     let (mut tf, mut tr, mut tt) = (0.0, 0.0, 0.0);
     for (key, what) in STAGES {
@@ -369,18 +438,27 @@ fn print_profile(size: &str, rust: &serde_json::Value, torch: &serde_json::Value
     println!("{:<44} {tf:>8.1} {tr:>8.2} {:>8.0} {tt:>8.2} {:>8.0}", "total", tf / tr, tf / tt);
 }
 
-/// PyTorch's pair forward at `size` on `dir`'s images (`bench/torch_dens3r.py`): seconds, peak
-/// RSS in MB and the largest |difference| to our pointmap.
-fn torch_forward(
-    python: &Path,
-    weights: &Path,
-    (w, h): (usize, usize),
+/// One PyTorch run's settings.
+struct TorchRun {
+    size: (usize, usize),
     threads: usize,
     heads: (usize, usize),
     repeat: usize,
-    dir: &Path,
-) -> Result<(f64, f64, f64, serde_json::Value)> {
-    let t = child_json(
+    gpu: bool,
+    precision: Precision,
+}
+
+/// PyTorch's pair forward on `dir`'s images (`bench/torch_dens3r.py`), its JSON: seconds, peak
+/// RSS (and on CUDA peak device memory) in MB, the largest |difference| to our pointmap, the
+/// profile.
+fn torch_forward(python: &Path, weights: &Path, run: &TorchRun, dir: &Path) -> Result<serde_json::Value> {
+    let TorchRun { size: (w, h), threads, heads, repeat, gpu, precision } = *run;
+    let dtype = match precision {
+        Precision::F32 => "float32",
+        Precision::F16 => "float16",
+        Precision::BF16 => "bfloat16",
+    };
+    child_json(
         Command::new(python)
             .arg("bench/torch_dens3r.py")
             .arg(weights)
@@ -393,9 +471,8 @@ fn torch_forward(
             .arg(dir.join("img2.npy"))
             .arg("--compare")
             .arg(dir.join("pts3d.npy"))
+            .args(["--device", if gpu { "cuda" } else { "cpu" }, "--dtype", dtype])
             .env("OMP_NUM_THREADS", threads.to_string()),
         "PyTorch",
-    )?;
-    let f = |k: &str| t[k].as_f64().unwrap_or(f64::NAN);
-    Ok((f("seconds"), f("peak_rss_mb"), f("max_abs_diff_pts3d"), t["profile"].clone()))
+    )
 }

@@ -4,7 +4,7 @@
 use anyhow::{anyhow, bail, Result};
 use clap::Args;
 use dens3r_backbone::default_model;
-use dens3r_backbone::Dens3r;
+use dens3r_backbone::{Dens3r, Precision};
 use dens3r_heads::Backbone;
 use std::path::{Path, PathBuf};
 
@@ -26,6 +26,10 @@ pub struct ModelArgs {
     /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them.
     #[arg(long)]
     pub keep_portrait: bool,
+    /// What the network computes in: f32 (the reference), or f16 / bf16 for speed on a GPU
+    /// (`dens3r verify --precision` measures their error; on the CPU they are slower).
+    #[arg(long, default_value_t = Precision::F32)]
+    pub precision: Precision,
 }
 
 /// `--size` in the range the network takes (checked before any image is read, so the error
@@ -57,10 +61,11 @@ impl ModelArgs {
     }
 }
 
-/// Loads the network of [`resolve_model`]'s files on the CPU, or with `gpu` on the GPU
-/// ([`dens3r_backbone::device::network_device`]), warning about unused checkpoint keys.
-pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<Dens3r> {
-    let (model, unexpected) = dens3r_recon::model::load_network(weights, config, gpu)?;
+/// Loads the network of [`resolve_model`]'s files on the CPU, or with `gpu` on the GPU, in
+/// `precision` ([`dens3r_backbone::device::network_device_at`]), warning about unused
+/// checkpoint keys.
+pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool, precision: Precision) -> Result<Dens3r> {
+    let (model, unexpected) = dens3r_recon::model::load_network(weights, config, gpu, precision)?;
     if !unexpected.is_empty() {
         eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);
     }

@@ -71,6 +71,10 @@ pub struct PredictArgs {
     /// Run the network on the GPU (the default build's `gpu-network` feature, or `cuda`).
     #[arg(long)]
     gpu: bool,
+    /// What the network computes in: f32 (the reference), or f16 / bf16 for speed on a GPU
+    /// (`dens3r verify --precision` measures their error; on the CPU they are slower).
+    #[arg(long, default_value_t = dens3r_backbone::Precision::F32)]
+    precision: dens3r_backbone::Precision,
 }
 
 /// The error for an output folder that already holds a scene, unless `--overwrite`: a scene
@@ -191,7 +195,7 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
     let heads_on_net = !heads.is_empty() && other.is_none();
     let net = if run_net {
         let (weights, config) = resolve_model(a.weights.as_deref(), a.config.as_deref())?;
-        let model = load_network(&weights, config.as_deref(), a.gpu)?;
+        let model = load_network(&weights, config.as_deref(), a.gpu, a.precision)?;
         let hash = if heads_on_net {
             file_hash(&weights).with_context(|| format!("{}: cannot read", weights.display()))?
         } else {

@@ -7,6 +7,7 @@ use dens3r_align::cycle_focal::CycleFocalOptions;
 use dens3r_align::match_pose::MatchPoseOptions;
 use dens3r_align::matching::MatchOptions;
 use dens3r_align::{AlignOptions, PairGraph};
+use dens3r_backbone::Precision;
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
     list_images, load_images, reconstruct, write_outputs, KeypointOptions, NetworkPredictor, OutputOptions,
@@ -170,8 +171,13 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         Some(m) => m,
         None => dens3r_recon::model::mesh_min_conf(config.as_deref())?,
     };
-    let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu)?;
-    let predictor = NetworkPredictor::new(&model, format!("{} size {}", weights_id(&weights), a.model.size));
+    let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu, a.model.precision)?;
+    // The pair cache is keyed by this: another size or precision gives other outputs.
+    let precision = match a.model.precision {
+        Precision::F32 => String::new(),
+        p => format!(" {p}"),
+    };
+    let predictor = NetworkPredictor::new(&model, format!("{} size {}{precision}", weights_id(&weights), a.model.size));
     let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
     let opts = ReconOptions {
         graph,

@@ -236,6 +236,44 @@ fn verify_passes_on_fixtures_and_fails_on_a_wrong_dump() {
     }
 }
 
+/// The "largest X% of an array's range" that `verify --precision` prints.
+fn reduced_error_percent(out: &str) -> f64 {
+    let tail = out.split("(largest ").nth(1).unwrap_or_else(|| panic!("no error summary in {out}"));
+    tail.split('%').next().unwrap().parse().unwrap()
+}
+
+#[test]
+fn verify_measures_reduced_precisions_against_f32() {
+    // In f16 (10-bit mantissa) fixture A's outputs move off the f32 reference by more than
+    // f32 rounding but stay within a few percent of each array's range; bf16 (7-bit mantissa)
+    // moves them further. Each run is its own process: burn fixes a device's dtype per process.
+    let a = parity(A);
+    let f16 = ok(&["verify", a.to_str().unwrap(), "--precision", "f16"]);
+    let bf16 = ok(&["verify", a.to_str().unwrap(), "--precision", "bf16"]);
+    let (e16, eb16) = (reduced_error_percent(&f16), reduced_error_percent(&bf16));
+    assert!(e16 > 0.01 && e16 < 3.0, "f16 error {e16}% of the range: {f16}");
+    assert!(eb16 > 2.0 * e16 && eb16 < 20.0, "bf16 error {eb16}% against f16's {e16}%: {bf16}");
+    assert!(f16.contains("computed in f16") && f16.contains("over f32 tolerance"), "{f16}");
+    let e = fails(&["verify", a.to_str().unwrap(), "--precision", "f8"]);
+    assert!(e.contains("use f32, f16 or bf16"), "{e}");
+    // On the GPU (lavapipe in CI) f16 runs where the driver computes in it; a precision the
+    // device lacks is a one-line error naming it, not "no GPU".
+    for p in ["f16", "bf16"] {
+        let o = dens3r(&["verify", "--gpu", a.to_str().unwrap(), "--precision", p]);
+        let (out, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        if o.status.success() {
+            let pct = reduced_error_percent(&out);
+            assert!(pct > 0.01 && pct < 10.0, "GPU {p} error {pct}%: {out}");
+        } else if err.contains(&format!("does not compute in {p}")) {
+            eprintln!("the GPU has no {p}: {err}");
+        } else {
+            assert!(err.contains("--gpu:"), "{err}");
+            assert!(std::env::var("DENS3R_REQUIRE_GPU").as_deref() != Ok("1"), "DENS3R_REQUIRE_GPU=1 but {err}");
+            eprintln!("SKIPPED verify --gpu --precision {p}: {err}");
+        }
+    }
+}
+
 /// A JPEG copy of `src` whose EXIF says `f35` mm (35 mm equivalent), as phones write it.
 fn jpeg_with_focal(src: &Path, dst: &Path, f35: u16) {
     use image::ImageEncoder;

@@ -82,11 +82,16 @@ pub fn resolve(
     }
 }
 
-/// Loads the network of `weights` (and its `config`) on the CPU, or with `gpu` on the GPU
-/// ([`dens3r_backbone::device::network_device`]); also returns the checkpoint keys the model
-/// does not use.
-pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool) -> Result<(Dens3r, Vec<String>), ReconError> {
-    let device = dens3r_backbone::device::network_device(gpu)?;
+/// Loads the network of `weights` (and its `config`) on the CPU, or with `gpu` on the GPU,
+/// computing in `precision` ([`dens3r_backbone::device::network_device_at`]); also returns the
+/// checkpoint keys the model does not use.
+pub fn load_network(
+    weights: &Path,
+    config: Option<&Path>,
+    gpu: bool,
+    precision: dens3r_backbone::Precision,
+) -> Result<(Dens3r, Vec<String>), ReconError> {
+    let device = dens3r_backbone::device::network_device_at(gpu, precision)?;
     dens3r_backbone::verify::load_model(weights, config, &device).map_err(|e| ReconError::Other(e.to_string()))
 }
 

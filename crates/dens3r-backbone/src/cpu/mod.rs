@@ -137,11 +137,12 @@ pub(crate) fn direct_conv3x3(
     y
 }
 
-/// Whether `device` is the plain (non-autodiff) flex CPU device these kernels serve. Burn's
-/// device equality ignores autodiff, so it is checked apart: the kernels work on host copies
-/// and would cut the gradient graph.
+/// Whether `device` is the plain (non-autodiff) flex CPU device computing in f32, which these
+/// kernels serve. Burn's device equality ignores autodiff, so it is checked apart: the kernels
+/// work on host copies and would cut the gradient graph. A flex device set to f16 / bf16
+/// (`--precision`) runs burn's own kernels in that precision.
 pub fn serves(device: &Device) -> bool {
-    *device == Device::flex() && !device.is_autodiff()
+    *device == Device::flex() && !device.is_autodiff() && crate::device::precision_of(device) == crate::Precision::F32
 }
 
 /// The tensor's values in logical (row-major) order.
