@@ -76,6 +76,10 @@ pub struct TrainArgs {
     /// (0: distinct views only, as the official training).
     #[arg(long, default_value_t = 0.0)]
     self_pairs: f32,
+    /// Probability of turning a pair upside down (cameras rolled 180 deg) when its first view
+    /// looks down within 40 deg of vertical, where an image has no upright (0 = never).
+    #[arg(long, default_value_t = 0.0)]
+    roll_top_down: f32,
     /// Held-out scene folders (or `synth` sets) scored during training, into log.jsonl's
     /// `val` and loss.png.
     #[arg(long, num_args = 1..)]
@@ -171,6 +175,7 @@ fn train_config(a: &TrainArgs) -> Result<TrainConfig> {
         crop: a.crop,
         aspects: !a.fixed_aspect,
         self_pairs: a.self_pairs,
+        roll_top_down: a.roll_top_down,
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
         frame: PointsFrame::parse(&a.points_in)

@@ -95,6 +95,42 @@ impl View {
         Ok(Self { name: f.name.clone(), image, k, cam_to_world: f.pose(), depth, normals })
     }
 
+    /// The same view from the camera rolled 180 degrees about its optical axis: the image
+    /// turned upside down, camera-frame x and y negated (so normals' too), the principal point
+    /// mirrored, the pose turned so every pixel still sees the same world point.
+    pub fn rotated_180(&self) -> Self {
+        let (w, h) = (self.depth.width(), self.depth.height());
+        let flip = |x: usize, y: usize| (w - 1 - x, h - 1 - y);
+        let depth = Raster::from_fn(w, h, |x, y| {
+            let (u, v) = flip(x, y);
+            *self.depth.get(u, v)
+        });
+        let normals = self.normals.as_ref().map(|n| {
+            Raster::from_fn(w, h, |x, y| {
+                let (u, v) = flip(x, y);
+                let n = *n.get(u, v);
+                Vec3::new(-n.x, -n.y, n.z)
+            })
+        });
+        let k = Intrinsics { cx: (w - 1) as f64 - self.k.cx, cy: (h - 1) as f64 - self.k.cy, ..self.k };
+        let roll = DMat4::from_diagonal(glam::DVec4::new(-1.0, -1.0, 1.0, 1.0));
+        Self {
+            name: self.name.clone(),
+            image: image::imageops::rotate180(&self.image),
+            k,
+            cam_to_world: self.cam_to_world * roll,
+            depth,
+            normals,
+        }
+    }
+
+    /// Whether the camera looks down within `max_deg` of straight down (world z up, as
+    /// `dens3r synth` and `render` place scenes): a view with no upright in its image.
+    pub fn looks_down(&self, max_deg: f64) -> bool {
+        let axis = self.cam_to_world.z_axis.truncate().normalize();
+        -axis.z >= max_deg.to_radians().cos()
+    }
+
     /// Camera-frame point of pixel `(x, y)`, if its depth is valid.
     pub fn point(&self, x: usize, y: usize) -> Option<DVec3> {
         let d = *self.depth.get(x, y);

@@ -64,6 +64,13 @@ fn is_first(f: &PointsFrame) -> bool {
     *f == PointsFrame::First
 }
 
+fn is_zero(x: &f32) -> bool {
+    *x == 0.0
+}
+
+/// How far from straight down a view may look for [`TrainConfig::roll_top_down`] (degrees).
+pub const TOP_DOWN_DEG: f64 = 40.0;
+
 /// Settings of a run; a resumed run must have the same.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainConfig {
@@ -117,6 +124,12 @@ pub struct TrainConfig {
     /// image runs at inference (`predict`); 0 = distinct views only.
     #[serde(default)]
     pub self_pairs: f32,
+    /// Probability of turning a pair upside down (both views, cameras rolled 180 degrees)
+    /// when its first view looks down within [`TOP_DOWN_DEG`] of vertical: such views (a
+    /// table or a tote from above) have no upright, and without it the network learns the
+    /// rooms' "higher in the image is farther" (0 = never).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub roll_top_down: f32,
     /// Frozen parameters.
     pub freeze: Freeze,
     /// Steps between checkpoints.
@@ -150,6 +163,7 @@ impl Default for TrainConfig {
             crop: 1.0,
             aspects: false,
             self_pairs: 0.0,
+            roll_top_down: 0.0,
             freeze: Freeze::None,
             checkpoint_every: 50,
             seed: 0,
@@ -182,6 +196,12 @@ impl TrainConfig {
             return Err(TrainError::invalid(format!(
                 "--self-pairs {}: expected a fraction in [0, 1]",
                 self.self_pairs
+            )));
+        }
+        if !(0.0..=1.0).contains(&self.roll_top_down) {
+            return Err(TrainError::invalid(format!(
+                "--roll-top-down {}: expected a probability in [0, 1]",
+                self.roll_top_down
             )));
         }
         if self.match_block == 0 {
@@ -476,8 +496,13 @@ impl Dataset {
                 let at = if cfg.crop < 1.0 { (rng.gen_range(0.0..=1.0), rng.gen_range(0.0..=1.0)) } else { (0.5, 0.5) };
                 View::load_window(scene, f, crop_window((f.width, f.height), (w, h), scale, at), (w, h))
             };
-            let v1 = load(i)?;
-            let v2 = if own { v1.clone() } else { load(j)? };
+            let mut v1 = load(i)?;
+            let mut v2 = if own { v1.clone() } else { load(j)? };
+            // The draw is skipped at 0, so older runs resume exactly.
+            if cfg.roll_top_down > 0.0 && v1.looks_down(TOP_DOWN_DEG) && rng.gen_range(0.0f32..1.0) < cfg.roll_top_down
+            {
+                (v1, v2) = (v1.rotated_180(), v2.rotated_180());
+            }
             let mut t = pair_target(&v1, &v2);
             t.matches = sample_matches(&t.matches, cfg.n_corres, &mut rng);
             for (k, v) in [&v1, &v2].into_iter().enumerate() {

@@ -209,6 +209,84 @@ fn synth_correspondences_on_a_box_match_analytic_geometry() {
     assert!(hit as f64 > 0.9 * seen.len() as f64, "recall {hit}/{}", seen.len());
 }
 
+/// A view rolled 180 degrees about its optical axis (`View::rotated_180`, the top-down
+/// augmentation) sees the same world: each pixel's point lies where the original camera's ray
+/// through the mirrored pixel meets the box (analytic), its normal and colour are the mirrored
+/// pixel's, rolling twice gives the view back, and a pair rolled together keeps its
+/// correspondences (mirrored). `looks_down` tells a camera above the box from an oblique one.
+#[test]
+fn rolled_views_see_the_same_world() {
+    let half = DVec3::new(0.5, 0.35, 0.3);
+    let rot = Quat::from_rotation_z(0.4);
+    let centre = DVec3::new(0.0, 0.0, 0.3);
+    let world = World::new(vec![Object {
+        name: "box".into(),
+        shape: Shape::Cuboid { half: half.as_vec3() },
+        rotation: rot,
+        translation: centre.as_vec3(),
+        class_id: 4,
+        material: Material { color: [0.7; 3], texture: Texture::Checker { size: 0.1 }, seed: 1 },
+    }])
+    .unwrap();
+    let (w, h) = (80usize, 60usize);
+    let cam = |eye: DVec3| PinholeCamera {
+        intrinsics: Intrinsics { cx: 41.3, cy: 28.2, ..Intrinsics::from_hfov(w, h, 55.0) },
+        width: w,
+        height: h,
+        cam_to_world: look_at(eye, centre, DVec3::Y).unwrap(),
+    };
+    // Above the box (about 9 and 20 deg off vertical) and oblique (about 60 deg off).
+    let cams = [cam(DVec3::new(0.2, -0.3, 2.6)), cam(DVec3::new(0.6, -0.5, 2.4)), cam(DVec3::new(0.3, -2.2, 1.4))];
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("box");
+    render_cameras_to_scene(&world, &cams, &dens3r_render::procedural::classes(), false, &dir, |_| {}).unwrap();
+    let scene = Scene::open(&dir).unwrap();
+    let v: Vec<View> = scene.frames().iter().map(|f| View::load(&scene, f, (w, h)).unwrap()).collect();
+    assert!(v[0].looks_down(40.0) && v[1].looks_down(40.0) && !v[2].looks_down(40.0));
+    assert!(!v[1].looks_down(10.0), "20 deg off vertical is not within 10");
+    let r: Vec<View> = v.iter().map(View::rotated_180).collect();
+    let flip = |x: usize, y: usize| (w - 1 - x, h - 1 - y);
+    for (k, (orig, rolled)) in v.iter().zip(&r).enumerate() {
+        let eye = cams[k].cam_to_world.w_axis.truncate();
+        let (mut n, mut normals_ok) = (0, 0);
+        for y in 0..h {
+            for x in 0..w {
+                let (u, vv) = flip(x, y);
+                assert_eq!(rolled.image.get_pixel(x as u32, y as u32), orig.image.get_pixel(u as u32, vv as u32));
+                let Some(p) = rolled.point(x, y) else { continue };
+                let world_p = rolled.cam_to_world.transform_point3(p);
+                let d = cams[k].cam_to_world.transform_vector3(cams[k].intrinsics.unproject(u as f64, vv as f64));
+                let t = ray_box(eye, d, half, rot, centre).expect("a pixel with depth sees the box");
+                let truth = eye + d * t;
+                assert!(
+                    (world_p - truth).length() < 1e-4 * (truth - eye).length(),
+                    "view {k} ({x},{y}): {world_p} vs {truth}"
+                );
+                let nr = rolled.normals.as_ref().unwrap().get(x, y).as_dvec3();
+                let no = orig.normals.as_ref().unwrap().get(u, vv).as_dvec3();
+                let (wr, wo) = (rolled.cam_to_world.transform_vector3(nr), orig.cam_to_world.transform_vector3(no));
+                normals_ok += usize::from((wr - wo).length() < 1e-5);
+                n += 1;
+            }
+        }
+        assert!(n > 500 && normals_ok == n, "view {k}: {normals_ok}/{n} normals kept, {n} points");
+        let back = rolled.rotated_180();
+        assert_eq!(back.image, orig.image);
+        assert_eq!(back.depth.data(), orig.depth.data());
+        assert!((back.cam_to_world - orig.cam_to_world).abs_diff_eq(DMat4::ZERO, 1e-12));
+    }
+    let (m, mr) = (correspondences(&v[0], &v[1]), correspondences(&r[0], &r[1]));
+    assert!(m.idx1.len() > 500, "{} matches", m.idx1.len());
+    let flip_idx = |i: u32| (w * h - 1) as u32 - i;
+    let expected: std::collections::HashSet<(u32, u32)> =
+        m.idx1.iter().zip(&m.idx2).map(|(&a, &b)| (flip_idx(a), flip_idx(b))).collect();
+    // Matches are one to one: where two view-1 pixels land on one view-2 pixel, which is kept
+    // follows the scan order, which the roll reverses.
+    let same = mr.idx1.iter().zip(&mr.idx2).filter(|&(&a, &b)| expected.contains(&(a, b))).count();
+    assert!(mr.idx1.len().abs_diff(m.idx1.len()) <= m.idx1.len() / 50, "{} vs {} matches", mr.idx1.len(), m.idx1.len());
+    assert!(same as f64 >= 0.97 * m.idx1.len() as f64, "{same} of {} matches mirrored", m.idx1.len());
+}
+
 /// A random crop keeps the camera model: a cropped pixel's point, projected with the full
 /// frame's intrinsics, lands on the source pixel it was sampled from, with the same depth.
 /// Each step's random size keeps the long side, is a multiple of the patch and follows the
@@ -250,6 +328,42 @@ fn crops_and_aspects_keep_the_camera_model() {
         assert!(h == 224 && w % 16 == 0, "portrait {w}x{h}");
     }
     assert_eq!(shorts.len(), 8, "every short side 112..224 drawn: {shorts:?}");
+}
+
+/// `roll_top_down = 1` turns every pair of a set seen from above (bins) upside down, image and
+/// ground truth, and leaves pairs of an oblique orbit as they were; out of [0, 1] it is refused.
+#[test]
+fn roll_top_down_turns_only_pairs_seen_from_above() {
+    let (_tmp, scenes, _) = small_set("bin", 2, 5);
+    let roots: Vec<PathBuf> = scenes.iter().map(|s| s.root().to_path_buf()).collect();
+    let device = dens3r_backbone::Device::flex();
+    let base = TrainConfig { size: (64, 48), batch: 2, jitter: 0.0, n_corres: 64, ..Default::default() };
+    let rolled = TrainConfig { roll_top_down: 1.0, ..base.clone() };
+    let vals = |t: dens3r_backbone::Tensor<4>| t.into_data().try_to_vec::<f32>().unwrap();
+    let upside_down = |v: &[f32]| -> Vec<f32> {
+        // (B, 3, H, W): each plane reversed is the image turned 180 degrees.
+        v.chunks(64 * 48).flat_map(|plane| plane.iter().rev().copied()).collect()
+    };
+    let bins = Dataset::load(&roots, (64, 48), (0.1, 0.98)).unwrap();
+    let orbit = Dataset::load(&[samples().join("orbit")], (64, 48), (0.1, 0.98)).unwrap();
+    for step in 0..3 {
+        let (a, b) = (bins.batch(&base, 16, step, &device).unwrap(), bins.batch(&rolled, 16, step, &device).unwrap());
+        for k in 0..2 {
+            assert_eq!(vals(b.images[k].clone()), upside_down(&vals(a.images[k].clone())), "step {step} view {k}");
+        }
+        for (ta, tb) in a.targets.iter().zip(&b.targets) {
+            let n = ta.pts[0].len();
+            for i in 0..n {
+                let (p, q) = (ta.pts[0][i], tb.pts[0][n - 1 - i]);
+                assert!((p.x + q.x).abs() < 1e-5 && (p.y + q.y).abs() < 1e-5 && (p.z - q.z).abs() < 1e-5);
+            }
+        }
+        let (a, b) = (orbit.batch(&base, 16, step, &device).unwrap(), orbit.batch(&rolled, 16, step, &device).unwrap());
+        assert_eq!(vals(a.images[0].clone()), vals(b.images[0].clone()), "an oblique pair is left as it was");
+    }
+    for p in [-0.1, 1.5, f32::NAN] {
+        assert!(TrainConfig { roll_top_down: p, ..base.clone() }.check(16).is_err(), "{p}");
+    }
 }
 
 /// `scenes` scenes of `kind` (64x48, 3 views, seed `seed`), opened, and what `synthesise`
