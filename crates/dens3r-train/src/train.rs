@@ -589,9 +589,17 @@ pub struct LogLine {
 /// apart from training's so every validation sees the same pairs).
 pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usize) -> Result<LossTerms, TrainError> {
     let device = Device::flex();
-    // Distinct views only, so scores stay comparable between runs with and without self pairs.
-    let vcfg =
-        TrainConfig { crop: 1.0, aspects: false, jitter: 0.0, self_pairs: 0.0, seed: 0x5eed_0a11_d00d, ..cfg.clone() };
+    // Distinct, upright views only, so scores stay comparable between runs with and without
+    // self pairs or rolled top-down pairs.
+    let vcfg = TrainConfig {
+        crop: 1.0,
+        aspects: false,
+        jitter: 0.0,
+        self_pairs: 0.0,
+        roll_top_down: 0.0,
+        seed: 0x5eed_0a11_d00d,
+        ..cfg.clone()
+    };
     let tensors = params.tensors(&device, &vec![false; params.values.len()]);
     let model = params.model(&tensors, &device);
     let n = batches.max(1);
