@@ -123,8 +123,6 @@ fn gpu_candidates() -> Vec<(&'static str, Maker)> {
     v
 }
 
-/// Builds the device and round-trips four numbers through it; backend initialisation panics
-/// (no adapter, no driver) become an error without the panic's message on stderr.
 /// Why a GPU candidate was not taken: it answered but cannot compute in the precision asked,
 /// or it did not answer.
 enum Probe {
@@ -132,6 +130,9 @@ enum Probe {
     Failed(String),
 }
 
+/// Builds the device in `precision` and round-trips four numbers through it; backend
+/// initialisation panics (no adapter, no driver) become an error without the panic's message
+/// on stderr.
 fn probe(make: Maker, precision: Precision) -> Result<Device, Probe> {
     let out = dens3r_io::panics::catch_quietly(|| {
         let mut d = make();

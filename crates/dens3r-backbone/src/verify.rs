@@ -37,6 +37,14 @@ pub struct Comparison {
     pub pass: bool,
 }
 
+impl Comparison {
+    /// The largest difference over the array's scale (its largest |reference|): the measure
+    /// for a reduced precision, whose per-element relative error near-zero references swamp.
+    pub fn range_error(&self) -> f64 {
+        self.max_abs / self.ref_max.max(1e-12)
+    }
+}
+
 fn tensor_values<const D: usize>(t: &Tensor<D>) -> (Vec<usize>, Vec<f32>) {
     let data = t.to_data();
     (data.shape().to_vec(), data.convert::<f32>().try_to_vec::<f32>().expect("float tensor"))
