@@ -131,6 +131,29 @@ fn ray_box(o: DVec3, d: DVec3, half: DVec3, r: Quat, c: DVec3) -> Option<f64> {
     (t0 <= t1 && t0 > 0.0).then_some(t0)
 }
 
+/// A checkered box of half-sizes `half`, turned by `rot`, centred at `centre`.
+fn checker_box(half: DVec3, rot: Quat, centre: DVec3) -> World {
+    World::new(vec![Object {
+        name: "box".into(),
+        shape: Shape::Cuboid { half: half.as_vec3() },
+        rotation: rot,
+        translation: centre.as_vec3(),
+        class_id: 4,
+        material: Material { color: [0.7; 3], texture: Texture::Checker { size: 0.1 }, seed: 1 },
+    }])
+    .unwrap()
+}
+
+/// `world` rendered from `cams` into a scene folder and read back as training views at the
+/// cameras' size.
+fn rendered_views(world: &World, cams: &[PinholeCamera]) -> Vec<View> {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("box");
+    render_cameras_to_scene(world, cams, &dens3r_render::procedural::classes(), false, &dir, |_| {}).unwrap();
+    let scene = Scene::open(&dir).unwrap();
+    scene.frames().iter().map(|f| View::load(&scene, f, (cams[0].width, cams[0].height)).unwrap()).collect()
+}
+
 /// Correspondences of two rendered views of a box: every match is where the view-1 pixel's
 /// analytic ray-box point projects in view 2 (to rounding), and nearly every pixel whose
 /// point view 2 sees, away from the box's silhouette edges, is matched.
@@ -139,15 +162,7 @@ fn synth_correspondences_on_a_box_match_analytic_geometry() {
     let half = DVec3::new(0.5, 0.35, 0.3);
     let rot = Quat::from_rotation_z(0.4) * Quat::from_rotation_x(0.2);
     let centre = DVec3::new(0.0, 0.0, 0.3);
-    let world = World::new(vec![Object {
-        name: "box".into(),
-        shape: Shape::Cuboid { half: half.as_vec3() },
-        rotation: rot,
-        translation: centre.as_vec3(),
-        class_id: 4,
-        material: Material { color: [0.7; 3], texture: Texture::Checker { size: 0.1 }, seed: 1 },
-    }])
-    .unwrap();
+    let world = checker_box(half, rot, centre);
     let (w, h) = (80usize, 60usize);
     let cam = |eye: DVec3| PinholeCamera {
         intrinsics: Intrinsics::from_hfov(w, h, 55.0),
@@ -156,11 +171,7 @@ fn synth_correspondences_on_a_box_match_analytic_geometry() {
         cam_to_world: look_at(eye, centre, DVec3::Z).unwrap(),
     };
     let cams = [cam(DVec3::new(0.3, -2.2, 1.4)), cam(DVec3::new(1.5, -1.7, 1.1))];
-    let tmp = tempfile::tempdir().unwrap();
-    let dir = tmp.path().join("box");
-    render_cameras_to_scene(&world, &cams, &dens3r_render::procedural::classes(), false, &dir, |_| {}).unwrap();
-    let scene = Scene::open(&dir).unwrap();
-    let v: Vec<View> = scene.frames().iter().map(|f| View::load(&scene, f, (w, h)).unwrap()).collect();
+    let v = rendered_views(&world, &cams);
     let m = correspondences(&v[0], &v[1]);
     let w2c2: DMat4 = rigid_inverse(&cams[1].cam_to_world);
     let eye1 = cams[0].cam_to_world.w_axis.truncate();
@@ -219,15 +230,7 @@ fn rolled_views_see_the_same_world() {
     let half = DVec3::new(0.5, 0.35, 0.3);
     let rot = Quat::from_rotation_z(0.4);
     let centre = DVec3::new(0.0, 0.0, 0.3);
-    let world = World::new(vec![Object {
-        name: "box".into(),
-        shape: Shape::Cuboid { half: half.as_vec3() },
-        rotation: rot,
-        translation: centre.as_vec3(),
-        class_id: 4,
-        material: Material { color: [0.7; 3], texture: Texture::Checker { size: 0.1 }, seed: 1 },
-    }])
-    .unwrap();
+    let world = checker_box(half, rot, centre);
     let (w, h) = (80usize, 60usize);
     let cam = |eye: DVec3| PinholeCamera {
         intrinsics: Intrinsics { cx: 41.3, cy: 28.2, ..Intrinsics::from_hfov(w, h, 55.0) },
@@ -237,11 +240,7 @@ fn rolled_views_see_the_same_world() {
     };
     // Above the box (about 9 and 20 deg off vertical) and oblique (about 60 deg off).
     let cams = [cam(DVec3::new(0.2, -0.3, 2.6)), cam(DVec3::new(0.6, -0.5, 2.4)), cam(DVec3::new(0.3, -2.2, 1.4))];
-    let tmp = tempfile::tempdir().unwrap();
-    let dir = tmp.path().join("box");
-    render_cameras_to_scene(&world, &cams, &dens3r_render::procedural::classes(), false, &dir, |_| {}).unwrap();
-    let scene = Scene::open(&dir).unwrap();
-    let v: Vec<View> = scene.frames().iter().map(|f| View::load(&scene, f, (w, h)).unwrap()).collect();
+    let v = rendered_views(&world, &cams);
     assert!(v[0].looks_down(40.0) && v[1].looks_down(40.0) && !v[2].looks_down(40.0));
     assert!(!v[1].looks_down(10.0), "20 deg off vertical is not within 10");
     let r: Vec<View> = v.iter().map(View::rotated_180).collect();
