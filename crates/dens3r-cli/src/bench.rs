@@ -436,6 +436,15 @@ fn print_profile(size: &str, rust: &serde_json::Value, torch: &serde_json::Value
         println!("{what:<44} {f:>8.1} {rs:>8.2} {:>8.0} {ts:>8.2} {:>8.0}", f / rs, f / ts);
     }
     println!("{:<44} {tf:>8.1} {tr:>8.2} {:>8.0} {tt:>8.2} {:>8.0}", "total", tf / tr, tf / tt);
+    // What the counted work allows: every FLOP at the large GEMM's rate.
+    let floor = tf / gemm;
+    println!(
+        "  bound: every counted FLOP at that GEMM rate takes {floor:.2} s, {:.2}x PyTorch's {tt:.2} s: no faster at this \
+         precision on {what} without less work (Rust is at {:.2}x, {:.0}% of the bound's rate)",
+        tt / floor,
+        tt / tr,
+        100.0 * floor / tr
+    );
 }
 
 /// One PyTorch run's settings.
