@@ -94,7 +94,8 @@ pub fn run(c: BenchCommand) -> Result<()> {
         BenchCommand::RunFuse { scene, voxel, out, gpu } => crate::bench_fusion::run_fuse(&scene, voxel, &out, gpu),
         BenchCommand::MakeWeights { out } => {
             let w = Weights::synthetic(7, 0.02);
-            Dens3r::load(&w, ModelConfig::dens3r_full(), &Default::default())?;
+            // Checks that the weights load (on the CPU: burn's default device is the first GPU backend).
+            Dens3r::load(&w, ModelConfig::dens3r_full(), &burn::tensor::Device::flex())?;
             w.save_safetensors(&out)?;
             Ok(())
         }
@@ -387,17 +388,17 @@ fn backbone(a: BackboneArgs) -> Result<()> {
                 gpu_names.push(format!("PyTorch: {n}"));
             }
             println!(
-                "{:<10} {:>5} {:>9.2} {:>9.2} {:>10.2}x {:>9.2} {:>8.2}x {:>10.0} {:>10.0} {:>11.2e}",
+                "{:<10} {:>5} {:>9} {:>9} {:>11} {:>9} {:>9} {:>10} {:>10} {:>11}",
                 format!("{w}x{h}"),
                 precision.to_string(),
-                rs,
-                ts,
-                ts / rs,
-                mono,
-                ts / mono,
-                rm,
-                tn(if a.gpu { "peak_device_mb" } else { "peak_rss_mb" }),
-                tn("max_abs_diff_pts3d")
+                cell(rs, 2),
+                cell(ts, 2),
+                ratio(ts / rs),
+                cell(mono, 2),
+                ratio(ts / mono),
+                cell(rm, 0),
+                cell(tn(if a.gpu { "peak_device_mb" } else { "peak_rss_mb" }), 0),
+                sci(tn("max_abs_diff_pts3d"))
             );
             let tp = t.as_ref().map_or(serde_json::Value::Null, |t| t["profile"].clone());
             profiles.push((format!("{w}x{h} {precision}"), r["stages"].clone(), tp));
@@ -427,24 +428,64 @@ fn print_profile(size: &str, rust: &serde_json::Value, torch: &serde_json::Value
     println!("  GFLOP: counted by PyTorch's FlopCounterMode; GFLOP/s = GFLOP / seconds (Rust's Winograd 3x3");
     println!("  convolutions do fewer multiplies than counted, so its rate there is effective, not achieved)");
     let (n, what) = if gpu { (8192, "this GPU") } else { (2048, "this machine") };
-    println!("  {what}: GEMM {n}^3 in PyTorch at this precision {gemm:.0} GFLOP/s (same run)");
+    if gemm.is_finite() {
+        println!("  {what}: GEMM {n}^3 in PyTorch at this precision {gemm:.0} GFLOP/s (same run)");
+    } else {
+        println!("  no PyTorch peer in this run: its FLOPs, times and GEMM rate are left out (-)");
+    }
     println!("{:<44} {:>8} {:>8} {:>8} {:>8} {:>8}", "stage", "GFLOP", "rust s", "GFLOP/s", "torch s", "GFLOP/s");
+    let row = |what: &str, f: f64, rs: f64, ts: f64| {
+        println!(
+            "{what:<44} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            cell(f, 1),
+            cell(rs, 2),
+            cell(f / rs, 0),
+            cell(ts, 2),
+            cell(f / ts, 0)
+        );
+    };
     let (mut tf, mut tr, mut tt) = (0.0, 0.0, 0.0);
     for (key, what) in STAGES {
         let (f, rs, ts) = (num(&torch["flops"][key]) / 1e9, num(&rust[key]), num(&torch["seconds"][key]));
         (tf, tr, tt) = (tf + f, tr + rs, tt + ts);
-        println!("{what:<44} {f:>8.1} {rs:>8.2} {:>8.0} {ts:>8.2} {:>8.0}", f / rs, f / ts);
+        row(what, f, rs, ts);
     }
-    println!("{:<44} {tf:>8.1} {tr:>8.2} {:>8.0} {tt:>8.2} {:>8.0}", "total", tf / tr, tf / tt);
+    row("total", tf, tr, tt);
     // What the counted work allows: every FLOP at the large GEMM's rate.
     let floor = tf / gemm;
-    println!(
-        "  bound: every counted FLOP at that GEMM rate takes {floor:.2} s, {:.2}x PyTorch's {tt:.2} s: no faster at this \
-         precision on {what} without less work (Rust is at {:.2}x, {:.0}% of the bound's rate)",
-        tt / floor,
-        tt / tr,
-        100.0 * floor / tr
-    );
+    if floor.is_finite() {
+        println!(
+            "  bound: every counted FLOP at that GEMM rate takes {floor:.2} s, {:.2}x PyTorch's {tt:.2} s: no faster \
+             at this precision on {what} without less work (Rust is at {:.2}x, {:.0}% of the bound's rate)",
+            tt / floor,
+            tt / tr,
+            100.0 * floor / tr
+        );
+    }
+}
+
+/// `show(v)`, or `-` when `v` was not measured (NaN).
+fn or_dash(v: f64, show: impl Fn(f64) -> String) -> String {
+    if v.is_finite() {
+        show(v)
+    } else {
+        "-".into()
+    }
+}
+
+/// `v` with `prec` decimals.
+fn cell(v: f64, prec: usize) -> String {
+    or_dash(v, |v| format!("{v:.prec$}"))
+}
+
+/// A ratio as `1.23x`.
+fn ratio(v: f64) -> String {
+    or_dash(v, |v| format!("{v:.2}x"))
+}
+
+/// Scientific notation.
+fn sci(v: f64) -> String {
+    or_dash(v, |v| format!("{v:.2e}"))
 }
 
 /// One PyTorch run's settings.
