@@ -1,6 +1,7 @@
 //! The network: config -> loader -> forward, in one file (candle-transformers style).
 
 use crate::config::{DptConfig, EncoderKind, ModelConfig, PtsDecoder, PtsHeadConfig};
+use crate::cpu;
 use crate::dinov2::Dinov2;
 use crate::ops::{
     gelu, grid_positions, pixel_shuffle, relu, sdpa, upsample2x, Conv, ConvTranspose, LayerNorm, Linear, Rope,
@@ -317,10 +318,48 @@ impl Dpt {
         let path3 = self.refine[2].forward(path4, Some(maps[2].clone()));
         let path2 = self.refine[1].forward(path3, Some(maps[1].clone()));
         let path1 = self.refine[0].forward(path2, Some(maps[0].clone()));
-        let x = upsample2x(self.head0.forward(path1));
-        self.head4.forward(relu(self.head2.forward(x)))
+        self.tail(self.head0.forward(path1))
+    }
+
+    /// `head4(relu(head2(upsample2x(x))))`. On the CPU in bands of output rows, each from its
+    /// rows of the upsampled map plus one above and below: the full-resolution map (128
+    /// channels at the input's size, 100 MB at 512x384) is never made, and no tensor is
+    /// copied in between.
+    fn tail(&self, x: Tensor<4>) -> Tensor<4> {
+        if !(cpu::serves(&x.device()) && self.head2.has_raw() && self.head4.has_raw()) {
+            return self.head4.forward(relu(self.head2.forward(upsample2x(x))));
+        }
+        let device = x.device();
+        let [b, c, h, w] = x.dims();
+        let (ho, wo) = (2 * h, 2 * w);
+        let data = cpu::to_vec(x);
+        let (mid, out_ch) = (self.head2.out_ch, self.head4.out_ch);
+        let mut out = vec![0.0f32; b * out_ch * ho * wo];
+        for (img, dst) in data.chunks_exact(c * h * w).zip(out.chunks_exact_mut(out_ch * ho * wo)) {
+            for r0 in (0..ho).step_by(TAIL_BAND) {
+                let r1 = (r0 + TAIL_BAND).min(ho);
+                // Rows a..e of the upsampled map: the band and its 3x3 neighbours (zero padding
+                // only at the image's own edges, as the whole-image convolution has).
+                let (a, e) = (r0.saturating_sub(1), (r1 + 1).min(ho));
+                let up = cpu::resample::upsample2x_rows(img, c, h, w, a..e);
+                let mut y = self.head2.forward_raw(&up, e - a, wo).expect("a CPU kernel");
+                cpu::resample::relu_in_place(&mut y);
+                // Keep rows r0..r1 of every channel, then the 1x1 convolution on them.
+                let (skip, n) = ((r0 - a) * wo, (r1 - r0) * wo);
+                let kept: Vec<f32> = y.chunks_exact((e - a) * wo).flat_map(|ch| &ch[skip..skip + n]).copied().collect();
+                debug_assert_eq!(kept.len(), mid * n);
+                let z = self.head4.forward_raw(&kept, r1 - r0, wo).expect("a CPU kernel");
+                for (o, zc) in dst.chunks_exact_mut(ho * wo).zip(z.chunks_exact(n)) {
+                    o[r0 * wo..r1 * wo].copy_from_slice(zc);
+                }
+            }
+        }
+        cpu::from_vec(out, [b, out_ch, ho, wo], &device)
     }
 }
+
+/// Output rows per band of [`Dpt::tail`].
+const TAIL_BAND: usize = 64;
 
 /// The pointmap activation (`depth_mode` 'exp'): `v / max(|v|, 1e-8) * expm1(|v|)` for the
 /// three raw channels `v` along `dim`.
@@ -682,7 +721,7 @@ impl Dens3r {
 
     /// [`Dens3r::mono_heads`] computing only the optional outputs in `want`.
     pub fn mono_heads_with(&self, v: &ViewFeatures, want: HeadOutputs) -> ViewPrediction {
-        self.view_heads(&self.head1, v, want)
+        self.view_heads(&self.head1, v, want, true)
     }
 
     /// Runs the heads on backbone features.
@@ -694,7 +733,12 @@ impl Dens3r {
     /// confidence always): training skips what its stage's losses do not read.
     pub fn heads_with(&self, f: &Features, want: HeadOutputs) -> Predictions {
         let [v1, v2] = &f.views;
-        Predictions { views: [self.view_heads(&self.head1, v1, want), self.view_heads(&self.head2, v2, want)] }
+        let (p1, p2) = both(
+            &v1.enc.device(),
+            || self.view_heads(&self.head1, v1, want, false),
+            || self.view_heads(&self.head2, v2, want, false),
+        );
+        Predictions { views: [p1, p2] }
     }
 
     /// Encoder + decoder + heads on a pair.
@@ -702,16 +746,19 @@ impl Dens3r {
         self.heads(&self.encode(img1, img2))
     }
 
-    fn view_heads(&self, head: &PtsHead, v: &ViewFeatures, want: HeadOutputs) -> ViewPrediction {
+    /// One view's heads; `side_by_side`: the point and normal DPTs run side by side on the CPU
+    /// (the single-image path; a pair's two views already run so).
+    fn view_heads(&self, head: &PtsHead, v: &ViewFeatures, want: HeadOutputs, side_by_side: bool) -> ViewPrediction {
         let c = &self.config;
         let hooks = c.hooks();
         let layers = || hooks.map(|i| v.layer(i));
-        let raw_pts = match &head.to_pixels {
+        let pts = || match &head.to_pixels {
             ToPixels::Dpt(d) => d.forward(layers(), v.grid),
             // DUSt3R's LinearPts3d: the last decoder layer, projected and pixel-shuffled.
             ToPixels::Linear(proj) => tokens_to_pixels(proj.forward(v.layer(c.dec_depth)), v.grid, c.patch),
         };
-        let raw_normal = self.normal_head.as_ref().filter(|_| want.normal).map(|d| d.forward(layers(), v.grid));
+        let normal = || self.normal_head.as_ref().filter(|_| want.normal).map(|d| d.forward(layers(), v.grid));
+        let (raw_pts, raw_normal) = if side_by_side { both(&v.enc.device(), pts, normal) } else { (pts(), normal()) };
         let raw_mlp = head
             .mlp
             .as_ref()
@@ -752,11 +799,11 @@ impl Dens3r {
 }
 
 /// `(a(), b())`, the two run side by side on rayon on the plain CPU device; elsewhere (GPU,
-/// autodiff) one after the other. [`Dens3r::decode`] runs each block's two views so: they are
-/// independent within a block, and a core each with whole 768-wide products beats every
-/// product split across the cores (full-size pair at 512x384 on 2 cores: decoder 2.20 -> 1.98
-/// s, peak RSS +66 MB). The encoder gains nothing (its products are wide enough to split), and
-/// the heads side by side would hold both views' full-resolution maps at once (+500 MB).
+/// autodiff) one after the other. The two views of a pair are independent within each decoder
+/// block and in the heads, and a core each with whole products beats every product split
+/// across the cores (full-size pair at 512x384 on 2 cores: decoder 2.20 -> 2.0 s, each DPT
+/// 1.48 -> 1.11 s). The encoder gains nothing (its products are wide enough to split). The
+/// heads side by side hold both views' maps at once, which [`Dpt::tail`]'s bands pay for.
 fn both<A: Send, B: Send>(device: &Device, a: impl FnOnce() -> A + Send, b: impl FnOnce() -> B + Send) -> (A, B) {
     if crate::cpu::serves(device) {
         rayon::join(a, b)

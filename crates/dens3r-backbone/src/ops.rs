@@ -151,15 +151,34 @@ impl Conv {
         let data = cpu::to_vec(x);
         let mut out = Vec::with_capacity(b * out_ch * h * w);
         for img in data.chunks_exact(c * h * w) {
-            out.extend(match fast.as_ref() {
-                FastConv::Winograd(k, bias) => k.forward(img, h, w, bias.as_deref()),
-                FastConv::Shifted(taps, bias) => {
-                    cpu::conv::conv3x3_shifted(img, taps, bias.as_deref(), c, out_ch, h, w)
-                }
-                FastConv::Pointwise(wt, bias) => cpu::conv::conv1x1(img, wt, bias.as_deref(), c, out_ch, h * w),
-            });
+            out.extend(fast.run(img, c, out_ch, h, w));
         }
         cpu::from_vec(out, [b, out_ch, h, w], &device)
+    }
+
+    /// The convolution of one image `(C, h, w)` given as a raw buffer, `(out, h, w)`; `None`
+    /// unless a CPU kernel serves it (built on the plain flex device, stride 1, 1x1 or 3x3).
+    pub(crate) fn forward_raw(&self, img: &[f32], h: usize, w: usize) -> Option<Vec<f32>> {
+        match &self.kernel {
+            ConvKernel::Cpu(fast) => Some(fast.run(img, img.len() / (h * w), self.out_ch, h, w)),
+            ConvKernel::Burn(_) => None,
+        }
+    }
+
+    /// Whether [`Conv::forward_raw`] serves this convolution.
+    pub(crate) fn has_raw(&self) -> bool {
+        matches!(self.kernel, ConvKernel::Cpu(_))
+    }
+}
+
+impl FastConv {
+    /// One image `(c, h, w)` into `(out_ch, h, w)`.
+    fn run(&self, img: &[f32], c: usize, out_ch: usize, h: usize, w: usize) -> Vec<f32> {
+        match self {
+            FastConv::Winograd(k, bias) => k.forward(img, h, w, bias.as_deref()),
+            FastConv::Shifted(taps, bias) => cpu::conv::conv3x3_shifted(img, taps, bias.as_deref(), c, out_ch, h, w),
+            FastConv::Pointwise(wt, bias) => cpu::conv::conv1x1(img, wt, bias.as_deref(), c, out_ch, h * w),
+        }
     }
 }
 

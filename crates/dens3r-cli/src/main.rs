@@ -145,7 +145,7 @@ fn main() {
         eprintln!("interrupted: unfinished outputs removed");
         std::process::exit(130);
     });
-    // DENS3R_CACHE_MB: how much freed activation memory to keep for reuse (default 256;
+    // DENS3R_CACHE_MB: how much freed activation memory to keep for reuse (default 128;
     // 0 = none, lowest peak memory, a few % slower single-image passes).
     if let Some(mb) = std::env::var("DENS3R_CACHE_MB").ok().and_then(|v| v.trim().parse::<usize>().ok()) {
         dens3r_backbone::cpu::alloc::BlockCache::set_capacity(mb << 20);

@@ -6,9 +6,10 @@
 //! (a VM page fault per 4 KB), as much as the arithmetic of many layers. Binaries opt in with
 //! `#[global_allocator] static A: BlockCache = BlockCache;` (the `dens3r` CLI does).
 //! Blocks of at least 1 MB are kept by exact size and alignment, up to
-//! [`BlockCache::set_capacity`] bytes in all (256 MiB by default, blocks up to a quarter of it:
-//! on a 512x384 pair the forward takes the same time within noise as with 1 GiB, and peak
-//! memory drops from 3.76 GB to 3.32 GB); when full, the blocks kept longest are returned to
+//! [`BlockCache::set_capacity`] bytes in all (128 MiB by default, blocks up to a quarter of it:
+//! on a 512x384 pair, with the two views' heads side by side, the forward takes the same time
+//! within noise as with 256 MiB and peak memory drops from 3.36-3.57 GB to 3.20-3.27 GB; with
+//! none, 3.03 GB and 4% slower); when full, the blocks kept longest are returned to
 //! the system first, so the cache follows the sizes in use.
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -32,7 +33,7 @@ const EMPTY: Slot = Slot { size: 0, align: 0, addr: 0, stamp: 0 };
 /// The kept blocks and a counter for their stamps.
 static FREE: Mutex<([Slot; SLOTS], u64)> = Mutex::new(([EMPTY; SLOTS], 0));
 static CACHED: AtomicUsize = AtomicUsize::new(0);
-static CAPACITY: AtomicUsize = AtomicUsize::new(256 << 20);
+static CAPACITY: AtomicUsize = AtomicUsize::new(128 << 20);
 
 /// The caching allocator (see the module docs).
 pub struct BlockCache;

@@ -6,8 +6,15 @@ use rayon::prelude::*;
 /// Bilinear x2 upsampling of `(c, h, w)` planes to `(c, 2h, 2w)`, corners aligned
 /// (source coordinate `i * (n_in - 1) / (n_out - 1)`, as PyTorch computes it in f32).
 pub fn upsample2x(x: &[f32], c: usize, h: usize, w: usize) -> Vec<f32> {
+    upsample2x_rows(x, c, h, w, 0..2 * h)
+}
+
+/// Rows `rows` of [`upsample2x`]'s output, `(c, rows.len(), 2w)`: the same values, without
+/// the rest of the image.
+pub fn upsample2x_rows(x: &[f32], c: usize, h: usize, w: usize, rows: std::ops::Range<usize>) -> Vec<f32> {
     assert_eq!(x.len(), c * h * w, "upsample input size mismatch");
     let (ho, wo) = (2 * h, 2 * w);
+    assert!(rows.end <= ho, "upsample rows {rows:?} beyond {ho}");
     let taps = |n_in: usize, n_out: usize| -> Vec<(usize, usize, f32)> {
         let scale = if n_out > 1 { (n_in - 1) as f32 / (n_out - 1) as f32 } else { 0.0 };
         (0..n_out)
@@ -20,18 +27,17 @@ pub fn upsample2x(x: &[f32], c: usize, h: usize, w: usize) -> Vec<f32> {
             .collect()
     };
     let (ty, tx) = (taps(h, ho), taps(w, wo));
-    let mut y = vec![0.0f32; c * ho * wo];
-    y.par_chunks_mut(ho * wo).zip(x.par_chunks(h * w)).for_each(|(dst, src)| {
-        let mut row = vec![0.0f32; wo];
-        for (r, &(y0, y1, fy)) in ty.iter().enumerate() {
+    let nr = rows.len();
+    let mut y = vec![0.0f32; c * nr * wo];
+    y.par_chunks_mut(nr * wo).zip(x.par_chunks(h * w)).for_each(|(dst, src)| {
+        for (r, &(y0, y1, fy)) in ty[rows.clone()].iter().enumerate() {
             let (a, b) = (&src[y0 * w..][..w], &src[y1 * w..][..w]);
-            for (o, &(x0, x1, fx)) in row.iter_mut().zip(&tx) {
+            for (o, &(x0, x1, fx)) in dst[r * wo..][..wo].iter_mut().zip(&tx) {
                 // PyTorch's weighting: (1 - fy) * ((1 - fx) a0 + fx a1) + fy * (...).
                 let top = (1.0 - fx) * a[x0] + fx * a[x1];
                 let bot = (1.0 - fx) * b[x0] + fx * b[x1];
                 *o = (1.0 - fy) * top + fy * bot;
             }
-            dst[r * wo..][..wo].copy_from_slice(&row);
         }
     });
     y

@@ -3,6 +3,7 @@
 
 mod dinov2;
 mod dinov2_encoder;
+mod dpt;
 #[path = "../../../../tests/support/fetched.rs"]
 mod fetched;
 #[path = "../../../../tests/support/fixtures.rs"]
