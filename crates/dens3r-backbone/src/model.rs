@@ -649,9 +649,21 @@ impl Dens3r {
 
     /// Runs encoder and decoder on a pair of normalised images `(B, 3, H, W)` in `[-1, 1]`.
     pub fn encode(&self, img1: Tensor<4>, img2: Tensor<4>) -> Features {
-        let (e1, g1) = self.encode_image(img1);
-        let (e2, g2) = self.encode_image(img2);
+        let [(e1, g1), (e2, g2)] = self.encode_images(img1, img2);
         self.decode(e1, g1, e2, g2)
+    }
+
+    /// [`Dens3r::encode_image`] of both images of a pair: as one batch when they have the same
+    /// size, as the official `_encode_symmetrized` does (the encoder's products then take both
+    /// views' tokens as rows).
+    pub fn encode_images(&self, img1: Tensor<4>, img2: Tensor<4>) -> [(Tensor<3>, (usize, usize)); 2] {
+        if img1.dims() != img2.dims() {
+            return [self.encode_image(img1), self.encode_image(img2)];
+        }
+        let b = img1.dims()[0];
+        let (e, g) = self.encode_image(Tensor::cat(vec![img1, img2], 0));
+        let [_, n, d] = e.dims();
+        [(e.clone().slice([0..b, 0..n, 0..d]), g), (e.slice([b..2 * b, 0..n, 0..d]), g)]
     }
 
     /// The decoder on two views' encoder tokens ([`Dens3r::encode_image`] outputs and their

@@ -198,8 +198,7 @@ fn profile(model: &Dens3r, x1: Tensor<4>, x2: Tensor<4>) -> serde_json::Value {
     };
     let mut enc = None;
     let encoder = timed(&mut || {
-        let (e1, g1) = model.encode_image(x1.clone());
-        let (e2, g2) = model.encode_image(x2.clone());
+        let [(e1, g1), (e2, g2)] = model.encode_images(x1.clone(), x2.clone());
         let _ = (e1.to_data(), e2.to_data());
         enc = Some((e1, g1, e2, g2));
     });
