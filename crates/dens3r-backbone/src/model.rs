@@ -813,9 +813,10 @@ impl Dens3r {
 /// `(a(), b())`, the two run side by side on rayon on the plain CPU device; elsewhere (GPU,
 /// autodiff) one after the other. The two views of a pair are independent within each decoder
 /// block and in the heads, and a core each with whole products beats every product split
-/// across the cores (full-size pair at 512x384 on 2 cores: decoder 2.20 -> 2.0 s, each DPT
-/// 1.48 -> 1.11 s). The encoder gains nothing (its products are wide enough to split). The
-/// heads side by side hold both views' maps at once, which [`Dpt::tail`]'s bands pay for.
+/// across the cores (full-size pair at 512x384 on 2 cores: decoder 2.20 -> 2.00 s, each DPT
+/// 1.48 -> 1.04-1.12 s). The encoder takes both images as one batch instead
+/// ([`Dens3r::encode_images`]). The heads side by side hold both views' maps at once, which
+/// [`Dpt::tail`]'s bands pay for.
 fn both<A: Send, B: Send>(device: &Device, a: impl FnOnce() -> A + Send, b: impl FnOnce() -> B + Send) -> (A, B) {
     if crate::cpu::serves(device) {
         rayon::join(a, b)
