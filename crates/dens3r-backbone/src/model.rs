@@ -333,7 +333,7 @@ impl Dpt {
         let [b, c, h, w] = x.dims();
         let (ho, wo) = (2 * h, 2 * w);
         let data = cpu::to_vec(x);
-        let (mid, out_ch) = (self.head2.out_ch, self.head4.out_ch);
+        let out_ch = self.head4.out_ch;
         let mut out = vec![0.0f32; b * out_ch * ho * wo];
         for (img, dst) in data.chunks_exact(c * h * w).zip(out.chunks_exact_mut(out_ch * ho * wo)) {
             for r0 in (0..ho).step_by(TAIL_BAND) {
@@ -344,13 +344,12 @@ impl Dpt {
                 let up = cpu::resample::upsample2x_rows(img, c, h, w, a..e);
                 let mut y = self.head2.forward_raw(&up, e - a, wo).expect("a CPU kernel");
                 cpu::resample::relu_in_place(&mut y);
-                // Keep rows r0..r1 of every channel, then the 1x1 convolution on them.
-                let (skip, n) = ((r0 - a) * wo, (r1 - r0) * wo);
-                let kept: Vec<f32> = y.chunks_exact((e - a) * wo).flat_map(|ch| &ch[skip..skip + n]).copied().collect();
-                debug_assert_eq!(kept.len(), mid * n);
-                let z = self.head4.forward_raw(&kept, r1 - r0, wo).expect("a CPU kernel");
-                for (o, zc) in dst.chunks_exact_mut(ho * wo).zip(z.chunks_exact(n)) {
-                    o[r0 * wo..r1 * wo].copy_from_slice(zc);
+                // The 1x1 convolution over the whole band (its few output channels cost less
+                // than copying the wide ones), then rows r0..r1 of each output channel.
+                let z = self.head4.forward_raw(&y, e - a, wo).expect("a CPU kernel");
+                let skip = (r0 - a) * wo;
+                for (o, zc) in dst.chunks_exact_mut(ho * wo).zip(z.chunks_exact((e - a) * wo)) {
+                    o[r0 * wo..r1 * wo].copy_from_slice(&zc[skip..skip + (r1 - r0) * wo]);
                 }
             }
         }
