@@ -3,7 +3,6 @@
 
 mod dinov2;
 mod dinov2_encoder;
-mod dpt;
 #[path = "../../../../tests/support/fetched.rs"]
 mod fetched;
 #[path = "../../../../tests/support/fixtures.rs"]
