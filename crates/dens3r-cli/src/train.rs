@@ -80,6 +80,11 @@ pub struct TrainArgs {
     /// looks down within 40 deg of vertical, where an image has no upright (0 = never).
     #[arg(long, default_value_t = 0.0)]
     roll_top_down: f32,
+    /// Weight of a scale-and-shift-invariant depth loss on view 1, added to the stage's terms
+    /// (least-squares fit, residual over the ground truth's spread: shallow scenes such as a
+    /// tote from above count as much as deep rooms); 0 = off, as the paper.
+    #[arg(long, default_value_t = 0.0)]
+    depth_ssi: f32,
     /// Held-out scene folders (or `synth` sets) scored during training, into log.jsonl's
     /// `val` and loss.png.
     #[arg(long, num_args = 1..)]
@@ -176,6 +181,7 @@ fn train_config(a: &TrainArgs) -> Result<TrainConfig> {
         aspects: !a.fixed_aspect,
         self_pairs: a.self_pairs,
         roll_top_down: a.roll_top_down,
+        depth_ssi: a.depth_ssi,
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
         frame: PointsFrame::parse(&a.points_in)

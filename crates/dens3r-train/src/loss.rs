@@ -61,6 +61,29 @@ pub fn conf_regr3d(v1: RegrView, v2: RegrView, alpha: f32) -> Tensor<1> {
     conf_weighted(l1, v1.conf, v1.valid, alpha) + conf_weighted(l2, v2.conf, v2.valid, alpha)
 }
 
+/// A scale-and-shift-invariant depth loss (MiDaS-style), per sample: the predicted depth
+/// `(B, H, W)` fitted to the ground truth by least squares (`s z + t`) over the valid pixels,
+/// the mean absolute residual divided by the ground truth's mean absolute deviation plus 5% of
+/// its mean; averaged over the batch. A constant prediction scores about 1 whatever the scene's
+/// depth range, so a shallow scene (a tote seen from above) weighs as much as a deep room,
+/// where the pointmap regression, normalised by the mean distance, barely sees its relief.
+pub fn ssi_depth_l1(pred: Tensor<3>, gt: Tensor<3>, valid: Tensor<3>) -> Tensor<1> {
+    let b = pred.dims()[0];
+    let flat = |t: Tensor<3>| t.reshape([b as i32, -1]);
+    let (p, g, v) = (flat(pred), flat(gt), flat(valid));
+    let n = v.clone().sum_dim(1).clamp_min(1.0);
+    let mean = |x: Tensor<2>| (x * v.clone()).sum_dim(1) / n.clone();
+    let (mp, mg) = (mean(p.clone()), mean(g.clone()));
+    let (dp, dg) = (p - mp.clone(), g.clone() - mg.clone());
+    let var = mean(dp.clone().square());
+    let cov = mean(dp.clone() * dg.clone());
+    let s = cov / var.add_scalar(1e-12);
+    let r = (dp * s - dg.clone()).abs();
+    let spread = mean(dg.abs()) + mg.mul_scalar(0.05);
+    let per = mean(r) / spread.clamp_min(1e-12);
+    per.mean()
+}
+
 /// Dens3R's `pcd2normal` on a pointmap `(B, H, W, 3)`: on interior pixels
 /// `a = P[i, j+1] - P[i, j-1]`, `b = P[i-1, j] - P[i+1, j]`, `n = a x b` with `n_y` negated,
 /// divided by `max(|n|, 1e-12)`; a one-pixel zero border. Dens3R raw normal convention.

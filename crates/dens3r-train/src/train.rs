@@ -3,7 +3,7 @@
 //! warm-up and cosine decay, global gradient-norm clipping, checkpoints that resume exactly
 //! (each step's draw and augmentation are seeded by its index), and a JSONL log.
 
-use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, Matches, RegrView};
+use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, ssi_depth_l1, Matches, RegrView};
 use crate::pair::{covisibility, crop_window, missing_depth, pair_target, PairTarget, View};
 use crate::TrainError;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -130,6 +130,10 @@ pub struct TrainConfig {
     /// rooms' "higher in the image is farther" (0 = never).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub roll_top_down: f32,
+    /// Weight of a scale-and-shift-invariant depth loss on view 1 ([`loss::ssi_depth_l1`]),
+    /// added to the stage's terms (0 = off, as the paper).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub depth_ssi: f32,
     /// Frozen parameters.
     pub freeze: Freeze,
     /// Steps between checkpoints.
@@ -164,6 +168,7 @@ impl Default for TrainConfig {
             aspects: false,
             self_pairs: 0.0,
             roll_top_down: 0.0,
+            depth_ssi: 0.0,
             freeze: Freeze::None,
             checkpoint_every: 50,
             seed: 0,
@@ -203,6 +208,9 @@ impl TrainConfig {
                 "--roll-top-down {}: expected a probability in [0, 1]",
                 self.roll_top_down
             )));
+        }
+        if !(self.depth_ssi.is_finite() && self.depth_ssi >= 0.0) {
+            return Err(TrainError::invalid(format!("--depth-ssi {}: expected a non-negative weight", self.depth_ssi)));
         }
         if self.match_block == 0 {
             return Err(TrainError::invalid("the matching block size must be positive"));
@@ -249,6 +257,9 @@ pub struct LossTerms {
     pub matching: Option<f32>,
     /// Normal head L1 (stage 2).
     pub n: Option<f32>,
+    /// Scale-and-shift-invariant depth of view 1 (when weighted).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ssi: Option<f32>,
 }
 
 /// A batch on the device.
@@ -279,7 +290,11 @@ pub fn normalise(img: &image::RgbImage) -> Vec<f32> {
 /// correspondences, so a batch without any has none).
 fn trained_term(cfg: &TrainConfig, t: &LossTerms) -> bool {
     let [w_glb, w_n, w_match, w_normal] = cfg.weights();
-    w_glb > 0.0 || w_n > 0.0 || (w_match > 0.0 && t.matching.is_some()) || (w_normal > 0.0 && t.n.is_some())
+    w_glb > 0.0
+        || w_n > 0.0
+        || (w_match > 0.0 && t.matching.is_some())
+        || (w_normal > 0.0 && t.n.is_some())
+        || cfg.depth_ssi > 0.0
 }
 
 /// The weighted loss of a batch under `stage` (and each term), from the network's outputs.
@@ -306,7 +321,7 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
     let regr = |p: &dens3r_backbone::ViewPrediction, gt: Tensor<4>, valid: Tensor<3>| -> Result<RegrView, TrainError> {
         Ok(RegrView { pred: p.pts3d.clone(), conf: p.conf.clone().ok_or_else(no_conf)?, gt, valid })
     };
-    let pts_glb = conf_regr3d(regr(p1, g1, m1.clone())?, regr(p2, g2, m2.clone())?, cfg.alpha);
+    let pts_glb = conf_regr3d(regr(p1, g1.clone(), m1.clone())?, regr(p2, g2, m2.clone())?, cfg.alpha);
     let n_in1 = |k: usize| {
         let n: Vec<&[Vec3]> = t
             .iter()
@@ -326,6 +341,15 @@ pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(T
     }
     let value = |x: &Tensor<1>| x.clone().into_data().try_to_vec::<f32>().map(|v| v[0]).unwrap_or(f32::NAN);
     let mut terms = LossTerms { pts_glb: value(&pts_glb), pts_n: value(&pts_n), ..Default::default() };
+    if cfg.depth_ssi > 0.0 {
+        let z = |p: Tensor<4>| {
+            let [b, h, w, _] = p.dims();
+            p.narrow(3, 2, 1).reshape([b, h, w])
+        };
+        let ssi = ssi_depth_l1(z(p1.pts3d.clone()), z(g1.clone()), m1.clone());
+        terms.ssi = Some(value(&ssi));
+        total = total + ssi.mul_scalar(cfg.depth_ssi);
+    }
     if w_match > 0.0 {
         let (d1, d2) = (p1.desc.clone(), p2.desc.clone());
         let (c1, c2) = (p1.desc_conf.clone(), p2.desc_conf.clone());
@@ -616,6 +640,7 @@ pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usi
         sum.pts_n += t.pts_n;
         sum.matching = add(sum.matching, t.matching);
         sum.n = add(sum.n, t.n);
+        sum.ssi = add(sum.ssi, t.ssi);
     }
     let m = n as f32;
     Ok(LossTerms {
@@ -624,6 +649,7 @@ pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usi
         pts_n: sum.pts_n / m,
         matching: sum.matching.map(|v| v / m),
         n: sum.n.map(|v| v / m),
+        ssi: sum.ssi.map(|v| v / m),
     })
 }
 

@@ -264,6 +264,62 @@ fn losses_equal_the_host_references() {
     .is_none());
 }
 
+/// The scale-and-shift-invariant depth loss against a host reference that fits `s z + t` by
+/// its 2x2 normal equations (not the centred form the loss uses); invariant to the
+/// prediction's scale and shift and to its invalid pixels; zero for an affine copy of the
+/// ground truth; `MAD / (MAD + 0.05 mean)` for a constant.
+#[test]
+fn ssi_depth_loss_equals_the_host_reference() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (b, h, w) = (2usize, 4usize, 6usize);
+    let n = b * h * w;
+    let gt = rand_vec(&mut rng, n, 0.5, 2.0);
+    let pred = rand_vec(&mut rng, n, 0.3, 3.0);
+    let valid: Vec<f32> = (0..n).map(|i| if i % 5 == 3 { 0.0 } else { 1.0 }).collect();
+    let reference = |p: &[f32]| -> f64 {
+        let mut total = 0.0;
+        for s in 0..b {
+            let px: Vec<(f64, f64)> =
+                (s * h * w..(s + 1) * h * w).filter(|&i| valid[i] > 0.0).map(|i| (p[i] as f64, gt[i] as f64)).collect();
+            let m = px.len() as f64;
+            let (sp, sg) = (px.iter().map(|x| x.0).sum::<f64>(), px.iter().map(|x| x.1).sum::<f64>());
+            let spp = px.iter().map(|x| x.0 * x.0).sum::<f64>();
+            let spg = px.iter().map(|x| x.0 * x.1).sum::<f64>();
+            let det = spp * m - sp * sp;
+            let (scale, shift) = if det.abs() < 1e-12 {
+                (0.0, sg / m)
+            } else {
+                ((spg * m - sp * sg) / det, (spp * sg - sp * spg) / det)
+            };
+            let res = px.iter().map(|x| (scale * x.0 + shift - x.1).abs()).sum::<f64>() / m;
+            let mean = sg / m;
+            let mad = px.iter().map(|x| (x.1 - mean).abs()).sum::<f64>() / m;
+            total += res / (mad + 0.05 * mean);
+        }
+        total / b as f64
+    };
+    let d = Device::flex();
+    let got =
+        |p: &[f32]| scalar(loss::ssi_depth_l1(t3(p, [b, h, w], &d), t3(&gt, [b, h, w], &d), t3(&valid, [b, h, w], &d)));
+    let want = reference(&pred);
+    assert!(want > 0.3, "random depth should score far from zero: {want}");
+    assert!((got(&pred) - want).abs() < 1e-4 * want, "{} vs {want}", got(&pred));
+    let affine: Vec<f32> = pred.iter().map(|z| 3.5 * z - 1.2).collect();
+    assert!((got(&affine) - want).abs() < 1e-4 * want, "not scale-and-shift invariant: {}", got(&affine));
+    let mut garbage = pred.clone();
+    for (z, v) in garbage.iter_mut().zip(&valid) {
+        if *v == 0.0 {
+            *z = 1e3;
+        }
+    }
+    assert!((got(&garbage) - want).abs() < 1e-4 * want, "invalid pixels counted: {}", got(&garbage));
+    let copy: Vec<f32> = gt.iter().map(|g| 2.0 * g + 1.0).collect();
+    assert!(got(&copy) < 1e-5, "an affine copy of the ground truth scores {}", got(&copy));
+    let constant = vec![0.7f32; n];
+    let want_c = reference(&constant);
+    assert!((0.5..1.0).contains(&want_c) && (got(&constant) - want_c).abs() < 1e-4, "{} vs {want_c}", got(&constant));
+}
+
 /// Autodiff gradients of each loss against central finite differences of the same loss.
 #[test]
 fn loss_gradients_match_finite_differences() {
@@ -299,7 +355,9 @@ fn loss_gradients_match_finite_differences() {
         let unit = x.clone() / x.clone().square().sum_dim(3).sqrt();
         let m = Matches { idx1: vec![0, 5, 9, 17], idx2: vec![3, 5, 11, 2] };
         let mt = loss::matching_loss([unit.clone(), unit.flip([1])], [c.clone(), c], &[m], 0.5, 1.0, 8192).unwrap();
-        r + pn.mul_scalar(0.3) + mt.mul_scalar(0.2)
+        let z = |p: Tensor<4>| p.narrow(3, 2, 1).reshape([b, h, w]);
+        let ssi = loss::ssi_depth_l1(z(x.clone()), z(t4(&gt, [b, h, w, 3], d)), t3(&valid, [b, h, w], d));
+        r + pn.mul_scalar(0.3) + mt.mul_scalar(0.2) + ssi.mul_scalar(0.5)
     };
     let d = ad();
     let x = t4(&x0, [b, h, w, 3], &d).require_grad();
