@@ -74,7 +74,7 @@ pub fn ssi_depth_l1(pred: Tensor<3>, gt: Tensor<3>, valid: Tensor<3>) -> Tensor<
     let n = v.clone().sum_dim(1).clamp_min(1.0);
     let mean = |x: Tensor<2>| (x * v.clone()).sum_dim(1) / n.clone();
     let (mp, mg) = (mean(p.clone()), mean(g.clone()));
-    let (dp, dg) = (p - mp.clone(), g.clone() - mg.clone());
+    let (dp, dg) = (p - mp, g - mg.clone());
     let var = mean(dp.clone().square());
     let cov = mean(dp.clone() * dg.clone());
     let s = cov / var.add_scalar(1e-12);
