@@ -129,6 +129,12 @@ impl PtsHeadConfig {
 pub struct ModelConfig {
     /// The encoder.
     pub encoder: EncoderKind,
+    /// Encoder taps (a DINOv2 encoder only; empty in the official networks): the 1-based
+    /// blocks whose tokens (through the encoder's final LayerNorm), projected by
+    /// `enc_taps.{block}` (a linear layer to the hooked layer's width), are added to the DPT
+    /// heads' hooked layers 0, 1, ... in order, as Depth Anything reads DINOv2's intermediate
+    /// blocks. Read from the weights' `enc_taps.*` keys.
+    pub enc_taps: Vec<usize>,
     /// Patch size (16): input pixels per token side.
     pub patch: usize,
     /// Encoder width.
@@ -264,8 +270,17 @@ impl ModelConfig {
         };
         let normal_head =
             if w.contains("normal_local_head.dpt.head.4.weight") { Some(dpt("normal_local_head")?) } else { None };
+        // The encoder's taps, by block (DINOv2 encoders only).
+        let enc_taps = match encoder {
+            EncoderKind::Dinov2 => (1..=enc_depth).filter(|b| w.contains(&format!("enc_taps.{b}.weight"))).collect(),
+            EncoderKind::Vit => Vec::new(),
+        };
+        if enc_taps.len() > 4 {
+            return Err(err(format!("{} enc_taps.* layers; the DPT reads at most 4", enc_taps.len())));
+        }
         Ok(Self {
             encoder,
+            enc_taps,
             patch: pe[2],
             enc_dim,
             enc_depth,
@@ -335,6 +350,7 @@ impl ModelConfig {
         let [head1, head2] = pts_heads(s.dpt, Some(s.desc_hidden));
         Self {
             encoder: s.encoder,
+            enc_taps: Vec::new(),
             patch: s.patch,
             enc_dim: s.enc.dim,
             enc_depth: s.enc.depth,

@@ -174,9 +174,11 @@ impl Dinov2 {
     /// `patch`) on any device are resized bilinearly to `(H / patch * 14, W / patch * 14)`
     /// (half-pixel centres, PyTorch's `align_corners=False`), normalised with ImageNet's
     /// statistics, and run through every block; the output tokens (after the final LayerNorm)
-    /// come back on the images' device with the grid `(H / patch, W / patch)`. Nothing here
-    /// is tracked by autodiff: the encoder is frozen.
-    pub fn encode_dens3r(&self, img: Tensor<4>, patch: usize) -> (Tensor<3>, (usize, usize)) {
+    /// come back on the images' device with the grid `(H / patch, W / patch)`, followed along
+    /// the channels by the tokens of each 1-based block in `taps` (also through the final
+    /// LayerNorm): `(B, N, dim * (1 + taps.len()))`. Nothing here is tracked by autodiff: the
+    /// encoder is frozen.
+    pub fn encode_dens3r(&self, img: Tensor<4>, patch: usize, taps: &[usize]) -> (Tensor<3>, (usize, usize)) {
         let device = img.device();
         let [b, c, h, w] = img.dims();
         let (gh, gw) = (h / patch, w / patch);
@@ -192,11 +194,21 @@ impl Dinov2 {
             out.extend(resized.into_iter().map(|x| ((x + 1.0) * 0.5 - m) / s));
         }
         let x = Tensor::<4>::from_data(TensorData::new(out, [b, c, oh, ow]), &self.device);
-        let (mut tokens, grid) = self.forward(x, &[self.config.depth]);
-        let t = tokens.pop().expect("the last block is hooked");
-        let n = grid.0 * grid.1;
+        let mut hooks = taps.to_vec();
+        hooks.push(self.config.depth);
+        let (tokens, grid) = self.forward(x, &hooks);
+        // `forward` returns the hooked blocks in block order; put the last block first, then
+        // the taps in the order asked.
+        let mut order: Vec<usize> = hooks.clone();
+        order.sort_unstable();
+        order.dedup();
+        let pick = |block: usize| tokens[order.iter().position(|&b| b == block).expect("hooked")].clone();
+        let mut parts = vec![pick(self.config.depth)];
+        parts.extend(taps.iter().map(|&b| pick(b)));
+        let t = Tensor::cat(parts, 2);
+        let (n, ch) = (grid.0 * grid.1, self.config.dim * (1 + taps.len()));
         let data = t.into_data().convert::<f32>().try_to_vec::<f32>().expect("f32 tokens");
-        (Tensor::from_data(TensorData::new(data, [b, n, self.config.dim]), &device), grid)
+        (Tensor::from_data(TensorData::new(data, [b, n, ch]), &device), grid)
     }
 
     /// Position embeddings for a `(gh, gw)` token grid, `(gh * gw, dim)`.

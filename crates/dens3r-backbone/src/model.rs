@@ -396,6 +396,8 @@ struct PtsHead {
 pub struct ViewFeatures {
     /// Encoder tokens after `enc_norm`, `(B, N, D_enc)`.
     pub enc: Tensor<3>,
+    /// The encoder's tapped blocks' tokens ([`ModelConfig::enc_taps`]), `(B, N, D_enc)` each.
+    pub taps: Vec<Tensor<3>>,
     /// Decoder block outputs, `(B, N, D_dec)` each; the last one after `dec_norm`.
     pub dec: Vec<Tensor<3>>,
     /// Token grid `(h, w)`.
@@ -508,6 +510,8 @@ pub struct Dens3r {
     head1: PtsHead,
     head2: PtsHead,
     normal_head: Option<Dpt>,
+    /// Projections of the encoder's taps onto the hooked layers ([`ModelConfig::enc_taps`]).
+    enc_taps: Vec<Linear>,
 }
 
 impl Dens3r {
@@ -589,6 +593,12 @@ impl Dens3r {
             head1: pts_head(&c.head1),
             head2: pts_head(&c.head2),
             normal_head: c.normal_head.as_ref().map(|d| Dpt::load(l, d, in_dims)),
+            enc_taps: c
+                .enc_taps
+                .iter()
+                .zip(in_dims)
+                .map(|(b, d)| l.linear(&format!("enc_taps.{b}"), c.enc_dim, d))
+                .collect(),
             config,
         }
     }
@@ -596,6 +606,24 @@ impl Dens3r {
     /// The device the weights live on.
     pub fn device(&self) -> &Device {
         &self.device
+    }
+
+    /// [`Dens3r::encode_image`]'s tokens split into the encoder's output and its taps.
+    fn split_taps(&self, e: Tensor<3>) -> (Tensor<3>, Vec<Tensor<3>>) {
+        let d = self.config.enc_dim;
+        let taps = (1..=self.config.enc_taps.len()).map(|k| e.clone().narrow(2, k * d, d)).collect();
+        let e = if self.config.enc_taps.is_empty() { e } else { e.narrow(2, 0, d) };
+        (e, taps)
+    }
+
+    /// The DPT heads' four hooked layers of a view: [`ViewFeatures::layer`] at
+    /// [`ModelConfig::hooks`], each tap's projection added to its layer.
+    fn hooked_layers(&self, v: &ViewFeatures) -> [Tensor<3>; 4] {
+        let mut layers = self.config.hooks().map(|i| v.layer(i));
+        for ((layer, proj), tap) in layers.iter_mut().zip(&self.enc_taps).zip(&v.taps) {
+            *layer = layer.clone() + proj.forward(tap.clone());
+        }
+        layers
     }
 
     fn rope(&self, grid: (usize, usize), head_dim: usize) -> Rope {
@@ -613,7 +641,8 @@ impl Dens3r {
     }
 
     /// Encoder tokens `(B, N, D_enc)` of normalised images `(B, 3, H, W)` (H, W multiples of
-    /// the patch size).
+    /// the patch size); with [`ModelConfig::enc_taps`], the tapped blocks' tokens follow along
+    /// the channels, `(B, N, D_enc * (1 + taps))` ([`Dens3r::decode`] splits them).
     ///
     /// # Panics
     /// For a DINOv2-encoder network whose DINOv2 was never attached
@@ -633,7 +662,7 @@ impl Dens3r {
                 }
                 (norm.forward(x), grid)
             }
-            Encoder::Dinov2(Some(d)) => d.encode_dens3r(img, p),
+            Encoder::Dinov2(Some(d)) => d.encode_dens3r(img, p, &self.config.enc_taps),
             Encoder::Dinov2(None) => panic!("the network's DINOv2 encoder was not attached (Dens3r::attach_dinov2)"),
         }
     }
@@ -672,6 +701,7 @@ impl Dens3r {
         let dh = self.config.dec_dim / self.config.dec_heads;
         let (r1, r2) = (self.rope(g1, dh), self.rope(g2, dh));
         let dev = e1.device();
+        let ((e1, t1), (e2, t2)) = (self.split_taps(e1), self.split_taps(e2));
         let (mut f1, mut f2) =
             both(&dev, || self.decoder_embed.forward(e1.clone()), || self.decoder_embed.forward(e2.clone()));
         let (mut out1, mut out2) = (Vec::new(), Vec::new());
@@ -690,7 +720,10 @@ impl Dens3r {
             out.push(self.dec_norm.forward(last));
         }
         Features {
-            views: [ViewFeatures { enc: e1, dec: out1, grid: g1 }, ViewFeatures { enc: e2, dec: out2, grid: g2 }],
+            views: [
+                ViewFeatures { enc: e1, taps: t1, dec: out1, grid: g1 },
+                ViewFeatures { enc: e2, taps: t2, dec: out2, grid: g2 },
+            ],
         }
     }
 
@@ -704,6 +737,7 @@ impl Dens3r {
             return self.decode(e.clone(), g, e, g);
         }
         let (e, g) = self.encode_image(img);
+        let (e, taps) = self.split_taps(e);
         let dh = self.config.dec_dim / self.config.dec_heads;
         let r = self.rope(g, dh);
         let mut f = self.decoder_embed.forward(e.clone());
@@ -714,7 +748,7 @@ impl Dens3r {
         }
         let last = out.pop().expect("decoder has blocks");
         out.push(self.dec_norm.forward(last));
-        let v = ViewFeatures { enc: e, dec: out, grid: g };
+        let v = ViewFeatures { enc: e, taps, dec: out, grid: g };
         Features { views: [v.clone(), v] }
     }
 
@@ -761,8 +795,8 @@ impl Dens3r {
     /// (the single-image path; a pair's two views already run so).
     fn view_heads(&self, head: &PtsHead, v: &ViewFeatures, want: HeadOutputs, side_by_side: bool) -> ViewPrediction {
         let c = &self.config;
-        let hooks = c.hooks();
-        let layers = || hooks.map(|i| v.layer(i));
+        let hooked = self.hooked_layers(v);
+        let layers = || hooked.clone();
         let pts = || match &head.to_pixels {
             ToPixels::Dpt(d) => d.forward(layers(), v.grid),
             // DUSt3R's LinearPts3d: the last decoder layer, projected and pixel-shuffled.

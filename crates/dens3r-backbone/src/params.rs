@@ -100,6 +100,9 @@ impl Params {
             };
             values.push(if norm {
                 vec![if name.ends_with(".weight") { 1.0 } else { 0.0 }; n]
+            } else if name.starts_with("enc_taps.") {
+                // Zero: a network with taps starts as the one without.
+                vec![0.0; n]
             } else if wshape.len() == 4 {
                 // Conv2d (out, in, k, k) and ConvTranspose2d (in, out, k, k): PyTorch takes
                 // fan_in from dimension 1 in both.
@@ -133,6 +136,39 @@ impl Params {
         w.finish()?;
         let (names, shapes) = layout.into_iter().unzip();
         Ok(Self { config: config.clone(), names, shapes, values, dinov2: None })
+    }
+
+    /// These parameters with the encoder taps `taps` ([`ModelConfig::enc_taps`]): the
+    /// parameters present keep their values, the taps' projections new to them start at zero,
+    /// so the network computes exactly what it did. An error unless the encoder is a DINOv2,
+    /// with at most 4 distinct taps, each a block of it.
+    pub fn with_taps(self, taps: &[usize]) -> Result<Self, String> {
+        let c = &self.config;
+        if c.encoder != crate::config::EncoderKind::Dinov2 {
+            return Err("encoder taps need a DINOv2 encoder (`encoder = \"dinov2\"`)".into());
+        }
+        let mut sorted = taps.to_vec();
+        sorted.sort_unstable();
+        sorted.dedup();
+        if sorted.len() != taps.len() || taps.len() > 4 || taps.iter().any(|&b| b == 0 || b > c.enc_depth) {
+            return Err(format!(
+                "encoder taps {taps:?}: at most 4 distinct blocks of 1..={} (the DPT reads 4 layers)",
+                c.enc_depth
+            ));
+        }
+        let config = ModelConfig { enc_taps: taps.to_vec(), ..c.clone() };
+        let layout = Dens3r::parameter_layout(&config);
+        let index = self.index();
+        let values = layout
+            .iter()
+            .map(|(n, s)| match index.get(n.as_str()) {
+                Some(&i) if self.shapes[i] == *s => Ok(self.values[i].clone()),
+                Some(_) => Err(format!("parameter '{n}' has another shape in the network with taps {taps:?}")),
+                None => Ok(vec![0.0; s.iter().product()]),
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let (names, shapes) = layout.into_iter().unzip();
+        Ok(Self { config, names, shapes, values, dinov2: self.dinov2 })
     }
 
     /// Number of scalar parameters.

