@@ -141,18 +141,17 @@ impl Params {
     /// These parameters with the encoder taps `taps` ([`ModelConfig::enc_taps`]): the
     /// parameters present keep their values, the taps' projections new to them start at zero,
     /// so the network computes exactly what it did. An error unless the encoder is a DINOv2,
-    /// with at most 4 distinct taps, each a block of it.
+    /// with at most 4 taps, increasing, each a block of it.
     pub fn with_taps(self, taps: &[usize]) -> Result<Self, String> {
         let c = &self.config;
         if c.encoder != crate::config::EncoderKind::Dinov2 {
             return Err("encoder taps need a DINOv2 encoder (`encoder = \"dinov2\"`)".into());
         }
-        let mut sorted = taps.to_vec();
-        sorted.sort_unstable();
-        sorted.dedup();
-        if sorted.len() != taps.len() || taps.len() > 4 || taps.iter().any(|&b| b == 0 || b > c.enc_depth) {
+        // Increasing, as the weights' keys are read back (block order gives the hooks).
+        let increasing = taps.windows(2).all(|p| p[0] < p[1]);
+        if !increasing || taps.len() > 4 || taps.iter().any(|&b| b == 0 || b > c.enc_depth) {
             return Err(format!(
-                "encoder taps {taps:?}: at most 4 distinct blocks of 1..={} (the DPT reads 4 layers)",
+                "encoder taps {taps:?}: at most 4 increasing blocks of 1..={} (the DPT reads 4 layers, in block order)",
                 c.enc_depth
             ));
         }

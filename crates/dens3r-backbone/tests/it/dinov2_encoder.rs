@@ -146,6 +146,7 @@ fn encoder_taps_add_dinov2_blocks_to_the_dpt_hooks() {
     assert!(base.clone().with_taps(&[0]).is_err());
     assert!(base.clone().with_taps(&[13]).is_err());
     assert!(base.clone().with_taps(&[3, 3]).is_err());
+    assert!(base.clone().with_taps(&[6, 3]).is_err(), "hooks follow block order, as the weights are read back");
     assert!(base.clone().with_taps(&[1, 2, 3, 4, 5]).is_err());
 
     // New taps start at zero: the same network.
