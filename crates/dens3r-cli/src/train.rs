@@ -36,6 +36,10 @@ pub struct TrainArgs {
     /// network starts as it was; they are saved with the weights, which `predict` reads.
     #[arg(long, value_delimiter = ',')]
     dinov2_taps: Vec<usize>,
+    /// Learning-rate factor of the encoder taps over --lr (taps new to a trained network start
+    /// at zero and may need a larger step than its tuned weights).
+    #[arg(long, default_value_t = 1.0)]
+    taps_lr_mult: f32,
     /// Run folder: checkpoints, log.jsonl, loss.png, model.safetensors + model.json. A rerun
     /// with the same folder and options resumes.
     #[arg(short, long)]
@@ -188,6 +192,7 @@ fn train_config(a: &TrainArgs) -> Result<TrainConfig> {
         self_pairs: a.self_pairs,
         roll_top_down: a.roll_top_down,
         depth_ssi: a.depth_ssi,
+        taps_lr_mult: a.taps_lr_mult,
         checkpoint_every: a.checkpoint_every,
         seed: a.seed,
         frame: PointsFrame::parse(&a.points_in)

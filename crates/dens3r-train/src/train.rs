@@ -68,6 +68,14 @@ fn is_zero(x: &f32) -> bool {
     *x == 0.0
 }
 
+fn is_one(x: &f32) -> bool {
+    *x == 1.0
+}
+
+fn one_f32() -> f32 {
+    1.0
+}
+
 /// How far from straight down a view may look for [`TrainConfig::roll_top_down`] (degrees).
 pub const TOP_DOWN_DEG: f64 = 40.0;
 
@@ -134,6 +142,10 @@ pub struct TrainConfig {
     /// added to the stage's terms (0 = off, as the paper).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub depth_ssi: f32,
+    /// Learning-rate factor of the encoder taps' projections (`enc_taps.*`, which start at
+    /// zero when added to a trained network) over `lr` (1 = the same).
+    #[serde(default = "one_f32", skip_serializing_if = "is_one")]
+    pub taps_lr_mult: f32,
     /// Frozen parameters.
     pub freeze: Freeze,
     /// Steps between checkpoints.
@@ -169,6 +181,7 @@ impl Default for TrainConfig {
             self_pairs: 0.0,
             roll_top_down: 0.0,
             depth_ssi: 0.0,
+            taps_lr_mult: 1.0,
             freeze: Freeze::None,
             checkpoint_every: 50,
             seed: 0,
@@ -207,6 +220,12 @@ impl TrainConfig {
             return Err(TrainError::invalid(format!(
                 "--roll-top-down {}: expected a probability in [0, 1]",
                 self.roll_top_down
+            )));
+        }
+        if !(self.taps_lr_mult.is_finite() && self.taps_lr_mult > 0.0) {
+            return Err(TrainError::invalid(format!(
+                "--taps-lr-mult {}: expected a positive factor",
+                self.taps_lr_mult
             )));
         }
         if !(self.depth_ssi.is_finite() && self.depth_ssi >= 0.0) {
@@ -696,10 +715,13 @@ impl Trainer {
         let scale = dens3r_optim::clip_scale(norm.into(), (self.config.clip > 0.0).then_some(self.config.clip));
         let opt = AdamW { weight_decay: self.config.weight_decay, ..Default::default() };
         let step = self.step;
-        (&mut self.params.values, &mut self.m, &mut self.v, &g, &self.params.shapes).into_par_iter().for_each(
-            |(vals, m, v, gi, shape)| {
+        let taps_lr = lr * self.config.taps_lr_mult;
+        let names = &self.params.names;
+        (&mut self.params.values, &mut self.m, &mut self.v, &g, &self.params.shapes, names).into_par_iter().for_each(
+            |(vals, m, v, gi, shape, name)| {
                 // Weight matrices decay; biases and norms do not.
                 if let Some(gi) = gi {
+                    let lr = if name.starts_with("enc_taps.") { taps_lr } else { lr };
                     opt.update(At::new(step, lr).scaled(scale), vals, m, v, gi, shape.len() >= 2);
                 }
             },

