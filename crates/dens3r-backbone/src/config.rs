@@ -132,8 +132,8 @@ pub struct ModelConfig {
     /// Encoder taps (a DINOv2 encoder only; empty in the official networks): the 1-based
     /// blocks whose tokens (through the encoder's final LayerNorm), projected by
     /// `enc_taps.{block}` (a linear layer to the hooked layer's width), are added to the DPT
-    /// heads' hooked layers 0, 1, ... in block order, as Depth Anything reads DINOv2's intermediate
-    /// blocks. Read from the weights' `enc_taps.*` keys.
+    /// heads' hooked layers 0, 1, ... in block order, as Depth Anything reads DINOv2's
+    /// intermediate blocks. Read from the weights' `enc_taps.*` keys.
     pub enc_taps: Vec<usize>,
     /// Patch size (16): input pixels per token side.
     pub patch: usize,

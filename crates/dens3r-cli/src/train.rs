@@ -30,10 +30,10 @@ pub struct TrainArgs {
     /// default for --init: beside its weights, or $DENS3R_DINOV2.
     #[arg(long)]
     dinov2: Option<PathBuf>,
-    /// Encoder taps of a DINOv2-encoder network, increasing, e.g. `3,6,9`: those blocks' tokens, each
-    /// through a linear layer, are added to the DPT heads' hooked layers 0, 1, ... (as Depth
-    /// Anything reads DINOv2's intermediate blocks). Taps new to --init start at zero, so the
-    /// network starts as it was; they are saved with the weights, which `predict` reads.
+    /// Encoder taps of a DINOv2-encoder network, increasing, e.g. `3,6,9`: those blocks'
+    /// tokens, each through a linear layer, are added to the DPT heads' hooked layers 0, 1, ...
+    /// (as Depth Anything reads DINOv2's intermediate blocks). Taps new to --init start at zero,
+    /// so the network starts as it was; they are saved with the weights, which `predict` reads.
     #[arg(long, value_delimiter = ',')]
     dinov2_taps: Vec<usize>,
     /// Learning-rate factor of the encoder taps over --lr (taps new to a trained network start
