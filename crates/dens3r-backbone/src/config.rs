@@ -2,6 +2,14 @@
 
 use crate::weights::{Weights, WeightsError};
 
+/// Key prefix of the encoder taps' projections ([`ModelConfig::enc_taps`]): `enc_taps.{block}`.
+pub const ENC_TAPS: &str = "enc_taps";
+
+/// Whether checkpoint key `name` belongs to an encoder tap's projection.
+pub fn is_encoder_tap(name: &str) -> bool {
+    name.strip_prefix(ENC_TAPS).is_some_and(|r| r.starts_with('.'))
+}
+
 /// How RoPE-2D positions are scaled.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum RopeScaling {
@@ -272,7 +280,7 @@ impl ModelConfig {
             if w.contains("normal_local_head.dpt.head.4.weight") { Some(dpt("normal_local_head")?) } else { None };
         // The encoder's taps, by block (DINOv2 encoders only).
         let enc_taps = match encoder {
-            EncoderKind::Dinov2 => (1..=enc_depth).filter(|b| w.contains(&format!("enc_taps.{b}.weight"))).collect(),
+            EncoderKind::Dinov2 => (1..=enc_depth).filter(|b| w.contains(&format!("{ENC_TAPS}.{b}.weight"))).collect(),
             EncoderKind::Vit => Vec::new(),
         };
         if enc_taps.len() > 4 {

@@ -597,7 +597,7 @@ impl Dens3r {
                 .enc_taps
                 .iter()
                 .zip(in_dims)
-                .map(|(b, d)| l.linear(&format!("enc_taps.{b}"), c.enc_dim, d))
+                .map(|(b, d)| l.linear(&format!("{}.{b}", crate::config::ENC_TAPS), c.enc_dim, d))
                 .collect(),
             config,
         }

@@ -100,7 +100,7 @@ impl Params {
             };
             values.push(if norm {
                 vec![if name.ends_with(".weight") { 1.0 } else { 0.0 }; n]
-            } else if name.starts_with("enc_taps.") {
+            } else if crate::config::is_encoder_tap(name) {
                 // Zero: a network with taps starts as the one without.
                 vec![0.0; n]
             } else if wshape.len() == 4 {

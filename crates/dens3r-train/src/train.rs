@@ -721,7 +721,7 @@ impl Trainer {
             |(vals, m, v, gi, shape, name)| {
                 // Weight matrices decay; biases and norms do not.
                 if let Some(gi) = gi {
-                    let lr = if name.starts_with("enc_taps.") { taps_lr } else { lr };
+                    let lr = if dens3r_backbone::config::is_encoder_tap(name) { taps_lr } else { lr };
                     opt.update(At::new(step, lr).scaled(scale), vals, m, v, gi, shape.len() >= 2);
                 }
             },
