@@ -90,6 +90,11 @@ pub struct TrainArgs {
     /// looks down within 40 deg of vertical, where an image has no upright (0 = never).
     #[arg(long, default_value_t = 0.0)]
     roll_top_down: f32,
+    /// Probability that a training view gets a camera's degradations after its colour jitter
+    /// (vignetting, white balance, blur up to 1.2 px, gamma 0.7-1.4, noise up to 3%), which
+    /// renders lack and photographs have (0 = never).
+    #[arg(long, default_value_t = 0.0)]
+    degrade: f32,
     /// Weight of a scale-and-shift-invariant depth loss on view 1, added to the stage's terms
     /// (least-squares fit, residual over the ground truth's spread: shallow scenes such as a
     /// tote from above count as much as deep rooms); 0 = off, as the paper.
@@ -191,6 +196,7 @@ fn train_config(a: &TrainArgs) -> Result<TrainConfig> {
         aspects: !a.fixed_aspect,
         self_pairs: a.self_pairs,
         roll_top_down: a.roll_top_down,
+        degrade: a.degrade,
         depth_ssi: a.depth_ssi,
         taps_lr_mult: a.taps_lr_mult,
         checkpoint_every: a.checkpoint_every,

@@ -7,6 +7,7 @@
 //! writes real held-out frames with metric ground truth (`dens3r real-scenes`).
 
 pub mod arch;
+pub mod augment;
 mod error;
 pub mod loss;
 pub mod pair;

@@ -3,6 +3,7 @@
 //! warm-up and cosine decay, global gradient-norm clipping, checkpoints that resume exactly
 //! (each step's draw and augmentation are seeded by its index), and a JSONL log.
 
+use crate::augment::{jitter, Degradation};
 use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, ssi_depth_l1, Matches, RegrView};
 use crate::pair::{covisibility, crop_window, missing_depth, pair_target, PairTarget, View};
 use crate::TrainError;
@@ -138,6 +139,11 @@ pub struct TrainConfig {
     /// rooms' "higher in the image is farther" (0 = never).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub roll_top_down: f32,
+    /// Probability that a view gets a camera's degradations ([`Degradation::draw`]:
+    /// vignetting, white balance, blur, tone curve, noise) after its colour jitter; renders
+    /// lack them and photographs have them (0 = never).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub degrade: f32,
     /// Weight of a scale-and-shift-invariant depth loss on view 1 ([`loss::ssi_depth_l1`]),
     /// added to the stage's terms (0 = off, as the paper).
     #[serde(default, skip_serializing_if = "is_zero")]
@@ -180,6 +186,7 @@ impl Default for TrainConfig {
             aspects: false,
             self_pairs: 0.0,
             roll_top_down: 0.0,
+            degrade: 0.0,
             depth_ssi: 0.0,
             taps_lr_mult: 1.0,
             freeze: Freeze::None,
@@ -221,6 +228,9 @@ impl TrainConfig {
                 "--roll-top-down {}: expected a probability in [0, 1]",
                 self.roll_top_down
             )));
+        }
+        if !(0.0..=1.0).contains(&self.degrade) {
+            return Err(TrainError::invalid(format!("--degrade {}: expected a probability in [0, 1]", self.degrade)));
         }
         if !(self.taps_lr_mult.is_finite() && self.taps_lr_mult > 0.0) {
             return Err(TrainError::invalid(format!(
@@ -549,7 +559,12 @@ impl Dataset {
             let mut t = pair_target(&v1, &v2);
             t.matches = sample_matches(&t.matches, cfg.n_corres, &mut rng);
             for (k, v) in [&v1, &v2].into_iter().enumerate() {
-                imgs[k].extend(jitter(normalise(&v.image), cfg.jitter, &mut rng));
+                let mut img = jitter(normalise(&v.image), cfg.jitter, &mut rng);
+                // The draw is skipped at 0, so older runs resume exactly.
+                if cfg.degrade > 0.0 && rng.gen_range(0.0f32..1.0) < cfg.degrade {
+                    Degradation::draw(&mut rng).apply(&mut img, (w, h), &mut rng);
+                }
+                imgs[k].extend(img);
             }
             targets.push(t);
         }
@@ -563,28 +578,6 @@ impl Dataset {
 fn sample_matches(m: &Matches, n: usize, rng: &mut ChaCha8Rng) -> Matches {
     let picked = rand::seq::index::sample(rng, m.idx1.len(), n.min(m.idx1.len()));
     Matches { idx1: picked.iter().map(|i| m.idx1[i]).collect(), idx2: picked.iter().map(|i| m.idx2[i]).collect() }
-}
-
-/// Colour jitter of a normalised `(3, H, W)` image: brightness, contrast and saturation
-/// factors in `1 ± amp`, clamped to `[-1, 1]`.
-fn jitter(mut img: Vec<f32>, amp: f32, rng: &mut ChaCha8Rng) -> Vec<f32> {
-    if amp <= 0.0 {
-        return img;
-    }
-    let mut f = || 1.0 + rng.gen_range(-amp..=amp);
-    let (bright, contrast, sat) = (f(), f(), f());
-    let n = img.len() / 3;
-    let mean = img.iter().sum::<f32>() / img.len() as f32;
-    for i in 0..n {
-        let grey = (img[i] + img[n + i] + img[2 * n + i]) / 3.0;
-        for c in 0..3 {
-            let v = &mut img[c * n + i];
-            let s = grey + (*v - grey) * sat;
-            let s = mean + (s - mean) * contrast;
-            *v = ((s + 1.0) * bright - 1.0).clamp(-1.0, 1.0);
-        }
-    }
-    img
 }
 
 /// A network being trained, with AdamW moments.
@@ -640,6 +633,7 @@ pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usi
         jitter: 0.0,
         self_pairs: 0.0,
         roll_top_down: 0.0,
+        degrade: 0.0,
         seed: 0x5eed_0a11_d00d,
         ..cfg.clone()
     };
