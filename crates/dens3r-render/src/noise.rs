@@ -19,7 +19,8 @@ pub struct Noise {
     pub seed: u64,
 }
 
-fn gauss(rng: &mut ChaCha8Rng) -> f32 {
+/// One draw of a standard normal variable (Box-Muller).
+pub fn gauss(rng: &mut ChaCha8Rng) -> f32 {
     let (u1, u2): (f64, f64) = (rng.gen_range(1e-12..1.0), rng.gen());
     ((-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()) as f32
 }

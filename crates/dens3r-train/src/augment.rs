@@ -2,6 +2,7 @@
 //! colour jitter, and a camera's degradations (vignetting, white balance, lens blur, tone curve,
 //! sensor noise) that rendered images lack and photographs have.
 
+use dens3r_render::noise::gauss;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -79,7 +80,7 @@ impl Degradation {
         for v in img.iter_mut() {
             let mut x = v.clamp(0.0, 1.0).powf(self.gamma);
             if self.noise > 0.0 {
-                x += self.noise * standard_normal(rng);
+                x += self.noise * gauss(rng);
             }
             *v = x.clamp(0.0, 1.0) * 2.0 - 1.0;
         }
@@ -105,11 +106,4 @@ pub fn gaussian_blur(plane: &mut [f32], (w, h): (usize, usize), sigma: f32) {
             plane[y * w + x] = (-r..=r).map(|d| k[(d + r) as usize] * tmp[clamp(y as isize + d, h) * w + x]).sum();
         }
     }
-}
-
-/// One draw of a standard normal variable (Box-Muller).
-fn standard_normal(rng: &mut ChaCha8Rng) -> f32 {
-    let u: f32 = rng.gen_range(f32::EPSILON..1.0);
-    let v: f32 = rng.gen_range(0.0..1.0);
-    (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
 }

@@ -66,7 +66,7 @@ fn degradations_match_their_closed_forms() {
 /// ground truth as drawn without it; out of [0, 1] it is refused.
 #[test]
 fn degrade_changes_the_images_only() {
-    let orbit = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/orbit");
+    let orbit = crate::fixtures::repo_root().join("data-samples/orbit");
     let device = dens3r_backbone::Device::flex();
     let base = TrainConfig { size: (64, 48), batch: 1, n_corres: 64, ..Default::default() };
     let degraded = TrainConfig { degrade: 1.0, ..base.clone() };
