@@ -533,6 +533,10 @@ impl Dataset {
     /// patch size.
     pub fn batch(&self, cfg: &TrainConfig, patch: usize, step: usize, device: &Device) -> Result<Batch, TrainError> {
         let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ (step as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        // The degradations draw from a stream of their own, so turning them on changes the
+        // images only: the pairs, crops, jitter and correspondences stay as drawn without them.
+        let mut degrade_rng = rng.clone();
+        degrade_rng.set_stream(1);
         let picks: Vec<(usize, usize, usize)> =
             (0..cfg.batch).map(|_| self.pairs[rng.gen_range(0..self.pairs.len())]).collect();
         let first = &self.scenes[picks[0].0].frames()[picks[0].1];
@@ -560,9 +564,8 @@ impl Dataset {
             t.matches = sample_matches(&t.matches, cfg.n_corres, &mut rng);
             for (k, v) in [&v1, &v2].into_iter().enumerate() {
                 let mut img = jitter(normalise(&v.image), cfg.jitter, &mut rng);
-                // The draw is skipped at 0, so older runs resume exactly.
-                if cfg.degrade > 0.0 && rng.gen_range(0.0f32..1.0) < cfg.degrade {
-                    Degradation::draw(&mut rng).apply(&mut img, (w, h), &mut rng);
+                if cfg.degrade > 0.0 && degrade_rng.gen_range(0.0f32..1.0) < cfg.degrade {
+                    Degradation::draw(&mut degrade_rng).apply(&mut img, (w, h), &mut degrade_rng);
                 }
                 imgs[k].extend(img);
             }

@@ -44,7 +44,7 @@ fn degradations_match_their_closed_forms() {
     let n = w * h;
     for c in 0..3 {
         let centre = 0.5 * d.gains[c];
-        // The centre (between four pixels: r^2 = 0.5 px^2 of 55^2) and a corner (r = the corner's).
+        // The centre (between four pixels: r^2 = 0.5 px^2 of the corner's 39.3^2) and a corner.
         let at_centre = (grey[c * n + (h / 2) * w + w / 2] + 1.0) / 2.0;
         let at_corner = (grey[c * n] + 1.0) / 2.0;
         let r2 = (0.5f32 * 0.5 + 0.5 * 0.5) / (31.5f32 * 31.5 + 23.5 * 23.5);
@@ -62,13 +62,14 @@ fn degradations_match_their_closed_forms() {
     assert!(mean.abs() < 1e-3 && (sd - 0.02).abs() < 0.001, "noise mean {mean}, deviation {sd}");
 }
 
-/// `degrade = 1` changes every view's pixels, within [-1, 1], and leaves the pair and its
-/// ground truth as drawn without it; out of [0, 1] it is refused.
+/// `degrade = 1` changes every view's pixels, within [-1, 1], and leaves every pair of a
+/// batch, its ground truth and its correspondences as drawn without it; out of [0, 1] it is
+/// refused.
 #[test]
 fn degrade_changes_the_images_only() {
     let orbit = crate::fixtures::repo_root().join("data-samples/orbit");
     let device = dens3r_backbone::Device::flex();
-    let base = TrainConfig { size: (64, 48), batch: 1, n_corres: 64, ..Default::default() };
+    let base = TrainConfig { size: (64, 48), batch: 2, n_corres: 64, ..Default::default() };
     let degraded = TrainConfig { degrade: 1.0, ..base.clone() };
     let data = Dataset::load(&[orbit], (64, 48), (0.1, 0.98)).unwrap();
     let vals = |t: dens3r_backbone::Tensor<4>| t.into_data().try_to_vec::<f32>().unwrap();
@@ -80,7 +81,10 @@ fn degrade_changes_the_images_only() {
             assert!(moved * 2 > x.len(), "step {step} view {k}: {moved} of {} pixels changed", x.len());
             assert!(y.iter().all(|v| (-1.0..=1.0).contains(v)), "step {step} view {k} out of range");
         }
-        assert_eq!(a.targets[0].pts, b.targets[0].pts, "step {step}: same ground truth");
+        for (ta, tb) in a.targets.iter().zip(&b.targets) {
+            assert_eq!(ta.pts, tb.pts, "step {step}: same ground truth");
+            assert_eq!(ta.matches.idx1, tb.matches.idx1, "step {step}: same correspondences");
+        }
     }
     for p in [-0.1, 1.5, f32::NAN] {
         assert!(TrainConfig { degrade: p, ..base.clone() }.check(16).is_err(), "{p}");
