@@ -21,4 +21,4 @@ mod world;
 
 pub use material::{Material, Texture};
 pub use to_scene::{render_cameras_to_scene, render_to_scene, RenderSummary};
-pub use world::{Object, RenderedView, Shape, World, WorldError};
+pub use world::{Object, Occlusion, RenderedView, Shape, World, WorldError};

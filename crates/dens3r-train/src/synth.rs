@@ -8,7 +8,7 @@ use crate::pair::{covisibility, View};
 use crate::TrainError;
 use dens3r_render::procedural::classes;
 use dens3r_render::render_cameras_to_scene;
-use dens3r_render::synth::{scene_seed, synth_scene, Assets, SynthKind};
+use dens3r_render::synth::{add_occlusion, scene_seed, synth_scene, Assets, SynthKind};
 use dens3r_scene::Scene;
 use serde::{Deserialize, Serialize};
 use std::io::Write;
@@ -34,6 +34,10 @@ pub struct SynthOptions {
     pub views: usize,
     /// Write each scene's `gt_mesh.ply`.
     pub gt_mesh: bool,
+    /// Render cast shadows and ambient occlusion ([`add_occlusion`]); sets made before this
+    /// option existed read as `false`.
+    #[serde(default)]
+    pub occlusion: bool,
 }
 
 impl SynthOptions {
@@ -144,7 +148,10 @@ pub fn synthesise(
                 }
             }
             let _staged = dens3r_io::cleanup::stage(&tmp);
-            let scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;
+            let mut scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;
+            if opts.occlusion {
+                add_occlusion(&mut scene);
+            }
             render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})?;
             write_pairs(&tmp)?;
             std::fs::rename(&tmp, &dir).map_err(|e| TrainError::file(&dir, format!("cannot rename ({e})")))?;

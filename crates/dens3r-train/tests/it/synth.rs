@@ -31,7 +31,7 @@ fn assets() -> Assets {
 }
 
 fn opts(scenes: usize, seed: u64) -> SynthOptions {
-    SynthOptions { scenes, seed, kind: "mixed".into(), size: (64, 48), views: 3, gt_mesh: false }
+    SynthOptions { scenes, seed, kind: "mixed".into(), size: (64, 48), views: 3, gt_mesh: false, occlusion: false }
 }
 
 fn files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
@@ -115,6 +115,50 @@ fn synth_is_reproducible_and_resumes() {
     std::fs::write(scene_dir(&a, 2).join(PAIRS_FILE), "{").unwrap();
     let e = Dataset::load(std::slice::from_ref(&a), (32, 32), (0.1, 0.98)).err().unwrap().to_string();
     assert!(e.contains("scene_00002") && e.contains(PAIRS_FILE), "{e}");
+}
+
+/// `--occlusion` changes the images only, and only by taking light away: depth, normals and
+/// the pair tables stay byte-identical, no pixel gets brighter, and some get darker. A set
+/// whose manifest predates the option reads as made without it.
+#[test]
+fn occlusion_darkens_images_and_keeps_geometry() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (plain, occluded) = (tmp.path().join("plain"), tmp.path().join("occluded"));
+    for kind in ["mixed", "bin"] {
+        let o = SynthOptions { kind: kind.into(), ..opts(2, 5) };
+        let (p, q) = (plain.join(kind), occluded.join(kind));
+        synthesise(&p, &o, &assets(), &mut |_, _| {}).unwrap();
+        synthesise(&q, &SynthOptions { occlusion: true, ..o.clone() }, &assets(), &mut |_, _| {}).unwrap();
+        let (fp, fq) = (files(&p), files(&q));
+        assert_eq!(fp.len(), fq.len());
+        let (mut darker, mut pixels) = (0usize, 0usize);
+        for ((name, a), (name_q, b)) in fp.iter().zip(&fq) {
+            assert_eq!(name, name_q);
+            let n = name.to_string_lossy();
+            if n.contains("images") {
+                let (a, b) =
+                    (image::load_from_memory(a).unwrap().to_rgb8(), image::load_from_memory(b).unwrap().to_rgb8());
+                for (pa, pb) in a.pixels().zip(b.pixels()) {
+                    assert!((0..3).all(|c| pb[c] <= pa[c]), "{n}: a pixel got brighter");
+                    darker += usize::from(pb != pa);
+                    pixels += 1;
+                }
+            } else if n != "synth.json" {
+                assert_eq!(a, b, "{kind}: {n} differs");
+            }
+        }
+        assert!(darker * 100 > pixels, "{kind}: only {darker} of {pixels} pixels darkened");
+        // An old manifest (no "occlusion" key) is the set made without it: a rerun keeps it.
+        let m = p.join("synth.json");
+        let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&m).unwrap()).unwrap();
+        assert_eq!(json["options"]["occlusion"], false);
+        json["options"].as_object_mut().unwrap().remove("occlusion");
+        std::fs::write(&m, serde_json::to_string_pretty(&json).unwrap()).unwrap();
+        let s = synthesise(&p, &o, &assets(), &mut |_, _| {}).unwrap();
+        assert_eq!((s.rendered, s.kept), (0, 2));
+        let e = synthesise(&p, &SynthOptions { occlusion: true, ..o }, &assets(), &mut |_, _| {}).err().unwrap();
+        assert!(e.to_string().contains("other options"), "{e}");
+    }
 }
 
 /// First hit of the ray `o + t d` with the box of half extents `half`, rotation `r` and centre
