@@ -134,7 +134,8 @@ fn value_noise(p: glam::Vec3, seed: u32) -> f32 {
     lerp(lerp(x00, x10, s.y), lerp(x01, x11, s.y), s.z)
 }
 
-fn hash(x: i32, y: i32, z: i32, seed: u32) -> f32 {
+/// A value in [0, 1] (16-bit steps) hashed from an integer cell and a seed.
+pub(crate) fn hash(x: i32, y: i32, z: i32, seed: u32) -> f32 {
     let mut h = (x as u32).wrapping_mul(0x8da6_b343)
         ^ (y as u32).wrapping_mul(0xd816_3841)
         ^ (z as u32).wrapping_mul(0xcb1a_b31f)

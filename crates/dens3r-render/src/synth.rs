@@ -186,10 +186,10 @@ pub fn add_occlusion(scene: &mut SynthScene) {
         "tabletop" => 0.1,
         _ => 0.08,
     };
-    let enclosure: Vec<bool> =
-        scene.world.objects().iter().map(|o| o.name == "ceiling" || o.name.starts_with("wall_")).collect();
-    for (k, e) in enclosure.into_iter().enumerate() {
-        scene.world.set_casts_shadow(k, !e);
+    for k in 0..scene.world.objects().len() {
+        let name = &scene.world.objects()[k].name;
+        let enclosure = name == "ceiling" || name.starts_with("wall_");
+        scene.world.set_casts_shadow(k, !enclosure);
     }
     scene.world.occlusion = crate::world::Occlusion { shadows: true, ao_rays: 8, ao_radius: radius };
 }
