@@ -7,6 +7,7 @@
 //! other heads reuse without re-running the backbone; [`Dens3r::heads`] turns them into
 //! [`Predictions`].
 
+pub mod autodiff_cpu;
 pub mod config;
 pub mod convert;
 pub mod cpu;

@@ -100,7 +100,7 @@ enum ConvKernel {
 
 /// The CPU kernel chosen for a convolution's shape.
 #[derive(Debug)]
-enum FastConv {
+pub(crate) enum FastConv {
     /// 3x3 / stride 1 / pad 1 with many output channels.
     Winograd(WinogradKernel, Option<Vec<f32>>),
     /// 3x3 / stride 1 / pad 1 with few output channels: nine `(out, in)` taps.
@@ -113,21 +113,8 @@ impl Conv {
     /// A convolution.
     pub fn new(weight: Tensor<4>, bias: Option<Tensor<1>>, stride: usize, padding: usize) -> Self {
         let [out, inp, kh, kw] = weight.dims();
-        let fast = cpu::serves(&weight.device())
-            .then(|| {
-                let b = || bias.clone().map(cpu::to_vec);
-                let w = || cpu::to_vec(weight.clone());
-                match (kh, kw, stride, padding) {
-                    // Winograd's per-tile transforms cost ~ in + out channels per product of
-                    // in x out, so narrow outputs favour the shifted products; F(4x4) Winograd
-                    // still won at 128 -> 16 channels on 384x512 (68 vs 127 ms), hence 16.
-                    (3, 3, 1, 1) if out >= 16 => Some(FastConv::Winograd(WinogradKernel::new(&w(), out, inp), b())),
-                    (3, 3, 1, 1) => Some(FastConv::Shifted(cpu::conv::taps_from_weight(&w(), out, inp), b())),
-                    (1, 1, 1, 0) => Some(FastConv::Pointwise(w(), b())),
-                    _ => None,
-                }
-            })
-            .flatten();
+        let fast = (cpu::serves(&weight.device()) && FastConv::serves(kh, kw, stride, padding))
+            .then(|| FastConv::new(&cpu::to_vec(weight.clone()), bias.clone().map(cpu::to_vec), out, inp, kh));
         let kernel = match fast {
             Some(f) => ConvKernel::Cpu(Arc::new(f)),
             None => ConvKernel::Burn(Box::new((weight, bias))),
@@ -139,6 +126,10 @@ impl Conv {
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let fast = match &self.kernel {
             ConvKernel::Burn(wb) => {
+                let [_, _, k, kw] = wb.0.dims();
+                if FastConv::serves(k, kw, self.stride, self.padding) && crate::autodiff_cpu::serves(&x.device()) {
+                    return crate::autodiff_cpu::conv(x, wb.0.clone(), wb.1.clone());
+                }
                 let opts = ConvOptions::new([self.stride; 2], [self.padding; 2], [1, 1], 1);
                 return conv2d(x, wb.0.clone(), wb.1.clone(), opts);
             }
@@ -172,8 +163,37 @@ impl Conv {
 }
 
 impl FastConv {
+    /// Whether a kernel serves this shape: 3x3 / stride 1 / pad 1, or 1x1 / stride 1.
+    pub(crate) fn serves(kh: usize, kw: usize, stride: usize, padding: usize) -> bool {
+        matches!((kh, kw, stride, padding), (3, 3, 1, 1) | (1, 1, 1, 0))
+    }
+
+    /// The kernel for `(out, inp, k, k)` weights (`k` = 3 or 1; see [`FastConv::serves`]).
+    pub(crate) fn new(weight: &[f32], bias: Option<Vec<f32>>, out: usize, inp: usize, k: usize) -> Self {
+        match k {
+            // Winograd's per-tile transforms cost ~ in + out channels per product of
+            // in x out, so narrow outputs favour the shifted products; F(4x4) Winograd
+            // still won at 128 -> 16 channels on 384x512 (68 vs 127 ms), hence 16.
+            3 if out >= 16 => FastConv::Winograd(WinogradKernel::new(weight, out, inp), bias),
+            3 => FastConv::Shifted(cpu::conv::taps_from_weight(weight, out, inp), bias),
+            1 => FastConv::Pointwise(weight.to_vec(), bias),
+            _ => panic!("no CPU convolution kernel for {k}x{k} weights"),
+        }
+    }
+
+    /// The kernel training uses for `(out, inp, k, k)` weights: shifted products for 3x3, since
+    /// its weights change at every step, so Winograd would transform them for each call, and on
+    /// training's sizes that costs more than it saves (dens3r-s, 12 steps at 224x160, batch 2:
+    /// 16.3 s with Winograd, 14.9 s without; 6 steps at 384x288, batch 1: 14.1 s, 13.3 s).
+    pub(crate) fn for_training(weight: &[f32], out: usize, inp: usize, k: usize) -> Self {
+        match k {
+            3 => FastConv::Shifted(cpu::conv::taps_from_weight(weight, out, inp), None),
+            _ => Self::new(weight, None, out, inp, k),
+        }
+    }
+
     /// One image `(c, h, w)` into `(out_ch, h, w)`.
-    fn run(&self, img: &[f32], c: usize, out_ch: usize, h: usize, w: usize) -> Vec<f32> {
+    pub(crate) fn run(&self, img: &[f32], c: usize, out_ch: usize, h: usize, w: usize) -> Vec<f32> {
         match self {
             FastConv::Winograd(k, bias) => k.forward(img, h, w, bias.as_deref()),
             FastConv::Shifted(taps, bias) => cpu::conv::conv3x3_shifted(img, taps, bias.as_deref(), c, out_ch, h, w),
@@ -208,6 +228,9 @@ pub fn upsample2x(x: Tensor<4>) -> Tensor<4> {
         let device = x.device();
         let y = cpu::resample::upsample2x(&cpu::to_vec(x), b * c, h, w);
         return cpu::from_vec(y, [b, c, 2 * h, 2 * w], &device);
+    }
+    if crate::autodiff_cpu::serves(&x.device()) {
+        return crate::autodiff_cpu::upsample2x(x);
     }
     if x.device() != Device::flex() {
         // GPU backends have no bilinear-interpolation backward (burn 0.22's CubeCL kernels).

@@ -90,6 +90,135 @@ pub fn taps_from_weight(weight: &[f32], cout: usize, cin: usize) -> Vec<f32> {
     taps
 }
 
+/// `(cout, cin, 3, 3)` weights as the `(cin, cout, 3, 3)` weights of the convolution that
+/// gives a 3x3 / stride 1 / pad 1 convolution's input gradient from its output gradient
+/// (channels swapped, taps turned by 180 degrees).
+pub fn flip_transpose3x3(weight: &[f32], cout: usize, cin: usize) -> Vec<f32> {
+    assert_eq!(weight.len(), cout * cin * 9, "conv3x3 weight size mismatch");
+    let mut out = vec![0.0f32; cin * cout * 9];
+    for o in 0..cout {
+        for i in 0..cin {
+            for t in 0..9 {
+                out[(i * cout + o) * 9 + 8 - t] = weight[(o * cin + i) * 9 + t];
+            }
+        }
+    }
+    out
+}
+
+/// `(cout, cin)` as `(cin, cout)`: the 1x1 convolution that gives a 1x1 convolution's input
+/// gradient.
+pub fn transpose(weight: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    assert_eq!(weight.len(), rows * cols, "matrix size mismatch");
+    let mut out = vec![0.0f32; rows * cols];
+    for r in 0..rows {
+        for c in 0..cols {
+            out[c * rows + r] = weight[r * cols + c];
+        }
+    }
+    out
+}
+
+/// `dst (m x n) += lhs (m x k, dense) * rhs`, where `rhs[(r, c)]` sits at `rhs[r * rs + c * cs]`;
+/// one single-threaded `gemm` call.
+#[allow(clippy::too_many_arguments)]
+fn product_strided(lhs: &[f32], rhs: &[f32], (rs, cs): (usize, usize), dst: &mut [f32], m: usize, k: usize, n: usize) {
+    assert!(lhs.len() >= m * k && dst.len() >= m * n, "gemm operand too small");
+    assert!(k == 0 || n == 0 || rhs.len() > (k - 1) * rs + (n - 1) * cs, "gemm rhs too small");
+    // SAFETY: the asserts keep every access inside the slices; dst is exclusively borrowed.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            n as isize,
+            true,
+            lhs.as_ptr(),
+            1,
+            k as isize,
+            rhs.as_ptr(),
+            cs as isize,
+            rs as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
+
+/// Adds one image's contribution to a 3x3 / stride 1 / pad 1 convolution's weight gradient:
+/// `dw[o, i, ky, kx] += sum_p dy[o, p] x[i, p + (ky - 1, kx - 1)]` (zero outside the image),
+/// for `x (cin, h, w)`, `dy (cout, h, w)` and `dw (cout, cin, 3, 3)`. Nine products (one per
+/// tap) over the padded input's shifted views, as [`conv3x3_shifted`] computes the forward,
+/// side by side on rayon.
+pub fn conv3x3_weight_grad(x: &[f32], dy: &[f32], cin: usize, cout: usize, h: usize, w: usize, dw: &mut [f32]) {
+    assert_eq!(x.len(), cin * h * w, "conv3x3 input size mismatch");
+    assert_eq!(dy.len(), cout * h * w, "conv3x3 output gradient size mismatch");
+    assert_eq!(dw.len(), cout * cin * 9, "conv3x3 weight gradient size mismatch");
+    let (wp, hp) = (w + 2, h + 2);
+    let plane = hp * wp + 2;
+    let mut xp = vec![0.0f32; cin * plane];
+    xp.par_chunks_mut(plane).zip(x.par_chunks(h * w)).for_each(|(dst, src)| {
+        for r in 0..h {
+            dst[(r + 1) * wp + 1..][..w].copy_from_slice(&src[r * w..][..w]);
+        }
+    });
+    // The output gradient on the padded-width grid, its two junk columns per row zero.
+    let n = h * wp;
+    let mut dyp = vec![0.0f32; cout * n];
+    dyp.par_chunks_mut(n).zip(dy.par_chunks(h * w)).for_each(|(dst, src)| {
+        for r in 0..h {
+            dst[r * wp..][..w].copy_from_slice(&src[r * w..][..w]);
+        }
+    });
+    let taps: Vec<Vec<f32>> = (0..9usize)
+        .into_par_iter()
+        .map(|t| {
+            let off = (t / 3) * wp + t % 3;
+            let mut g = vec![0.0f32; cout * cin];
+            product_strided(&dyp, &xp[off..], (1, plane), &mut g, cout, n, cin);
+            g
+        })
+        .collect();
+    for (t, g) in taps.iter().enumerate() {
+        for (oi, v) in g.iter().enumerate() {
+            dw[oi * 9 + t] += v;
+        }
+    }
+}
+
+/// Adds one image's contribution to a 1x1 convolution's weight gradient:
+/// `dw (cout, cin) += dy (cout, hw) x (cin, hw)^T`, split over `cin` on rayon.
+pub fn conv1x1_weight_grad(x: &[f32], dy: &[f32], cin: usize, cout: usize, hw: usize, dw: &mut [f32]) {
+    assert_eq!(x.len(), cin * hw, "conv1x1 input size mismatch");
+    assert_eq!(dy.len(), cout * hw, "conv1x1 output gradient size mismatch");
+    assert_eq!(dw.len(), cout * cin, "conv1x1 weight gradient size mismatch");
+    let parts = (2 * rayon::current_num_threads()).min(cin).max(1);
+    let width = cin.div_ceil(parts);
+    let blocks: Vec<(usize, Vec<f32>)> = (0..cin.div_ceil(width))
+        .into_par_iter()
+        .map(|p| {
+            let (i0, nn) = (p * width, width.min(cin - p * width));
+            let mut g = vec![0.0f32; cout * nn];
+            product_strided(dy, &x[i0 * hw..], (1, hw), &mut g, cout, hw, nn);
+            (i0, g)
+        })
+        .collect();
+    for (i0, g) in blocks {
+        let nn = g.len() / cout.max(1);
+        for o in 0..cout {
+            for (j, v) in g[o * nn..][..nn].iter().enumerate() {
+                dw[o * cin + i0 + j] += v;
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -121,5 +250,68 @@ mod tests {
                 assert!((got[o * hw + p] as f64 - want).abs() < 1e-5);
             }
         }
+    }
+
+    /// The weight gradient of one image, in f64 from the definition.
+    fn direct_weight_grad(x: &[f32], dy: &[f32], cin: usize, cout: usize, h: usize, w: usize, k: usize) -> Vec<f64> {
+        let r = (k / 2) as isize;
+        let mut g = vec![0.0f64; cout * cin * k * k];
+        for o in 0..cout {
+            for i in 0..cin {
+                for ky in 0..k {
+                    for kx in 0..k {
+                        let mut acc = 0.0;
+                        for yy in 0..h as isize {
+                            for xx in 0..w as isize {
+                                let (sy, sx) = (yy + ky as isize - r, xx + kx as isize - r);
+                                if sy < 0 || sx < 0 || sy >= h as isize || sx >= w as isize {
+                                    continue;
+                                }
+                                acc += dy[(o * h + yy as usize) * w + xx as usize] as f64
+                                    * x[(i * h + sy as usize) * w + sx as usize] as f64;
+                            }
+                        }
+                        g[((o * cin + i) * k + ky) * k + kx] = acc;
+                    }
+                }
+            }
+        }
+        g
+    }
+
+    #[test]
+    fn weight_gradients_match_the_definition_and_accumulate() {
+        for &(cin, cout, h, w) in &[(3, 2, 5, 7), (1, 1, 1, 1), (6, 17, 9, 40)] {
+            let (x, dy) = (rnd(cin * h * w, 7), rnd(cout * h * w, 8));
+            let start = rnd(cout * cin * 9, 9);
+            let mut g3 = start.clone();
+            conv3x3_weight_grad(&x, &dy, cin, cout, h, w, &mut g3);
+            for (j, (g, want)) in g3.iter().zip(direct_weight_grad(&x, &dy, cin, cout, h, w, 3)).enumerate() {
+                assert!((*g as f64 - start[j] as f64 - want).abs() < 1e-4, "3x3 ({cin},{cout},{h},{w}) [{j}]");
+            }
+            let mut g1 = start[..cout * cin].to_vec();
+            conv1x1_weight_grad(&x, &dy, cin, cout, h * w, &mut g1);
+            for (j, (g, want)) in g1.iter().zip(direct_weight_grad(&x, &dy, cin, cout, h, w, 1)).enumerate() {
+                assert!((*g as f64 - start[j] as f64 - want).abs() < 1e-4, "1x1 ({cin},{cout},{h},{w}) [{j}]");
+            }
+        }
+    }
+
+    /// The input gradient is the adjoint of the convolution: <conv(x), dy> = <x, conv'(dy)>.
+    #[test]
+    fn flipped_transposed_weights_give_the_adjoint() {
+        let (cin, cout, h, w) = (5, 4, 6, 9);
+        let (x, dy, wt) = (rnd(cin * h * w, 10), rnd(cout * h * w, 11), rnd(cout * cin * 9, 12));
+        let y = conv3x3_shifted(&x, &taps_from_weight(&wt, cout, cin), None, cin, cout, h, w);
+        let back = flip_transpose3x3(&wt, cout, cin);
+        let dx = conv3x3_shifted(&dy, &taps_from_weight(&back, cin, cout), None, cout, cin, h, w);
+        let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(p, q)| *p as f64 * *q as f64).sum::<f64>();
+        let (lhs, rhs) = (dot(&y, &dy), dot(&x, &dx));
+        assert!((lhs - rhs).abs() < 1e-4 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+        let t = transpose(&wt[..cout * cin], cout, cin);
+        let y1 = conv1x1(&x, &wt[..cout * cin], None, cin, cout, h * w);
+        let dx1 = conv1x1(&dy, &t, None, cout, cin, h * w);
+        let (lhs, rhs) = (dot(&y1, &dy), dot(&x, &dx1));
+        assert!((lhs - rhs).abs() < 1e-4 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
     }
 }

@@ -1,7 +1,8 @@
 //! Hand-written CPU kernels for the two ops where burn's `flex` backend trails PyTorch's
 //! oneDNN (3x3 convolution and softmax attention), on raw buffers and the same `gemm` crate
-//! flex uses. [`crate::ops`] calls them only for tensors on the plain flex device; on GPU
-//! backends and under autodiff the burn ops run, so gradients and GPU paths are untouched.
+//! flex uses. [`crate::ops`] calls them for tensors on the plain flex device, and
+//! [`crate::autodiff_cpu`] (convolutions and their gradients, upsampling and its gradient) on
+//! the autodiff flex device; on GPU backends the burn ops run.
 
 pub mod alloc;
 pub mod attention;

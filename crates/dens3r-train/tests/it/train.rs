@@ -609,9 +609,13 @@ fn samples() -> std::path::PathBuf {
 }
 
 /// Overfitting one fixed batch for 200 steps drives the losses near their floor: stage 2's
-/// total to under 1% of its start and the normal-head L1 under 6%; stage 1's regression term
+/// total to under 10% of its start and the normal-head L1 under 6%; stage 1's regression term
 /// under 10% of its start and the matching term below zero (the InfoNCE cost under the
-/// `-alpha ln c` confidence term, which makes both ConfLoss minima negative).
+/// `-alpha ln c` confidence term, which makes both ConfLoss minima negative). At this learning
+/// rate the run settles on one of a few plateaus, which last bits of the arithmetic choose:
+/// over initial seeds 1-4 stage 2's total ended at 0.9%, 8.5%, 0.3% and 0.0% of its start with
+/// burn's convolution backward and at 4.1%, 4.8%, -0.2% and -0.1% with the CPU kernels'
+/// (`autodiff_cpu`), so the bound is 10%, not the 1% seed 1 once reached.
 #[test]
 fn overfitting_one_batch_drives_the_losses_down() {
     let arch = tiny();
@@ -644,7 +648,7 @@ fn overfitting_one_batch_drives_the_losses_down() {
                 assert!(last.terms.matching.unwrap() < 0.0, "{msg}");
             }
             Stage::Two => {
-                assert!(last.terms.loss < 0.01 * first.terms.loss, "{msg}");
+                assert!(last.terms.loss < 0.1 * first.terms.loss, "{msg}");
                 assert!(last.terms.n.unwrap() < 0.06 * first.terms.n.unwrap(), "{msg}");
             }
         }
