@@ -64,7 +64,7 @@ pub fn upsample2x(x: Tensor<4>) -> Tensor<4> {
     Tensor::<4>::from_dispatch(<Dispatch as CpuTrainOps>::fast_upsample2x(x.into_dispatch()))
 }
 
-/// A flex tensor's dimensions and its values in row-major order (f32 only: [`serves`] keeps
+/// A flex tensor's dimensions and the tensor made contiguous (f32 only: [`serves`] keeps
 /// other precisions off this path).
 fn values<const D: usize>(t: FlexTensor) -> ([usize; D], FlexTensor) {
     let dims: [usize; D] = t.shape().dims();
@@ -72,7 +72,7 @@ fn values<const D: usize>(t: FlexTensor) -> ([usize; D], FlexTensor) {
 }
 
 fn slice(t: &FlexTensor) -> &[f32] {
-    t.as_slice::<f32>().expect("the fast convolution runs on f32 tensors")
+    t.as_slice::<f32>().expect("the CPU training ops run on f32 tensors")
 }
 
 fn tensor<const D: usize>(v: Vec<f32>, shape: [usize; D]) -> FlexTensor {
