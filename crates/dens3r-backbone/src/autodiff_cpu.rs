@@ -2,7 +2,7 @@
 //! extension) on [`crate::cpu`]'s kernels:
 //! - the backbone's 3x3 (stride 1, pad 1) and 1x1 convolutions: forward and input gradient by
 //!   shifted or pointwise products, the weight gradient as nine (3x3) or one (1x1)
-//!   matrix products over the padded input's shifted views (burn's own `conv2d` backward
+//!   matrix products over the padded input's shifted views, read transposed (burn's own `conv2d` backward
 //!   computes it as a convolution with an output-sized kernel, one thin product per input
 //!   channel, which took most of a training step's convolution time);
 //! - the DPT's bilinear x2 upsampling (align corners), forward and its adjoint in two separable
@@ -116,12 +116,16 @@ impl CpuTrainGrads for Flex {
     fn fast_conv_weight_grad(x: FloatTensor<Self>, dy: FloatTensor<Self>, k: usize) -> FloatTensor<Self> {
         let ([_, inp, h, w], x) = values::<4>(x);
         let ([_, out, _, _], dy) = values::<4>(dy);
+        // Summed over the images (3x3: as tap matrices, turned into PyTorch's layout once).
         let mut dw = vec![0.0f32; out * inp * k * k];
         for (xi, gi) in slice(&x).chunks_exact(inp * h * w).zip(slice(&dy).chunks_exact(out * h * w)) {
             match k {
                 3 => cpu::conv::conv3x3_weight_grad(xi, gi, inp, out, h, w, &mut dw),
                 _ => cpu::conv::conv1x1_weight_grad(xi, gi, inp, out, h * w, &mut dw),
             }
+        }
+        if k == 3 {
+            dw = cpu::conv::weight_from_taps(&dw, out, inp);
         }
         tensor(dw, [out, inp, k, k])
     }

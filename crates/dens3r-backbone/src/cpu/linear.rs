@@ -39,7 +39,7 @@ impl LinearKernel {
         if let Some(b) = &self.b {
             y.chunks_exact_mut(n).for_each(|r| r.copy_from_slice(b));
         }
-        super::gemm_by_columns(x, &self.w, n, &mut y, n, (rows, k, n), self.b.is_some(), 64);
+        super::gemm_by_columns(x, &self.w, (n, 1), &mut y, n, (rows, k, n), self.b.is_some(), 64);
         y
     }
 }

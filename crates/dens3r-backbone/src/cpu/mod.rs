@@ -31,15 +31,16 @@ pub(crate) fn with_avx2<R>(f: impl FnOnce() -> R) -> R {
     f()
 }
 
-/// `dst (m x n) [+]= lhs (m x k) * rhs (k x n)`, row-major with row strides `rhs_rs` and
-/// `dst_rs` (lhs is dense), split over output columns into single-threaded `gemm` calls on
-/// rayon (parts of at least `min_cols` columns): on this backbone's shapes that keeps every
-/// core busy where one multithreaded call often does not.
+/// `dst (m x n) [+]= lhs (m x k) * rhs (k x n)`, lhs dense row-major, `rhs[(r, c)]` at
+/// `rhs[r * rhs_rs + c * rhs_cs]` (row-major when `rhs_cs` is 1; a transposed view otherwise),
+/// dst row-major with row stride `dst_rs`; split over output columns into single-threaded
+/// `gemm` calls on rayon (parts of at least `min_cols` columns): on this backbone's shapes that
+/// keeps every core busy where one multithreaded call often does not.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn gemm_by_columns(
     lhs: &[f32],
     rhs: &[f32],
-    rhs_rs: usize,
+    (rhs_rs, rhs_cs): (usize, usize),
     dst: &mut [f32],
     dst_rs: usize,
     (m, k, n): (usize, usize, usize),
@@ -47,7 +48,7 @@ pub(crate) fn gemm_by_columns(
     min_cols: usize,
 ) {
     assert!(lhs.len() >= m * k, "gemm lhs too small");
-    assert!(k == 0 || rhs.len() >= (k - 1) * rhs_rs + n, "gemm rhs too small");
+    assert!(k == 0 || n == 0 || rhs.len() > (k - 1) * rhs_rs + (n - 1) * rhs_cs, "gemm rhs too small");
     assert!(m == 0 || dst.len() >= (m - 1) * dst_rs + n, "gemm dst too small");
     let parts = (4 * rayon::current_num_threads()).min(n.div_ceil(min_cols)).max(1);
     let width = n.div_ceil(parts).next_multiple_of(16);
@@ -70,8 +71,8 @@ pub(crate) fn gemm_by_columns(
                 lhs.as_ptr(),
                 1,
                 k as isize,
-                rhs.as_ptr().add(n0),
-                1,
+                rhs.as_ptr().add(n0 * rhs_cs),
+                rhs_cs as isize,
                 rhs_rs as isize,
                 1.0,
                 1.0,
