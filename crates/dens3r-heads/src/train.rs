@@ -372,18 +372,13 @@ impl Trainer {
     /// One AdamW step on a batch of examples; returns the mean loss (`None` when no example
     /// had a usable target).
     fn train_step(&mut self, batch: &[Draw], lr: f32) -> Option<f32> {
-        let params: Vec<Tensor<1>> = self.head.tensors(&self.device).into_iter().map(|t| t.require_grad()).collect();
-        let losses: Vec<Tensor<1>> = batch.iter().filter_map(|d| self.example_loss(&params, d)).collect();
-        if losses.is_empty() {
-            return None;
-        }
-        let k = losses.len() as f32;
-        let loss = Tensor::cat(losses, 0).sum().div_scalar(k);
-        let value = to_vec(loss.clone())[0];
-        let grads = loss.backward();
+        let (value, grads) = if dens3r_backbone::device::is_gpu(&self.device) {
+            self.batch_gradients(batch)?
+        } else {
+            self.example_gradients(batch)?
+        };
         let opt = dens3r_optim::AdamW { weight_decay: self.options.weight_decay, ..Default::default() };
         let shapes = self.head.param_shapes();
-        let grads: Vec<Option<Vec<f32>>> = params.iter().map(|p| p.grad(&grads).map(to_vec)).collect();
         let norm = dens3r_optim::global_norm(&grads);
         let at =
             dens3r_optim::At::new(self.step, lr).scaled(dens3r_optim::clip_scale(norm, self.options.clip_grad_norm));
@@ -394,6 +389,52 @@ impl Trainer {
             opt.update(at, vals, m, v, g, decay);
         }
         Some(value)
+    }
+
+    /// The batch's mean loss and its gradients, the batch as one graph.
+    fn batch_gradients(&self, batch: &[Draw]) -> Option<(f32, Vec<Option<Vec<f32>>>)> {
+        let params: Vec<Tensor<1>> = self.head.tensors(&self.device).into_iter().map(|t| t.require_grad()).collect();
+        let losses: Vec<Tensor<1>> = batch.iter().filter_map(|d| self.example_loss(&params, d)).collect();
+        if losses.is_empty() {
+            return None;
+        }
+        let k = losses.len() as f32;
+        let loss = Tensor::cat(losses, 0).sum().div_scalar(k);
+        let value = to_vec(loss.clone())[0];
+        let grads = loss.backward();
+        Some((value, params.iter().map(|p| p.grad(&grads).map(to_vec)).collect()))
+    }
+
+    /// The batch's mean loss and its gradients, each example a graph of its own (its own
+    /// parameter leaves), as many side by side as there are threads: burn's autodiff and
+    /// element-wise ops run on one core, so with the batch as one graph the other core sat
+    /// idle for much of a step. The examples' gradients, added in order and divided by the
+    /// number with a usable target, are the mean's (to rounding) however many threads ran.
+    fn example_gradients(&self, batch: &[Draw]) -> Option<(f32, Vec<Option<Vec<f32>>>)> {
+        use rayon::prelude::*;
+        let one = |d: &Draw| {
+            let params: Vec<Tensor<1>> =
+                self.head.tensors(&self.device).into_iter().map(|t| t.require_grad()).collect();
+            let loss = self.example_loss(&params, d)?;
+            let value = to_vec(loss.clone())[0];
+            let grads = loss.backward();
+            Some((value, params.iter().map(|p| p.grad(&grads).map(to_vec)).collect::<Vec<_>>()))
+        };
+        let (mut sum, mut value, mut k) = (vec![None; self.head.values.len()], 0.0f32, 0usize);
+        for part in batch.chunks(rayon::current_num_threads().max(1)) {
+            let done: Vec<_> = part.par_iter().map(one).collect();
+            for (v, g) in done.into_iter().flatten() {
+                value += v;
+                k += 1;
+                dens3r_optim::add_gradients(&mut sum, g);
+            }
+        }
+        if k == 0 {
+            return None;
+        }
+        let inv = 1.0 / k as f32;
+        sum.iter_mut().flatten().for_each(|g| g.iter_mut().for_each(|x| *x *= inv));
+        Some((value * inv, sum))
     }
 
     /// An augmented copy of an example (crop with its context band, flip, jitter), drawn
@@ -564,4 +605,64 @@ pub fn jitter(img: &image::RgbImage, s: f32, rng: &mut ChaCha8Rng) -> image::Rgb
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::HeadConfig;
+
+    /// The CPU step's examples as graphs of their own give the batch mean's loss and
+    /// gradients (the batch as one graph), for a DPT head on a segmentation batch with one
+    /// example that has no usable target (it counts in neither), and for a depth head.
+    #[test]
+    fn examples_apart_give_the_batch_mean() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (grid, dims) = ((4usize, 5usize), vec![6usize]);
+        let features = |rng: &mut ChaCha8Rng| FeatureMaps {
+            grid,
+            dims: dims.clone(),
+            layers: vec![(0..6 * grid.0 * grid.1).map(|_| rng.gen_range(-1.0f32..1.0)).collect()],
+            pixel_layers: Vec::new(),
+        };
+        let n = grid.0 * grid.1 * 4;
+        for task in [Task::Seg { classes: (0..3).map(|i| format!("c{i}")).collect() }, Task::Depth] {
+            let seg = matches!(task, Task::Seg { .. });
+            let config = HeadConfig {
+                kind: "dpt".into(),
+                task,
+                backbone: "test".into(),
+                patch: 2,
+                layers: vec![0, 0, 0, 0],
+                in_dims: vec![6; 4],
+                width: 8,
+                widths: Vec::new(),
+                size: 0,
+            };
+            let trainer =
+                Trainer::new(Head::new(config, 5).unwrap(), TrainOptions::default(), Device::autodiff(Device::flex()))
+                    .unwrap();
+            let batch: Vec<Draw> = (0..5)
+                .map(|i| {
+                    let target = match (seg, i) {
+                        (true, 2) => Target::Labels(vec![IGNORE; n]),
+                        (true, _) => Target::Labels((0..n).map(|_| rng.gen_range(0..3u16)).collect()),
+                        (false, _) => Target::Depth((0..n).map(|_| rng.gen_range(0.5f32..3.0)).collect()),
+                    };
+                    Draw { features: features(&mut rng), target, size: (grid.0 * 2, grid.1 * 2) }
+                })
+                .collect();
+            let (v1, g1) = trainer.batch_gradients(&batch).unwrap();
+            let (v2, g2) = trainer.example_gradients(&batch).unwrap();
+            assert!((v1 - v2).abs() <= 1e-5 * v1.abs(), "loss {v1} vs {v2}");
+            let largest = g1.iter().flatten().flatten().fold(0f32, |m, x| m.max(x.abs()));
+            assert!(largest > 0.0);
+            for (a, b) in g1.iter().zip(&g2) {
+                let (a, b) = (a.as_ref().unwrap(), b.as_ref().unwrap());
+                for (x, y) in a.iter().zip(b) {
+                    assert!((x - y).abs() <= 1e-5 * largest, "gradient {x} as one graph vs {y} apart");
+                }
+            }
+        }
+    }
 }

@@ -112,6 +112,19 @@ pub fn global_norm(grads: &[Option<Vec<f32>>]) -> f64 {
     sums.iter().sum::<f64>().sqrt()
 }
 
+/// Adds one shard's gradients (`None`: a tensor without one) into a batch's running sum,
+/// tensor by tensor; a tensor with a gradient in only some shards gets theirs. Shards added in
+/// a fixed order give the same bits however many ran at once.
+pub fn add_gradients(sum: &mut [Option<Vec<f32>>], shard: Vec<Option<Vec<f32>>>) {
+    use rayon::prelude::*;
+    assert_eq!(sum.len(), shard.len(), "gradient lists of different networks");
+    sum.par_iter_mut().zip(shard).for_each(|(acc, g)| match (acc.as_mut(), g) {
+        (Some(a), Some(g)) => a.iter_mut().zip(g).for_each(|(a, b)| *a += b),
+        (None, g) => *acc = g,
+        (Some(_), None) => {}
+    });
+}
+
 /// The factor that brings a gradient of global norm `norm` down to `max` (as PyTorch's
 /// `clip_grad_norm_`): 1 when it is within, when there is no limit, or when the norm is not
 /// finite (left to show in the loss).

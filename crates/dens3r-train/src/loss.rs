@@ -4,10 +4,15 @@
 
 use burn::tensor::{Int, Tensor, TensorData};
 
-/// `sum(x * mask) / max(sum(mask), 1)`: the mean over valid pixels (0 with none).
-fn masked_mean(x: Tensor<3>, mask: Tensor<3>) -> Tensor<1> {
-    let n = mask.clone().sum().clamp_min(1.0);
-    (x * mask).sum() / n
+/// `sum(x * mask) / max(n, 1)` with `n` the mask's count, or `count` when given: the mean
+/// over valid pixels (0 with none), or a shard's share of the mean over a whole batch whose
+/// valid pixels number `count`.
+fn masked_mean(x: Tensor<3>, mask: Tensor<3>, count: Option<f32>) -> Tensor<1> {
+    let sum = (x * mask.clone()).sum();
+    match count {
+        Some(n) => sum.div_scalar(n.max(1.0)),
+        None => sum / mask.sum().clamp_min(1.0),
+    }
 }
 
 /// Euclidean norm over the last axis: `(B, H, W, 3) -> (B, H, W)`. Computed as
@@ -31,9 +36,9 @@ pub fn normalize_avg_dis(p1: Tensor<4>, p2: Tensor<4>, v1: Tensor<3>, v2: Tensor
 }
 
 /// One view of a confidence-weighted regression: `mean_valid(l * c - alpha * ln c)`.
-fn conf_weighted(l: Tensor<3>, conf: Tensor<3>, valid: Tensor<3>, alpha: f32) -> Tensor<1> {
+fn conf_weighted(l: Tensor<3>, conf: Tensor<3>, valid: Tensor<3>, count: Option<f32>, alpha: f32) -> Tensor<1> {
     let term = l * conf.clone() - conf.log().mul_scalar(alpha);
-    masked_mean(term, valid)
+    masked_mean(term, valid, count)
 }
 
 /// A view's prediction and ground truth for the 3-D regression.
@@ -46,6 +51,9 @@ pub struct RegrView {
     pub gt: Tensor<4>,
     /// Valid ground truth `(B, H, W)`.
     pub valid: Tensor<3>,
+    /// The valid pixels of the whole batch when these tensors are a shard of it (the mean's
+    /// denominator); `None`: `valid`'s own count.
+    pub count: Option<f32>,
 }
 
 /// `ConfLoss(Regr3D(L21, norm_mode='avg_dis'), alpha)` over a view pair: prediction and ground
@@ -58,16 +66,17 @@ pub fn conf_regr3d(v1: RegrView, v2: RegrView, alpha: f32) -> Tensor<1> {
     let (g1, g2) = normalize_avg_dis(v1.gt, v2.gt, v1.valid.clone(), v2.valid.clone());
     let l1 = norm3(p1 - g1);
     let l2 = norm3(p2 - g2);
-    conf_weighted(l1, v1.conf, v1.valid, alpha) + conf_weighted(l2, v2.conf, v2.valid, alpha)
+    conf_weighted(l1, v1.conf, v1.valid, v1.count, alpha) + conf_weighted(l2, v2.conf, v2.valid, v2.count, alpha)
 }
 
 /// A scale-and-shift-invariant depth loss (MiDaS-style), per sample: the predicted depth
 /// `(B, H, W)` fitted to the ground truth by least squares (`s z + t`) over the valid pixels,
 /// the mean absolute residual divided by the ground truth's mean absolute deviation plus 5% of
-/// its mean; averaged over the batch. A constant prediction scores about 1 whatever the scene's
+/// its mean; averaged over the batch (over `samples` when the tensors are a shard of a batch of
+/// that many). A constant prediction scores about 1 whatever the scene's
 /// depth range, so a shallow scene (a tote seen from above) weighs as much as a deep room,
 /// where the pointmap regression, normalised by the mean distance, barely sees its relief.
-pub fn ssi_depth_l1(pred: Tensor<3>, gt: Tensor<3>, valid: Tensor<3>) -> Tensor<1> {
+pub fn ssi_depth_l1(pred: Tensor<3>, gt: Tensor<3>, valid: Tensor<3>, samples: Option<usize>) -> Tensor<1> {
     let b = pred.dims()[0];
     let flat = |t: Tensor<3>| t.reshape([b as i32, -1]);
     let (p, g, v) = (flat(pred), flat(gt), flat(valid));
@@ -81,7 +90,7 @@ pub fn ssi_depth_l1(pred: Tensor<3>, gt: Tensor<3>, valid: Tensor<3>) -> Tensor<
     let r = (dp * s - dg.clone()).abs();
     let spread = mean(dg.abs()) + mg.mul_scalar(0.05);
     let per = mean(r) / spread.clamp_min(1e-12);
-    per.mean()
+    per.sum().div_scalar(samples.unwrap_or(b).max(1) as f32)
 }
 
 /// Dens3R's `pcd2normal` on a pointmap `(B, H, W, 3)`: on interior pixels
@@ -112,22 +121,29 @@ pub fn pointmap_normals(p: Tensor<4>) -> Tensor<4> {
 }
 
 /// `ABSNormalLoss` of one view: the mean over valid pixels (`valid` and `|n_gt|_1 > 0`) of
-/// `sum_xyz |n_pred - n_gt|`.
-pub fn normal_l1(pred: Tensor<4>, gt: Tensor<4>, valid: Tensor<3>) -> Tensor<1> {
+/// `sum_xyz |n_pred - n_gt|`; `count`: the whole batch's such pixels when the tensors are a
+/// shard of it (`None`: their own).
+pub fn normal_l1(pred: Tensor<4>, gt: Tensor<4>, valid: Tensor<3>, count: Option<f32>) -> Tensor<1> {
     let [b, h, w, _] = pred.dims();
     let has = gt.clone().abs().sum_dim(3).reshape([b, h, w]).greater_elem(0.0).float();
     let l = (pred - gt).abs().sum_dim(3).reshape([b, h, w]);
-    masked_mean(l, valid * has)
+    masked_mean(l, valid * has, count)
 }
 
 /// `ABSNormalFromDepthLoss` over a view pair: [`pointmap_normals`] of each predicted pointmap
 /// (both in view 1's frame) against `normalmap` (view 1) and `normalmap_transformed` (view 2's
 /// normals rotated into view 1's frame), raw convention, by [`normal_l1`]; summed.
-pub fn pointmap_normal_loss(pts: [Tensor<4>; 2], gt: [Tensor<4>; 2], valid: [Tensor<3>; 2]) -> Tensor<1> {
+pub fn pointmap_normal_loss(
+    pts: [Tensor<4>; 2],
+    gt: [Tensor<4>; 2],
+    valid: [Tensor<3>; 2],
+    counts: [Option<f32>; 2],
+) -> Tensor<1> {
     let [p1, p2] = pts;
     let [g1, g2] = gt;
     let [v1, v2] = valid;
-    normal_l1(pointmap_normals(p1), g1, v1) + normal_l1(pointmap_normals(p2), g2, v2)
+    let [c1, c2] = counts;
+    normal_l1(pointmap_normals(p1), g1, v1, c1) + normal_l1(pointmap_normals(p2), g2, v2, c2)
 }
 
 /// Ground-truth correspondences of one sample: flat pixel indices (`y * W + x`) in view 1 and
@@ -154,7 +170,8 @@ fn gather(x: Tensor<2>, idx: &[u32]) -> Tensor<2> {
 /// `-[ln(e_ii / sum_k e_ki) + ln(e_ii / sum_k e_ik)]` with each ratio clamped at 1e-8, over
 /// blocks of at most `block` correspondences; weighted by `c = (c1 + c2) / 2` of the
 /// descriptor confidences at the matched pixels with the `-alpha ln c` term, and averaged over
-/// every match of the batch. `None` when no sample has a match.
+/// every match of the batch (over `total` matches when the tensors are a shard of a batch
+/// with that many). `None` when no sample has a match.
 pub fn matching_loss(
     desc: [Tensor<4>; 2],
     desc_conf: [Tensor<3>; 2],
@@ -162,6 +179,7 @@ pub fn matching_loss(
     temperature: f32,
     alpha: f32,
     block: usize,
+    total: Option<usize>,
 ) -> Option<Tensor<1>> {
     let [d1, d2] = desc;
     let [c1, c2] = desc_conf;
@@ -193,8 +211,8 @@ pub fn matching_loss(
     if count == 0 {
         return None;
     }
-    let total = terms.into_iter().reduce(|a, b| a + b)?;
-    Some(total.div_scalar(count as f32))
+    let sum = terms.into_iter().reduce(|a, b| a + b)?;
+    Some(sum.div_scalar(total.unwrap_or(count).max(1) as f32))
 }
 
 /// `ln sum exp` along `dim` of a matrix, kept as a size-1 axis (max-shifted).

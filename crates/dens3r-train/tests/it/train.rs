@@ -9,7 +9,7 @@ use dens3r_geom::camera::Intrinsics;
 use dens3r_geom::{look_at, Raster};
 use dens3r_train::loss::{self, Matches, RegrView};
 use dens3r_train::pair::{correspondences, pair_target, View};
-use dens3r_train::train::{batch_loss, Batch};
+use dens3r_train::train::{batch_loss, shard_loss, Batch, BatchCounts, LossTerms};
 use dens3r_train::{Arch, Dataset, PointsFrame, Stage, TrainConfig, Trainer};
 use glam::{DVec3, Vec3};
 use rand::{Rng, SeedableRng};
@@ -148,6 +148,7 @@ fn conf_regression_by_hand() {
         conf: t3(&[c], [1, 1, 1], &d),
         gt: t4(&g, [1, 1, 1, 3], &d),
         valid: t3(&[1.0], [1, 1, 1], &d),
+        count: None,
     };
     let l = scalar(loss::conf_regr3d(
         v([0., 0., 2.], [0., 0., 1.], 2.0),
@@ -173,6 +174,7 @@ fn losses_equal_the_host_references() {
         conf: t3(&conf[k], [b, h, w], &d),
         gt: t4(&pts[k + 2], [b, h, w, 3], &d),
         valid: t3(&valid[k], [b, h, w], &d),
+        count: None,
     };
     let got = scalar(loss::conf_regr3d(view(0), view(1), 0.2));
     let want =
@@ -198,6 +200,7 @@ fn losses_equal_the_host_references() {
         [t4(&pts[0], [b, h, w, 3], &d), t4(&pts[1], [b, h, w, 3], &d)],
         [t4(&gt_n[0], [b, h, w, 3], &d), t4(&gt_n[1], [b, h, w, 3], &d)],
         [t3(&valid[0], [b, h, w], &d), t3(&valid[1], [b, h, w], &d)],
+        [None, None],
     ));
     let want = ref_normal_l1(&ref_pcd2normal(&pts[0], b, h, w), &gt_n[0], &valid[0])
         + ref_normal_l1(&ref_pcd2normal(&pts[1], b, h, w), &gt_n[1], &valid[1]);
@@ -208,6 +211,7 @@ fn losses_equal_the_host_references() {
         t4(&pred_f, [b, h, w, 3], &d),
         t4(&gt_n[0], [b, h, w, 3], &d),
         t3(&valid[0], [b, h, w], &d),
+        None,
     ));
     let want = ref_normal_l1(&pred_n, &gt_n[0], &valid[0]);
     assert!((got - want).abs() < 1e-5 * want.max(1.0), "normal L1 {got} vs {want}");
@@ -235,6 +239,7 @@ fn losses_equal_the_host_references() {
                 0.05,
                 10.0,
                 block,
+                None,
             )
             .unwrap(),
         )
@@ -259,7 +264,8 @@ fn losses_equal_the_host_references() {
         &[Matches::default(), Matches::default()],
         0.05,
         10.0,
-        8192
+        8192,
+        None
     )
     .is_none());
 }
@@ -299,8 +305,9 @@ fn ssi_depth_loss_equals_the_host_reference() {
         total / b as f64
     };
     let d = Device::flex();
-    let got =
-        |p: &[f32]| scalar(loss::ssi_depth_l1(t3(p, [b, h, w], &d), t3(&gt, [b, h, w], &d), t3(&valid, [b, h, w], &d)));
+    let got = |p: &[f32]| {
+        scalar(loss::ssi_depth_l1(t3(p, [b, h, w], &d), t3(&gt, [b, h, w], &d), t3(&valid, [b, h, w], &d), None))
+    };
     let want = reference(&pred);
     assert!(want > 0.3, "random depth should score far from zero: {want}");
     assert!((got(&pred) - want).abs() < 1e-4 * want, "{} vs {want}", got(&pred));
@@ -345,18 +352,21 @@ fn loss_gradients_match_finite_differences() {
             conf: c,
             gt: t4(&gt, [b, h, w, 3], d).mul_scalar(1.0 + k as f32),
             valid: t3(&valid, [b, h, w], d),
+            count: None,
         };
         let r = loss::conf_regr3d(v(0, x.clone(), c.clone()), v(1, x.clone().mul_scalar(0.5), c.clone()), 0.2);
         let pn = loss::pointmap_normal_loss(
             [x.clone(), x.clone().flip([2])],
             [t4(&gt_n, [b, h, w, 3], d), t4(&gt_n, [b, h, w, 3], d)],
             [t3(&valid, [b, h, w], d), t3(&valid, [b, h, w], d)],
+            [None, None],
         );
         let unit = x.clone() / x.clone().square().sum_dim(3).sqrt();
         let m = Matches { idx1: vec![0, 5, 9, 17], idx2: vec![3, 5, 11, 2] };
-        let mt = loss::matching_loss([unit.clone(), unit.flip([1])], [c.clone(), c], &[m], 0.5, 1.0, 8192).unwrap();
+        let mt =
+            loss::matching_loss([unit.clone(), unit.flip([1])], [c.clone(), c], &[m], 0.5, 1.0, 8192, None).unwrap();
         let z = |p: Tensor<4>| p.narrow(3, 2, 1).reshape([b, h, w]);
-        let ssi = loss::ssi_depth_l1(z(x.clone()), z(t4(&gt, [b, h, w, 3], d)), t3(&valid, [b, h, w], d));
+        let ssi = loss::ssi_depth_l1(z(x.clone()), z(t4(&gt, [b, h, w, 3], d)), t3(&valid, [b, h, w], d), None);
         r + pn.mul_scalar(0.3) + mt.mul_scalar(0.2) + ssi.mul_scalar(0.5)
     };
     let d = ad();
@@ -652,6 +662,89 @@ fn overfitting_one_batch_drives_the_losses_down() {
                 assert!(last.terms.n.unwrap() < 0.06 * first.terms.n.unwrap(), "{msg}");
             }
         }
+    }
+}
+
+/// A batch split into its pairs (as the trainer's CPU steps run it): each pair's
+/// `shard_loss` with the whole batch's counts is its share, so the pairs' terms and parameter
+/// gradients add up to those of the batch as one graph, in both stages (matching, where
+/// one pair has fewer correspondences than the other, and the normal head), with view 2 in
+/// its own frame and with the scale-and-shift-invariant depth term; and the trainer's step
+/// follows that batch's gradient (its first AdamW step moves each weight by `-lr sign(g)`).
+#[test]
+fn shards_add_up_to_the_whole_batch() {
+    let arch = tiny();
+    let data = Dataset::load(&[samples().join("orbit")], (64, 48), (0.1, 0.98)).unwrap();
+    let params = Params::init(&arch.config(), 5);
+    let d = ad();
+    let base = TrainConfig { size: (64, 48), batch: 2, jitter: 0.0, n_corres: 64, ..Default::default() };
+    let configs = [
+        TrainConfig { stage: Stage::One, ..base.clone() },
+        TrainConfig { stage: Stage::Two, frame: PointsFrame::Own, depth_ssi: 0.5, ..base.clone() },
+    ];
+    for cfg in configs {
+        let mut batch = data.batch(&cfg, arch.config().patch, 3, &d).unwrap();
+        // Pairs of unequal weight: the second keeps a third of its correspondences.
+        let m = &mut batch.targets[1].matches;
+        let keep = m.idx1.len() / 3;
+        m.idx1.truncate(keep);
+        m.idx2.truncate(keep);
+        let whole = BatchCounts::of(&batch.targets, &cfg);
+        let run = |b: &Batch| -> (LossTerms, Vec<Vec<f32>>) {
+            let tensors = params.tensors(&d, &vec![true; params.values.len()]);
+            let model = params.model(&tensors, &d);
+            let (loss, terms) = shard_loss(&model, b, &cfg, &whole).unwrap();
+            let grads = loss.backward();
+            let g = tensors.iter().map(|t| t.grad(&grads).map(vals).unwrap_or_default()).collect();
+            (terms, g)
+        };
+        let (all, g_all) = run(&batch);
+        assert_eq!(
+            all,
+            batch_loss(&params.model(&params.tensors(&d, &vec![false; params.values.len()]), &d), &batch, &cfg)
+                .unwrap()
+                .1
+        );
+        let mut sum = LossTerms::default();
+        let mut g_sum: Vec<Vec<f32>> = g_all.iter().map(|g| vec![0.0; g.len()]).collect();
+        for pair in batch.pairs() {
+            let (t, g) = run(&pair);
+            sum.add(&t);
+            for (a, b) in g_sum.iter_mut().zip(g) {
+                if !b.is_empty() {
+                    a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+                }
+            }
+        }
+        let close = |a: f32, b: f32| (a - b).abs() <= 1e-5 * a.abs().max(1.0);
+        let msg = format!("{:?}: whole {all:?}, pairs {sum:?}", cfg.stage);
+        assert!(close(all.loss, sum.loss) && close(all.pts_glb, sum.pts_glb) && close(all.pts_n, sum.pts_n), "{msg}");
+        for (a, b) in [(all.matching, sum.matching), (all.n, sum.n), (all.ssi, sum.ssi)] {
+            assert_eq!(a.is_some(), b.is_some(), "{msg}");
+            assert!(close(a.unwrap_or(0.0), b.unwrap_or(0.0)), "{msg}");
+        }
+        let largest = g_all.iter().flatten().fold(0f32, |m, v| m.max(v.abs()));
+        assert!(largest > 0.0);
+        for ((name, a), b) in params.names.iter().zip(&g_all).zip(&g_sum) {
+            for (x, y) in a.iter().zip(b) {
+                assert!((x - y).abs() <= 1e-4 * largest, "{:?} {name}: gradient {x} whole vs {y} pairs", cfg.stage);
+            }
+        }
+        // The trainer's first step (AdamW, no clipping): each weight moves against the sign
+        // of the batch's gradient, where that is clear of rounding.
+        let step_cfg = TrainConfig { clip: 0.0, weight_decay: 0.0, warmup: 0.0, ..cfg.clone() };
+        let mut t = Trainer::new(params.clone(), step_cfg, d.clone()).unwrap();
+        t.train_step(&batch).unwrap();
+        let mut checked = 0;
+        for ((a, b), g) in params.values.iter().zip(&t.params.values).zip(&g_all) {
+            for ((x, y), g) in a.iter().zip(b).zip(g) {
+                if g.abs() > 1e-3 * largest {
+                    assert!((y - x) * g < 0.0, "{:?}: moved {} along a gradient {g}", cfg.stage, y - x);
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 100, "{checked} weights checked");
     }
 }
 
