@@ -411,7 +411,6 @@ impl Trainer {
     /// idle for much of a step. The examples' gradients, added in order and divided by the
     /// number with a usable target, are the mean's (to rounding) however many threads ran.
     fn example_gradients(&self, batch: &[Draw]) -> Option<(f32, Vec<Option<Vec<f32>>>)> {
-        use rayon::prelude::*;
         let one = |d: &Draw| {
             let params: Vec<Tensor<1>> =
                 self.head.tensors(&self.device).into_iter().map(|t| t.require_grad()).collect();
@@ -421,14 +420,13 @@ impl Trainer {
             Some((value, params.iter().map(|p| p.grad(&grads).map(to_vec)).collect::<Vec<_>>()))
         };
         let (mut sum, mut value, mut k) = (vec![None; self.head.values.len()], 0.0f32, 0usize);
-        for part in batch.chunks(rayon::current_num_threads().max(1)) {
-            let done: Vec<_> = part.par_iter().map(one).collect();
-            for (v, g) in done.into_iter().flatten() {
+        dens3r_optim::side_by_side(batch, one, |r| {
+            if let Some((v, g)) = r {
                 value += v;
                 k += 1;
                 dens3r_optim::add_gradients(&mut sum, g);
             }
-        }
+        });
         if k == 0 {
             return None;
         }

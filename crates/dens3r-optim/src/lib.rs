@@ -112,6 +112,17 @@ pub fn global_norm(grads: &[Option<Vec<f32>>]) -> f64 {
     sums.iter().sum::<f64>().sqrt()
 }
 
+/// Runs `f` on each shard of a step, as many side by side as rayon has threads, and hands the
+/// results to `take` in shard order (so sums over them do not depend on the thread count, and
+/// no more shards are alive at once than run).
+pub fn side_by_side<T: Sync, R: Send>(shards: &[T], f: impl Fn(&T) -> R + Sync, mut take: impl FnMut(R)) {
+    use rayon::prelude::*;
+    for part in shards.chunks(rayon::current_num_threads().max(1)) {
+        let done: Vec<R> = part.par_iter().map(&f).collect();
+        done.into_iter().for_each(&mut take);
+    }
+}
+
 /// Adds one shard's gradients (`None`: a tensor without one) into a batch's running sum,
 /// tensor by tensor; a tensor with a gradient in only some shards gets theirs. Shards added in
 /// a fixed order give the same bits however many ran at once.
