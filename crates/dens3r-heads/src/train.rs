@@ -420,12 +420,13 @@ impl Trainer {
             Some((value, params.iter().map(|p| p.grad(&grads).map(to_vec)).collect::<Vec<_>>()))
         };
         let (mut sum, mut value, mut k) = (vec![None; self.head.values.len()], 0.0f32, 0usize);
-        dens3r_optim::side_by_side(batch, one, |r| {
+        let Ok(()) = dens3r_optim::side_by_side(batch, one, |r| {
             if let Some((v, g)) = r {
                 value += v;
                 k += 1;
                 dens3r_optim::add_gradients(&mut sum, g);
             }
+            Ok::<(), std::convert::Infallible>(())
         });
         if k == 0 {
             return None;

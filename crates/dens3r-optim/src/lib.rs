@@ -114,13 +114,19 @@ pub fn global_norm(grads: &[Option<Vec<f32>>]) -> f64 {
 
 /// Runs `f` on each shard of a step, as many side by side as rayon has threads, and hands the
 /// results to `take` in shard order (so sums over them do not depend on the thread count, and
-/// no more shards are alive at once than run).
-pub fn side_by_side<T: Sync, R: Send>(shards: &[T], f: impl Fn(&T) -> R + Sync, mut take: impl FnMut(R)) {
+/// no more shards are alive at once than run). The first error `take` returns stops it: no
+/// further shards run.
+pub fn side_by_side<T: Sync, R: Send, E>(
+    shards: &[T],
+    f: impl Fn(&T) -> R + Sync,
+    mut take: impl FnMut(R) -> Result<(), E>,
+) -> Result<(), E> {
     use rayon::prelude::*;
     for part in shards.chunks(rayon::current_num_threads().max(1)) {
         let done: Vec<R> = part.par_iter().map(&f).collect();
-        done.into_iter().for_each(&mut take);
+        done.into_iter().try_for_each(&mut take)?;
     }
+    Ok(())
 }
 
 /// Adds one shard's gradients (`None`: a tensor without one) into a batch's running sum,
@@ -225,6 +231,38 @@ impl<F: Float + Send + Sync> AdamW<F> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn side_by_side_hands_results_over_in_order_and_stops_at_the_first_error() {
+        // Two threads: shards run in pairs; shard 3 fails, so the pair holding it is the last
+        // to run (shards 4-9 never start) and `take` sees 0..=3 in order.
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        let ran = std::sync::atomic::AtomicUsize::new(0);
+        let mut seen = Vec::new();
+        let shards: Vec<usize> = (0..10).collect();
+        let out = pool.install(|| {
+            side_by_side(
+                &shards,
+                |&i| {
+                    ran.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    i * 10
+                },
+                |r| {
+                    seen.push(r);
+                    if r == 30 {
+                        Err(r)
+                    } else {
+                        Ok(())
+                    }
+                },
+            )
+        });
+        assert_eq!(out, Err(30));
+        assert_eq!(seen, [0, 10, 20, 30]);
+        assert_eq!(ran.into_inner(), 4);
+        let all = pool.install(|| side_by_side(&shards, |&i| i, |_| Ok::<(), ()>(())));
+        assert_eq!(all, Ok(()));
+    }
 
     #[test]
     fn clipping_scales_long_gradients_down_to_the_limit_only() {

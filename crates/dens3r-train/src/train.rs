@@ -777,21 +777,16 @@ impl Trainer {
         };
         let mut terms = LossTerms::default();
         let mut g: Vec<Option<Vec<f32>>> = vec![None; self.trains.len()];
-        let mut failed = None;
         dens3r_optim::side_by_side(
             shards,
             |s| self.shard_gradients(s, &whole),
-            |r| match r {
-                Ok((t, gs)) => {
-                    terms.add(&t);
-                    gs.into_iter().for_each(|gs| dens3r_optim::add_gradients(&mut g, gs));
-                }
-                Err(e) => failed = failed.take().or(Some(e)),
+            |r| {
+                let (t, gs) = r?;
+                terms.add(&t);
+                gs.into_iter().for_each(|gs| dens3r_optim::add_gradients(&mut g, gs));
+                Ok::<(), TrainError>(())
             },
-        );
-        if let Some(e) = failed {
-            return Err(e);
-        }
+        )?;
         let lr = self.lr_at(self.step);
         // A batch none of whose weighted terms applies (e.g. only matching trains and no pair
         // has a correspondence) moves nothing.
