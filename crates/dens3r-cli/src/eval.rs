@@ -1,4 +1,4 @@
-//! `dens3r eval depth|normals|mesh|cameras|baselines` (and `head`, in `eval_head`).
+//! `dens3r eval depth|disparity|normals|mesh|cameras|baselines` (and `head`, in `eval_head`).
 
 use anyhow::{bail, Result};
 use clap::{Args, Subcommand, ValueEnum};
@@ -14,6 +14,10 @@ use std::path::PathBuf;
 pub enum EvalCommand {
     /// Depth errors of scene PRED against scene GT (frames matched by name).
     Depth(DepthArgs),
+    /// Predicted depth against a disparity map whose calibration is unknown (e.g. OpenCV's
+    /// Middlebury Aloe): inverse depth aligned to the disparity by least-squares scale and
+    /// shift, beside the best constant and the best plane fitted to the disparity itself.
+    Disparity(DisparityArgs),
     /// Normal angular errors of scene PRED against scene GT (frames matched by name).
     Normals(NormalArgs),
     /// Chamfer-L1, F-score and normal consistency of mesh PRED against mesh GT.
@@ -98,6 +102,22 @@ pub struct DepthArgs {
 }
 
 #[derive(Args)]
+pub struct DisparityArgs {
+    /// Predicted depth map, a height x width float .npy (`predict --original-size` writes
+    /// OUT/depth/NAME.npy).
+    pred: PathBuf,
+    /// Ground-truth disparity: a grey PNG (8 or 16 bit, the value is the disparity, 0 unknown:
+    /// Middlebury's convention) or a float .npy, of the same size.
+    gt: PathBuf,
+    /// A PNG whose non-zero pixels are the ones scored.
+    #[arg(long)]
+    mask: Option<PathBuf>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
 pub struct NormalArgs {
     #[command(flatten)]
     common: Common,
@@ -137,6 +157,7 @@ pub struct MeshArgs {
 pub fn run(c: EvalCommand) -> Result<()> {
     match c {
         EvalCommand::Depth(a) => depth(a),
+        EvalCommand::Disparity(a) => disparity(a),
         EvalCommand::Normals(a) => normals(a),
         EvalCommand::Mesh(a) => mesh(a),
         EvalCommand::Cameras(a) => cameras(a),
@@ -301,6 +322,29 @@ fn depth(a: DepthArgs) -> Result<()> {
     println!(
         "{:<12} {:>9.5} {:>9.5} {:>8.4} {:>8.4} {:>8.4}",
         label, summary[0], summary[1], summary[2], summary[3], summary[4]
+    );
+    Ok(())
+}
+
+fn disparity(a: DisparityArgs) -> Result<()> {
+    let s = eval::disparity_file_scores(&a.pred, &a.gt, a.mask.as_deref())?;
+    let rows = [("prediction", s.prediction), ("constant", s.constant), ("plane", s.plane)];
+    if a.json {
+        let row =
+            |m: &dens3r_geom::metrics::DisparityMetrics| json!({"rel_rmse": m.rel_rmse, "rmse": m.rmse, "mae": m.mae});
+        let j = json!({"pixels": s.prediction.count, "scale": s.scale, "shift": s.shift,
+            "prediction": row(&s.prediction), "constant": row(&s.constant), "plane": row(&s.plane)});
+        println!("{}", serde_json::to_string_pretty(&j)?);
+        return Ok(());
+    }
+    println!("{:<12} {:>9} {:>9} {:>9}", "predictor", "rel RMSE", "RMSE", "MAE");
+    for (name, m) in rows {
+        println!("{:<12} {:>9.4} {:>9.3} {:>9.3}", name, m.rel_rmse, m.rmse, m.mae);
+    }
+    println!(
+        "({} pixels; inverse depth scaled and shifted onto the disparity; RMSE and MAE in the disparity's units; \
+         rel RMSE = RMSE / the disparity's standard deviation, 1 for the best constant)",
+        s.prediction.count
     );
     Ok(())
 }

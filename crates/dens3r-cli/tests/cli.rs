@@ -1583,3 +1583,42 @@ fn coarse_to_fine_in_one_command_equals_two_runs() {
     let e = fails(&[&["train", "--arch", &arch, "-o", &both, "--fine", "64x48"][..], &common].concat());
     assert!(e.contains("--fine") && e.contains("WxH:STEPS"), "{e}");
 }
+
+#[test]
+fn eval_disparity_scores_depth_against_uncalibrated_disparity() {
+    let dir = tempfile::tempdir().unwrap();
+    let room = render_tiny("room", &dir.path().join("room"));
+    let depth = room.join("depth/0000.npy");
+    let (shape, z) = dens3r_scene::npy::read_f32(&depth).unwrap();
+    let (h, w) = (shape[0] as u32, shape[1] as u32);
+    // The rendered depth's disparity for an unknown calibration, d = 2000 / z - 100, as
+    // Middlebury stores it (16-bit PNG, rounded; 0 unknown): the depth it came from scores
+    // near 0 whatever f B and the offset were; a room of several planes is no one plane.
+    let disp: Vec<u16> =
+        z.iter().map(|&z| if z > 0.0 { (2000.0 / z - 100.0).round().max(0.0) as u16 } else { 0 }).collect();
+    assert!(disp.iter().all(|&d| d > 100), "the render's depth stays under 10 m");
+    let png = dir.path().join("disp.png");
+    image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, disp).unwrap().save(&png).unwrap();
+    let (d, p) = (depth.to_str().unwrap(), png.to_str().unwrap());
+    let s = json(&["eval", "disparity", d, p, "--json"]);
+    let rel = |k: &str| s[k]["rel_rmse"].as_f64().unwrap();
+    assert!(rel("prediction") < 0.01 && s["prediction"]["mae"].as_f64().unwrap() < 0.5, "{s}");
+    assert!((rel("constant") - 1.0).abs() < 1e-9 && rel("plane") > 0.1 && rel("plane") < 1.0, "{s}");
+    assert_eq!(s["pixels"].as_u64(), Some(u64::from(w * h)));
+    // The mask restricts; a mask with no pixel, a colour image and another size are one line each.
+    let mask = dir.path().join("mask.png");
+    image::GrayImage::from_fn(w, h, |x, _| image::Luma([u8::from(x < w / 2)])).save(&mask).unwrap();
+    let s = json(&["eval", "disparity", d, p, "--mask", mask.to_str().unwrap(), "--json"]);
+    assert_eq!(s["pixels"].as_u64(), Some(u64::from(w / 2 * h)));
+    image::GrayImage::new(w, h).save(&mask).unwrap();
+    let e = fails(&["eval", "disparity", d, p, "--mask", mask.to_str().unwrap()]);
+    assert!(e.contains("disp.png") && e.contains("no pixel"), "{e}");
+    let rgb = dir.path().join("rgb.png");
+    image::RgbImage::new(w, h).save(&rgb).unwrap();
+    let e = fails(&["eval", "disparity", d, rgb.to_str().unwrap()]);
+    assert!(e.contains("rgb.png") && e.contains("grey"), "{e}");
+    let small = dir.path().join("small.png");
+    image::GrayImage::new(w / 2, h).save(&small).unwrap();
+    let e = fails(&["eval", "disparity", d, small.to_str().unwrap()]);
+    assert!(e.contains("0000.npy") && e.contains("--original-size"), "{e}");
+}

@@ -5,8 +5,8 @@
 
 use crate::{Frame, Scene, SceneError};
 use dens3r_geom::metrics::{
-    camera_metrics, constant_baseline, depth_metrics, normal_metrics, plane_baseline, CameraMetrics, DepthAlign,
-    DepthMetrics, MetricError, NormalMetrics,
+    camera_metrics, constant_baseline, depth_metrics, disparity_scores, normal_metrics, plane_baseline, CameraMetrics,
+    DepthAlign, DepthMetrics, DisparityScores, MetricError, NormalMetrics,
 };
 use dens3r_geom::normals::normals_from_pointmap_robust;
 use dens3r_geom::pointmap::depth_to_pointmap;
@@ -218,4 +218,55 @@ pub fn baseline_scores(gt: &Scene, plane_align: DepthAlign) -> Result<[BaselineS
         return Err(SceneError::new(gt.root(), "no frame has depth (depth/NAME.npy): nothing to fit a baseline to"));
     }
     Ok(rows)
+}
+
+/// A 2-D map read from a grey PNG (8 or 16 bit, values as they are) or a float `.npy`.
+fn read_map(path: &Path, what: &str) -> Result<Raster<f32>, SceneError> {
+    let is_npy = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("npy"));
+    if is_npy {
+        let (shape, data) = crate::npy::read_f32(path)?;
+        let &[h, w] = shape.as_slice() else {
+            return Err(SceneError::new(path, format!("{what} must be a 2-D array (height x width), not {shape:?}")));
+        };
+        return Raster::from_vec(w, h, data).map_err(|e| SceneError::new(path, e.to_string()));
+    }
+    let img = image::open(path).map_err(|e| {
+        SceneError::new(path, format!("cannot read {what} ({e}); give a grey PNG (8 or 16 bit) or a float .npy"))
+    })?;
+    if img.color().has_color() {
+        return Err(SceneError::new(path, format!("{what} must be a grey image (one channel), not {:?}", img.color())));
+    }
+    let g = img.to_luma16();
+    let scale = if img.color().bits_per_pixel() / u16::from(img.color().channel_count()) <= 8 { 257.0 } else { 1.0 };
+    let (w, h) = (g.width() as usize, g.height() as usize);
+    Raster::from_vec(w, h, g.into_raw().into_iter().map(|v| v as f32 / scale).collect())
+        .map_err(|e| SceneError::new(path, e.to_string()))
+}
+
+/// Predicted depth (`PRED.npy`, as `predict --original-size` writes it) scored against a
+/// disparity map (Middlebury's PNG convention: the value is the disparity, 0 unknown; or a
+/// float `.npy`) whose calibration is unknown, beside the image-blind fits (see
+/// `dens3r_geom::metrics::disparity`). `mask`: a PNG whose non-zero pixels are scored.
+pub fn disparity_file_scores(pred: &Path, gt: &Path, mask: Option<&Path>) -> Result<DisparityScores, SceneError> {
+    let p = read_map(pred, "predicted depth")?;
+    let g = read_map(gt, "disparity")?;
+    let m = mask.map(|m| read_map(m, "mask").map(|r| r.map(|v| *v != 0.0))).transpose()?;
+    let size = |r: &Raster<f32>| format!("{}x{}", r.width(), r.height());
+    if !p.same_size(&g) {
+        return Err(SceneError::new(
+            pred,
+            format!("is {} but the disparity {} is {}: predict with --original-size", size(&p), gt.display(), size(&g)),
+        ));
+    }
+    if let (Some(m), Some(mp)) = (&m, mask) {
+        if !m.same_size(&g) {
+            return Err(SceneError::new(
+                mp,
+                format!("mask is {}x{}, the disparity {}", m.width(), m.height(), size(&g)),
+            ));
+        }
+    }
+    disparity_scores(&p, &g, m.as_ref()).map_err(|e| {
+        SceneError::new(gt, format!("{e} (zero or non-finite disparity, zero or NaN depth of {})", pred.display()))
+    })
 }

@@ -1,13 +1,15 @@
-//! Evaluation metrics for depth and normal maps and cameras (mesh metrics live in `dens3r-mesh`).
+//! Evaluation metrics for depth, disparity and normal maps and cameras (mesh metrics live in `dens3r-mesh`).
 
 pub mod baselines;
 pub mod cameras;
 pub mod depth;
+pub mod disparity;
 pub mod normals;
 
 pub use baselines::{constant_baseline, plane_baseline, Baseline};
 pub use cameras::{camera_metrics, CameraMetrics};
 pub use depth::{depth_metrics, DepthAlign, DepthMetrics};
+pub use disparity::{disparity_scores, DisparityMetrics, DisparityScores};
 pub use normals::{normal_metrics, NormalMetrics};
 
 /// Why a metric could not be computed.
