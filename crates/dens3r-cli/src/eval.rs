@@ -106,9 +106,14 @@ pub struct DisparityArgs {
     /// Predicted depth map, a height x width float .npy (`predict --original-size` writes
     /// OUT/depth/NAME.npy).
     pred: PathBuf,
-    /// Ground-truth disparity: a grey PNG (8 or 16 bit, the value is the disparity, 0 unknown:
-    /// Middlebury's convention) or a float .npy, of the same size.
+    /// Ground-truth disparity of the same size: a grey PNG (8 or 16 bit, the value is the
+    /// disparity, 0 unknown: Middlebury 2006's convention), a float .npy, or a .pfm
+    /// (Middlebury 2014, Scene Flow; infinity unknown).
     gt: PathBuf,
+    /// Divide the disparity file's values by this (KITTI's 16-bit PNGs: 256), so RMSE and MAE
+    /// are in pixels.
+    #[arg(long, default_value_t = 1.0)]
+    scale: f32,
     /// A PNG whose non-zero pixels are the ones scored.
     #[arg(long)]
     mask: Option<PathBuf>,
@@ -327,7 +332,7 @@ fn depth(a: DepthArgs) -> Result<()> {
 }
 
 fn disparity(a: DisparityArgs) -> Result<()> {
-    let s = eval::disparity_file_scores(&a.pred, &a.gt, a.mask.as_deref())?;
+    let s = eval::disparity_file_scores(&a.pred, &a.gt, a.scale, a.mask.as_deref())?;
     let rows = [("prediction", s.prediction), ("constant", s.constant), ("plane", s.plane)];
     if a.json {
         let row =

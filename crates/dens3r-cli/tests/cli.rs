@@ -1605,6 +1605,28 @@ fn eval_disparity_scores_depth_against_uncalibrated_disparity() {
     assert!(rel("prediction") < 0.01 && s["prediction"]["mae"].as_f64().unwrap() < 0.5, "{s}");
     assert!((rel("constant") - 1.0).abs() < 1e-9 && rel("plane") > 0.1 && rel("plane") < 1.0, "{s}");
     assert_eq!(s["pixels"].as_u64(), Some(u64::from(w * h)));
+    // The same disparity unrounded as a .pfm (rows bottom up, little-endian, one pixel unknown
+    // as infinity), and at 4x in a PNG with --scale 4: the same scores, MAE in pixels.
+    let exact: Vec<f32> = z.iter().map(|&z| 2000.0 / z - 100.0).collect();
+    let mut pfm = format!("Pf\n{w} {h}\n-1.0\n").into_bytes();
+    for (r, row) in exact.chunks(w as usize).enumerate().rev() {
+        for (c, v) in row.iter().enumerate() {
+            pfm.extend(if r == 0 && c == 0 { f32::INFINITY } else { *v }.to_le_bytes());
+        }
+    }
+    let pfm_path = dir.path().join("disp.pfm");
+    std::fs::write(&pfm_path, pfm).unwrap();
+    let s = json(&["eval", "disparity", d, pfm_path.to_str().unwrap(), "--json"]);
+    assert!(s["prediction"]["rmse"].as_f64().unwrap() < 1e-3, "{s}");
+    assert_eq!(s["pixels"].as_u64(), Some(u64::from(w * h - 1)));
+    let x4: Vec<u16> = exact.iter().map(|v| (4.0 * v).round() as u16).collect();
+    let png4 = dir.path().join("disp4.png");
+    image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, x4).unwrap().save(&png4).unwrap();
+    let s4 = json(&["eval", "disparity", d, png4.to_str().unwrap(), "--scale", "4", "--json"]);
+    assert!(s4["prediction"]["mae"].as_f64().unwrap() < 0.2, "{s4}");
+    assert!((s4["plane"]["rel_rmse"].as_f64().unwrap() - rel("plane")).abs() < 0.01, "{s4}");
+    let e = fails(&["eval", "disparity", d, png4.to_str().unwrap(), "--scale", "0"]);
+    assert!(e.contains("disp4.png") && e.contains("scale"), "{e}");
     // The mask restricts; a mask with no pixel, a colour image and another size are one line each.
     let mask = dir.path().join("mask.png");
     image::GrayImage::from_fn(w, h, |x, _| image::Luma([u8::from(x < w / 2)])).save(&mask).unwrap();

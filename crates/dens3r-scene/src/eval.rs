@@ -220,10 +220,15 @@ pub fn baseline_scores(gt: &Scene, plane_align: DepthAlign) -> Result<[BaselineS
     Ok(rows)
 }
 
-/// A 2-D map read from a grey PNG (8 or 16 bit, values as they are) or a float `.npy`.
+/// A 2-D map read from a grey PNG (8 or 16 bit, values as they are), a float `.npy` or a grey
+/// `.pfm`.
 fn read_map(path: &Path, what: &str) -> Result<Raster<f32>, SceneError> {
-    let is_npy = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("npy"));
-    if is_npy {
+    let ext = |x: &str| path.extension().is_some_and(|e| e.eq_ignore_ascii_case(x));
+    if ext("pfm") {
+        let (w, h, data) = crate::pfm::read_pfm(path)?;
+        return Raster::from_vec(w, h, data).map_err(|e| SceneError::new(path, e.to_string()));
+    }
+    if ext("npy") {
         let (shape, data) = crate::npy::read_f32(path)?;
         let &[h, w] = shape.as_slice() else {
             return Err(SceneError::new(path, format!("{what} must be a 2-D array (height x width), not {shape:?}")));
@@ -231,7 +236,10 @@ fn read_map(path: &Path, what: &str) -> Result<Raster<f32>, SceneError> {
         return Raster::from_vec(w, h, data).map_err(|e| SceneError::new(path, e.to_string()));
     }
     let img = image::open(path).map_err(|e| {
-        SceneError::new(path, format!("cannot read {what} ({e}); give a grey PNG (8 or 16 bit) or a float .npy"))
+        SceneError::new(
+            path,
+            format!("cannot read {what} ({e}); give a grey PNG (8 or 16 bit), a float .npy or a grey .pfm"),
+        )
     })?;
     if img.color().has_color() {
         return Err(SceneError::new(path, format!("{what} must be a grey image (one channel), not {:?}", img.color())));
@@ -244,12 +252,22 @@ fn read_map(path: &Path, what: &str) -> Result<Raster<f32>, SceneError> {
 }
 
 /// Predicted depth (`PRED.npy`, as `predict --original-size` writes it) scored against a
-/// disparity map (Middlebury's PNG convention: the value is the disparity, 0 unknown; or a
-/// float `.npy`) whose calibration is unknown, beside the image-blind fits (see
-/// `dens3r_geom::metrics::disparity`). `mask`: a PNG whose non-zero pixels are scored.
-pub fn disparity_file_scores(pred: &Path, gt: &Path, mask: Option<&Path>) -> Result<DisparityScores, SceneError> {
+/// disparity map whose calibration is unknown, beside the image-blind fits (see
+/// `dens3r_geom::metrics::disparity`). The disparity: a grey PNG (Middlebury 2006's convention:
+/// the value is the disparity, 0 unknown; KITTI's 16-bit PNGs hold 256x it, `scale` 256), a
+/// float `.npy`, or a `.pfm` (Middlebury 2014, Scene Flow: infinity unknown); its values are
+/// divided by `scale`. `mask`: a PNG whose non-zero pixels are scored.
+pub fn disparity_file_scores(
+    pred: &Path,
+    gt: &Path,
+    scale: f32,
+    mask: Option<&Path>,
+) -> Result<DisparityScores, SceneError> {
+    if !(scale.is_finite() && scale > 0.0) {
+        return Err(SceneError::new(gt, format!("the disparity scale must be a positive number, not {scale}")));
+    }
     let p = read_map(pred, "predicted depth")?;
-    let g = read_map(gt, "disparity")?;
+    let g = read_map(gt, "disparity")?.map(|d| d / scale);
     let m = mask.map(|m| read_map(m, "mask").map(|r| r.map(|v| *v != 0.0))).transpose()?;
     let size = |r: &Raster<f32>| format!("{}x{}", r.width(), r.height());
     if !p.same_size(&g) {

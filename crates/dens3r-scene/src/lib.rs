@@ -26,6 +26,7 @@ mod error;
 pub mod eval;
 pub mod export;
 pub mod npy;
+pub mod pfm;
 mod reader;
 pub mod visibility;
 pub mod viz;
