@@ -164,7 +164,7 @@ pub fn run_train(dir: &Path) -> Result<()> {
             }
         })
         .collect();
-    let batch = Batch { images, targets };
+    let batch = Batch { images, targets, style: Vec::new() };
     let mut trainer =
         Trainer::new(params, cfg.clone(), burn::tensor::Device::autodiff(device)).map_err(|e| anyhow!(e))?;
     let mut steps = Vec::new();

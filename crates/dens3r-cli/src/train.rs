@@ -95,6 +95,11 @@ pub struct TrainArgs {
     /// renders lack and photographs have (0 = never).
     #[arg(long, default_value_t = 0.0)]
     degrade: f32,
+    /// Strength of a jitter of the encoder tokens' statistics on half the pairs (each
+    /// channel's mean and spread over the tokens moved by this times Gaussian draws), so the
+    /// decoder does not lean on the renders' feature statistics (0 = off).
+    #[arg(long, default_value_t = 0.0)]
+    style_jitter: f32,
     /// Weight of a scale-and-shift-invariant depth loss on view 1, added to the stage's terms
     /// (least-squares fit, residual over the ground truth's spread: shallow scenes such as a
     /// tote from above count as much as deep rooms); 0 = off, as the paper.
@@ -197,6 +202,7 @@ fn train_config(a: &TrainArgs) -> Result<TrainConfig> {
         self_pairs: a.self_pairs,
         roll_top_down: a.roll_top_down,
         degrade: a.degrade,
+        style_jitter: a.style_jitter,
         depth_ssi: a.depth_ssi,
         taps_lr_mult: a.taps_lr_mult,
         checkpoint_every: a.checkpoint_every,

@@ -144,6 +144,11 @@ pub struct TrainConfig {
     /// lack them and photographs have them (0 = never).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub degrade: f32,
+    /// Strength of the encoder tokens' statistics jitter on half the pairs ([`style_jitter`]:
+    /// each channel's mean and spread over the tokens moved by this times Gaussian draws),
+    /// so the decoder and heads do not lean on the renders' feature statistics (0 = off).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub style_jitter: f32,
     /// Weight of a scale-and-shift-invariant depth loss on view 1 ([`loss::ssi_depth_l1`]),
     /// added to the stage's terms (0 = off, as the paper).
     #[serde(default, skip_serializing_if = "is_zero")]
@@ -187,6 +192,7 @@ impl Default for TrainConfig {
             self_pairs: 0.0,
             roll_top_down: 0.0,
             degrade: 0.0,
+            style_jitter: 0.0,
             depth_ssi: 0.0,
             taps_lr_mult: 1.0,
             freeze: Freeze::None,
@@ -231,6 +237,12 @@ impl TrainConfig {
         }
         if !(0.0..=1.0).contains(&self.degrade) {
             return Err(TrainError::invalid(format!("--degrade {}: expected a probability in [0, 1]", self.degrade)));
+        }
+        if !(0.0..=1.0).contains(&self.style_jitter) {
+            return Err(TrainError::invalid(format!(
+                "--style-jitter {}: expected a strength in [0, 1]",
+                self.style_jitter
+            )));
         }
         if !(self.taps_lr_mult.is_finite() && self.taps_lr_mult > 0.0) {
             return Err(TrainError::invalid(format!(
@@ -297,6 +309,9 @@ pub struct Batch {
     pub images: [Tensor<4>; 2],
     /// Ground truth per sample.
     pub targets: Vec<PairTarget>,
+    /// Per sample, the seed of its encoder-statistics jitter when it gets one
+    /// ([`TrainConfig::style_jitter`]); empty = none.
+    pub style: Vec<Option<u64>>,
 }
 
 impl Batch {
@@ -306,6 +321,7 @@ impl Batch {
             .map(|k| Batch {
                 images: self.images.clone().map(|t| t.narrow(0, k, 1)),
                 targets: vec![self.targets[k].clone()],
+                style: self.style.get(k).map(|s| vec![*s]).unwrap_or_default(),
             })
             .collect()
     }
@@ -394,6 +410,35 @@ fn trained_term(cfg: &TrainConfig, t: &LossTerms) -> bool {
         || cfg.depth_ssi > 0.0
 }
 
+/// Both views' encoder tokens `(B, N, D)` with each channel's mean and spread over the tokens
+/// moved, the same way in both views of a sample (one scene, one look): `e + a ((e - mu) eps_s
+/// + sigma eps_m)`, `eps` standard normal per channel drawn from the sample's seed (none: left
+/// as it is): the spread scaled by `1 + a eps_s`, the mean shifted by `a eps_m` spreads.
+pub fn style_jitter(views: [Tensor<3>; 2], a: f32, seeds: &[Option<u64>]) -> [Tensor<3>; 2] {
+    let [b, _, d] = views[0].dims();
+    let device = views[0].device();
+    let (mut es, mut em) = (vec![0.0f32; b * d], vec![0.0f32; b * d]);
+    for (k, seed) in seeds.iter().enumerate().take(b) {
+        let Some(seed) = seed else { continue };
+        let mut rng = ChaCha8Rng::seed_from_u64(*seed);
+        // Box-Muller: a standard normal from two uniforms.
+        let mut normal = || {
+            let (u, t): (f32, f32) = (rng.gen_range(f32::EPSILON..1.0), rng.gen_range(0.0..1.0));
+            a * (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * t).cos()
+        };
+        es[k * d..(k + 1) * d].iter_mut().for_each(|e| *e = normal());
+        em[k * d..(k + 1) * d].iter_mut().for_each(|e| *e = normal());
+    }
+    let t = |v: Vec<f32>| Tensor::<3>::from_data(TensorData::new(v, [b, 1, d]), &device);
+    let (eps_s, eps_m) = (t(es), t(em));
+    views.map(|e| {
+        let mu = e.clone().mean_dim(1);
+        let centred = e.clone() - mu;
+        let sigma = (centred.clone() * centred.clone()).mean_dim(1).add_scalar(1e-6).sqrt();
+        e + centred * eps_s.clone() + sigma * eps_m.clone()
+    })
+}
+
 /// The weighted loss of a batch under `stage` (and each term), from the network's outputs.
 pub fn batch_loss(model: &Dens3r, batch: &Batch, cfg: &TrainConfig) -> Result<(Tensor<1>, LossTerms), TrainError> {
     shard_loss(model, batch, cfg, &BatchCounts::of(&batch.targets, cfg))
@@ -412,7 +457,14 @@ pub fn shard_loss(
     let [w_glb, w_n, w_match, w_normal] = cfg.weights();
     // Only the outputs the stage's losses read (stage 1 skips the normal head's DPT).
     let want = HeadOutputs { normal: w_normal > 0.0, desc: w_match > 0.0 };
-    let pred = model.heads_with(&model.encode(img1, img2), want);
+    let features = if cfg.style_jitter > 0.0 && batch.style.iter().any(Option::is_some) {
+        let [(e1, g1), (e2, g2)] = model.encode_images(img1, img2);
+        let [e1, e2] = style_jitter([e1, e2], cfg.style_jitter, &batch.style);
+        model.decode(e1, g1, e2, g2)
+    } else {
+        model.encode(img1, img2)
+    };
+    let pred = model.heads_with(&features, want);
     let [p1, p2] = &pred.views;
     let t = &batch.targets;
     let size = t[0].size;
@@ -621,6 +673,9 @@ impl Dataset {
         // images only: the pairs, crops, jitter and correspondences stay as drawn without them.
         let mut degrade_rng = rng.clone();
         degrade_rng.set_stream(1);
+        let mut style_rng = rng.clone();
+        style_rng.set_stream(2);
+        let mut style = Vec::new();
         let picks: Vec<(usize, usize, usize)> =
             (0..cfg.batch).map(|_| self.pairs[rng.gen_range(0..self.pairs.len())]).collect();
         let first = &self.scenes[picks[0].0].frames()[picks[0].1];
@@ -654,10 +709,13 @@ impl Dataset {
                 imgs[k].extend(img);
             }
             targets.push(t);
+            if cfg.style_jitter > 0.0 {
+                style.push((style_rng.gen_range(0.0f32..1.0) < 0.5).then(|| style_rng.gen::<u64>()));
+            }
         }
         let b = cfg.batch;
         let images = imgs.map(|v| Tensor::<4>::from_data(TensorData::new(v, [b, 3, h, w]), device));
-        Ok(Batch { images, targets })
+        Ok(Batch { images, targets, style })
     }
 }
 
@@ -721,6 +779,7 @@ pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usi
         self_pairs: 0.0,
         roll_top_down: 0.0,
         degrade: 0.0,
+        style_jitter: 0.0,
         seed: 0x5eed_0a11_d00d,
         ..cfg.clone()
     };

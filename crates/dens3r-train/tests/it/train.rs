@@ -9,7 +9,7 @@ use dens3r_geom::camera::Intrinsics;
 use dens3r_geom::{look_at, Raster};
 use dens3r_train::loss::{self, Matches, RegrView};
 use dens3r_train::pair::{correspondences, pair_target, View};
-use dens3r_train::train::{batch_loss, shard_loss, Batch, BatchCounts, LossTerms};
+use dens3r_train::train::{batch_loss, shard_loss, style_jitter, Batch, BatchCounts, LossTerms};
 use dens3r_train::{Arch, Dataset, PointsFrame, Stage, TrainConfig, Trainer};
 use glam::{DVec3, Vec3};
 use rand::{Rng, SeedableRng};
@@ -1006,7 +1006,7 @@ fn own_frame_regresses_view_2_in_its_own_frame() {
         t.pts[1] = t.pts_own[1].clone();
         t.normals_in1[1] = t.normals[1].clone();
     }
-    let swapped = Batch { images: batch.images.clone(), targets };
+    let swapped = Batch { images: batch.images.clone(), targets, style: Vec::new() };
     let (_, reference) = batch_loss(&model, &swapped, &first).unwrap();
     assert_eq!(local.pts_glb, reference.pts_glb);
     assert_eq!(local.pts_n, reference.pts_n);
@@ -1025,4 +1025,49 @@ fn load_final(dir: &std::path::Path, arch: &Arch) -> Dens3r {
     assert!(unexpected.is_empty(), "{unexpected:?}");
     assert_eq!(m.config, arch.config());
     m
+}
+
+/// Per-channel mean and spread over the tokens of a `(1, N, D)` tensor, in f64.
+fn channel_stats(v: &[f32], n: usize, d: usize) -> (Vec<f64>, Vec<f64>) {
+    let mean: Vec<f64> = (0..d).map(|c| (0..n).map(|i| v[i * d + c] as f64).sum::<f64>() / n as f64).collect();
+    let sd = (0..d)
+        .map(|c| ((0..n).map(|i| (v[i * d + c] as f64 - mean[c]).powi(2)).sum::<f64>() / n as f64).sqrt())
+        .collect();
+    (mean, sd)
+}
+
+#[test]
+fn style_jitter_moves_each_channels_statistics_alike_in_both_views() {
+    let dev = Device::flex();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let (n, d) = (50, 6);
+    let raw = [rand_vec(&mut rng, n * d, -2.0, 3.0), rand_vec(&mut rng, n * d, 0.0, 1.0)];
+    let views = || raw.clone().map(|v| t3(&v, [1, n, d], &dev));
+    // Strength 0 changes nothing.
+    for (out, inp) in style_jitter(views(), 0.0, &[Some(7)]).into_iter().zip(&raw) {
+        assert_eq!(&vals(out), inp);
+    }
+    // Each channel: the mean moves by k_m spreads and the spread scales by |1 + k_s|, with the
+    // same (k_m, k_s) in both views (whose own statistics differ), and they do move.
+    let out = style_jitter(views(), 0.3, &[Some(7)]).map(vals);
+    let ks: Vec<(Vec<f64>, Vec<f64>)> = (0..2)
+        .map(|k| {
+            let ((m0, s0), (m1, s1)) = (channel_stats(&raw[k], n, d), channel_stats(&out[k], n, d));
+            ((0..d).map(|c| (m1[c] - m0[c]) / s0[c]).collect(), (0..d).map(|c| s1[c] / s0[c]).collect())
+        })
+        .collect();
+    for c in 0..d {
+        assert!((ks[0].0[c] - ks[1].0[c]).abs() < 1e-3 && (ks[0].1[c] - ks[1].1[c]).abs() < 1e-3, "{ks:?}");
+    }
+    assert!(ks[0].0.iter().any(|k| k.abs() > 0.05) && ks[0].1.iter().any(|k| (k - 1.0).abs() > 0.05), "{ks:?}");
+    // The draws come from the seed.
+    assert_eq!(style_jitter(views(), 0.3, &[Some(7)]).map(vals), out);
+    assert_ne!(style_jitter(views(), 0.3, &[Some(8)]).map(vals), out);
+    // In a batch each sample draws from its own seed, one without a seed is left as it is.
+    let both = || raw.clone().map(|v| t3(&[v.clone(), v].concat(), [2, n, d], &dev));
+    let out2 = style_jitter(both(), 0.3, &[None, Some(7)]).map(vals);
+    for (k, o) in out2.iter().enumerate() {
+        assert_eq!(o[..n * d], raw[k][..]);
+        assert_eq!(o[n * d..], out[k][..]);
+    }
 }
