@@ -18,19 +18,26 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 data="${DENS3R_DATA:-$root/.cache/data}"
 mkdir -p "$data"
 
+# Downloads Debian's PACKAGE (refreshing the package lists once if apt does not know it) and
+# unpacks it into DIR/pkg.
+deb_unpack() {
+  local package="$1" dir="$2"
+  (
+    cd "$dir"
+    apt-get download "$package" >/dev/null 2>&1 \
+      || { apt-get update -qq >/dev/null 2>&1; apt-get download "$package" >/dev/null 2>&1; } || exit 1
+    dpkg -x "$package"_*.deb pkg
+  )
+}
+
 fetch_cgal_meshes() {
   local out="$data/meshes"
   if [ -f "$out/bunny00.off" ] && [ -f "$out/armadillo.off" ] && [ -f "$out/ChineseDragon-10kv.off" ]; then
     echo "meshes: cached in $out"; return 0
   fi
   local tmp; tmp="$(mktemp -d)"
-  (
+  deb_unpack libcgal-demo "$tmp" && (
     cd "$tmp"
-    if ! apt-get download libcgal-demo >/dev/null 2>&1; then
-      apt-get update -qq >/dev/null 2>&1 || true
-      apt-get download libcgal-demo >/dev/null 2>&1
-    fi
-    dpkg -x libcgal-demo_*.deb pkg
     tar xzf pkg/usr/share/doc/libcgal-dev/data.tar.gz \
       data/meshes/bunny00.off data/meshes/armadillo.off data/meshes/ChineseDragon-10kv.off
   ) || { echo "meshes: could not fetch Debian's libcgal-demo (tests that need it will say so)"; rm -rf "$tmp"; return 1; }
@@ -46,14 +53,7 @@ fetch_opencv_aloe() {
     echo "opencv: cached in $out"; return 0
   fi
   local tmp; tmp="$(mktemp -d)"
-  (
-    cd "$tmp"
-    if ! apt-get download opencv-doc >/dev/null 2>&1; then
-      apt-get update -qq >/dev/null 2>&1 || true
-      apt-get download opencv-doc >/dev/null 2>&1
-    fi
-    dpkg -x opencv-doc_*.deb pkg
-  ) || { echo "opencv: could not fetch Debian's opencv-doc (the evaluation leaves the Aloe rows out)"; rm -rf "$tmp"; return 1; }
+  deb_unpack opencv-doc "$tmp" || { echo "opencv: could not fetch Debian's opencv-doc (the evaluation leaves the Aloe rows out)"; rm -rf "$tmp"; return 1; }
   mkdir -p "$out"
   for f in aloeL.jpg aloeR.jpg aloeGT.png; do
     mv "$tmp/pkg/usr/share/doc/opencv-doc/examples/data/$f" "$out/$f.part" && mv "$out/$f.part" "$out/$f"

@@ -220,8 +220,8 @@ pub fn baseline_scores(gt: &Scene, plane_align: DepthAlign) -> Result<[BaselineS
     Ok(rows)
 }
 
-/// A 2-D map read from a grey PNG (8 or 16 bit, values as they are), a float `.npy` or a grey
-/// `.pfm`.
+/// A 2-D float map: a float `.npy`, a grey `.pfm`, or a grey 8- or 16-bit PNG (values as
+/// they are).
 fn read_map(path: &Path, what: &str) -> Result<Raster<f32>, SceneError> {
     let ext = |x: &str| path.extension().is_some_and(|e| e.eq_ignore_ascii_case(x));
     if ext("pfm") {
@@ -235,20 +235,7 @@ fn read_map(path: &Path, what: &str) -> Result<Raster<f32>, SceneError> {
         };
         return Raster::from_vec(w, h, data).map_err(|e| SceneError::new(path, e.to_string()));
     }
-    let img = image::open(path).map_err(|e| {
-        SceneError::new(
-            path,
-            format!("cannot read {what} ({e}); give a grey PNG (8 or 16 bit), a float .npy or a grey .pfm"),
-        )
-    })?;
-    if img.color().has_color() {
-        return Err(SceneError::new(path, format!("{what} must be a grey image (one channel), not {:?}", img.color())));
-    }
-    let g = img.to_luma16();
-    let scale = if img.color().bits_per_pixel() / u16::from(img.color().channel_count()) <= 8 { 257.0 } else { 1.0 };
-    let (w, h) = (g.width() as usize, g.height() as usize);
-    Raster::from_vec(w, h, g.into_raw().into_iter().map(|v| v as f32 / scale).collect())
-        .map_err(|e| SceneError::new(path, e.to_string()))
+    Ok(crate::reader::read_grey_png(path, what)?.map(|v| *v as f32))
 }
 
 /// Predicted depth (`PRED.npy`, as `predict --original-size` writes it) scored against a
@@ -268,7 +255,7 @@ pub fn disparity_file_scores(
     }
     let p = read_map(pred, "predicted depth")?;
     let g = read_map(gt, "disparity")?.map(|d| d / scale);
-    let m = mask.map(|m| read_map(m, "mask").map(|r| r.map(|v| *v != 0.0))).transpose()?;
+    let m = mask.map(|m| crate::reader::read_grey_png(m, "a mask").map(|r| r.map(|v| *v != 0))).transpose()?;
     let size = |r: &Raster<f32>| format!("{}x{}", r.width(), r.height());
     if !p.same_size(&g) {
         return Err(SceneError::new(

@@ -222,20 +222,28 @@ impl Scene {
         if !path.is_file() {
             return Ok(None);
         }
-        let img = image::open(&path).map_err(|e| SceneError::new(&path, format!("unreadable PNG ({e})")))?;
-        check_size(&path, f, img.width() as usize, img.height() as usize)?;
-        let ids = match img {
-            image::DynamicImage::ImageLuma8(g) => g.into_raw().into_iter().map(u16::from).collect(),
-            image::DynamicImage::ImageLuma16(g) => g.into_raw(),
-            other => {
-                return Err(SceneError::new(
-                    &path,
-                    format!("must be a single-channel 8- or 16-bit PNG of ids, got {:?}", other.color()),
-                ));
-            }
-        };
-        Ok(Some(Raster::from_vec(f.width, f.height, ids).expect("size checked")))
+        let ids = read_grey_png(&path, "ids")?;
+        check_size(&path, f, ids.width(), ids.height())?;
+        Ok(Some(ids))
     }
+}
+
+/// A single-channel 8- or 16-bit PNG's values as they are (ids, masks, Middlebury's disparity);
+/// `what` names its content in the error.
+pub(crate) fn read_grey_png(path: &Path, what: &str) -> Result<Raster<u16>, SceneError> {
+    let img = image::open(path).map_err(|e| SceneError::new(path, format!("unreadable PNG ({e})")))?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let values = match img {
+        image::DynamicImage::ImageLuma8(g) => g.into_raw().into_iter().map(u16::from).collect(),
+        image::DynamicImage::ImageLuma16(g) => g.into_raw(),
+        other => {
+            return Err(SceneError::new(
+                path,
+                format!("must be a single-channel (grey) 8- or 16-bit PNG of {what}, got {:?}", other.color()),
+            ));
+        }
+    };
+    Ok(Raster::from_vec(w, h, values).expect("the image's own size"))
 }
 
 fn check_size(path: &Path, f: &Frame, w: usize, h: usize) -> Result<(), SceneError> {

@@ -42,30 +42,36 @@ pub fn constant_baseline(gt: &Raster<f32>, mask: Option<&Raster<bool>>) -> Optio
     })
 }
 
+/// Least-squares `v ~ a x + b y + c` over pixels `(x, y, v)` of a `w x h` grid, as `(a, b, c)`
+/// (solved on coordinates centred and scaled for conditioning); `None` with fewer than 3
+/// pixels or a degenerate fit (all on one line).
+pub(crate) fn fit_affine(
+    (w, h): (usize, usize),
+    pixels: impl Iterator<Item = (usize, usize, f64)>,
+) -> Option<(f64, f64, f64)> {
+    let (sx, sy) = (w as f64 / 2.0, h as f64 / 2.0);
+    let (mut ata, mut atb, mut n) = (DMat3::ZERO, DVec3::ZERO, 0usize);
+    for (x, y, v) in pixels {
+        let r = DVec3::new((x as f64 - sx) / sx, (y as f64 - sy) / sy, 1.0);
+        ata += DMat3::from_cols(r * r.x, r * r.y, r * r.z);
+        atb += r * v;
+        n += 1;
+    }
+    if n < 3 || ata.determinant().abs() < 1e-12 * (n as f64).powi(3) {
+        return None;
+    }
+    let q = ata.inverse() * atb;
+    // Back to raw pixels.
+    Some((q.x / sx, q.y / sy, q.z - q.x - q.y))
+}
+
 /// The least-squares plane of the ground truth (fitted on inverse depth; see the module
 /// docs). Pixels whose ray misses the plane (behind the camera, or beyond 100x the median
 /// depth) get the median depth. `None` with fewer than 3 valid pixels or a degenerate fit.
 pub fn plane_baseline(gt: &Raster<f32>, k: &Intrinsics, mask: Option<&Raster<bool>>) -> Option<Baseline> {
-    // Normal equations of [x y 1] . (a b c) = 1/z, pixel coordinates centred and scaled for
-    // conditioning.
-    let (sx, sy) = (gt.width() as f64 / 2.0, gt.height() as f64 / 2.0);
-    let mut ata = DMat3::ZERO;
-    let mut atb = DVec3::ZERO;
-    let mut depths = Vec::new();
-    for (x, y, z) in valid_pixels(gt, mask) {
-        let r = DVec3::new((x as f64 - sx) / sx, (y as f64 - sy) / sy, 1.0);
-        ata += DMat3::from_cols(r * r.x, r * r.y, r * r.z);
-        atb += r / z;
-        depths.push(z);
-    }
-    if depths.len() < 3 || ata.determinant().abs() < 1e-12 * (depths.len() as f64).powi(3) {
-        return None;
-    }
+    let (a, b, c) = fit_affine((gt.width(), gt.height()), valid_pixels(gt, mask).map(|(x, y, z)| (x, y, 1.0 / z)))?;
+    let mut depths: Vec<f64> = valid_pixels(gt, mask).map(|p| p.2).collect();
     let median = crate::focal::median(&mut depths)?;
-    let q = ata.inverse() * atb;
-    // Back to raw pixels: 1/z = a x + b y + c.
-    let (a, b) = (q.x / sx, q.y / sy);
-    let c = q.z - q.x - q.y;
     // n^T K^-1 p = d (a, b, c) . p for every pixel p, so K^-T n ~ (a, b, c): n ~ K^T (a, b, c).
     let kt = DMat3::from_cols(DVec3::new(k.fx, 0.0, k.cx), DVec3::new(0.0, k.fy, k.cy), DVec3::new(0.0, 0.0, 1.0));
     let n = (kt * DVec3::new(a, b, c)).normalize_or_zero();

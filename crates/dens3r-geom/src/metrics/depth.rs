@@ -40,9 +40,7 @@ pub fn depth_metrics(
     mask: Option<&Raster<bool>>,
     align: DepthAlign,
 ) -> Result<DepthMetrics, MetricError> {
-    if !pred.same_size(gt) || mask.is_some_and(|m| !m.same_size(gt)) {
-        return Err(MetricError::SizeMismatch(pred.width(), pred.height(), gt.width(), gt.height()));
-    }
+    super::check_sizes(pred, gt, mask)?;
     let pairs: Vec<(f64, f64)> = (0..gt.data().len())
         .filter(|&i| mask.is_none_or(|m| m.data()[i]))
         .map(|i| (pred.data()[i], gt.data()[i]))
@@ -87,8 +85,8 @@ pub fn depth_metrics(
     })
 }
 
-/// Closed-form least-squares `(s, t)` minimising `sum (s p + t - g)^2`; a singular system
-/// falls back to `(1, 0)`.
+/// Closed-form least-squares `(s, t)` minimising `sum (s p + t - g)^2`. A singular system (every
+/// `p` the same) has its minimum at any `s p + t = mean(g)`: `(0, mean(g))`.
 pub fn scale_shift(pairs: &[(f64, f64)]) -> (f64, f64) {
     let (mut a00, mut a01, mut b0, mut b1) = (0.0, 0.0, 0.0, 0.0);
     for &(p, g) in pairs {
@@ -100,7 +98,7 @@ pub fn scale_shift(pairs: &[(f64, f64)]) -> (f64, f64) {
     let a11 = pairs.len() as f64;
     let det = a00 * a11 - a01 * a01;
     if det.abs() <= 1e-12 * (a00 * a11).max(1e-300) {
-        return (1.0, 0.0);
+        return (0.0, b1 / a11.max(1.0));
     }
     ((a11 * b0 - a01 * b1) / det, (-a01 * b0 + a00 * b1) / det)
 }
@@ -130,6 +128,15 @@ mod tests {
         assert_eq!(m.delta, [0.0, 0.0, 0.0]);
         let m = depth_metrics(&gt.map(|g| g * 1.5), &gt, None, DepthAlign::None).unwrap();
         assert_eq!(m.delta, [0.0, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn a_constant_prediction_scales_and_shifts_to_the_mean() {
+        // Every scale and shift of a constant is a constant; the least-squares one is the
+        // ground truth's mean (3): AbsRel (2 + 0.5 + 0 + 0.5) / 4.
+        let gt = Raster::from_vec(4, 1, vec![1.0f32, 2.0, 3.0, 6.0]).unwrap();
+        let m = depth_metrics(&gt.map(|_| 5.0), &gt, None, DepthAlign::ScaleShift).unwrap();
+        assert!((m.abs_rel - 0.75).abs() < 1e-12 && m.scale == 0.0 && (m.shift - 3.0).abs() < 1e-12, "{m:?}");
     }
 
     #[test]

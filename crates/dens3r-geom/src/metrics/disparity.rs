@@ -12,11 +12,11 @@
 //! `rel_rmse` divides the RMSE by the disparity's standard deviation, so it reads as the share
 //! of the scene's inverse-depth variation left unexplained: the constant scores exactly 1.
 
+use super::baselines::fit_affine;
 use super::depth::scale_shift;
 use super::MetricError;
 use crate::pointmap::depth_valid;
 use crate::raster::Raster;
-use glam::{DMat3, DVec3};
 
 /// Errors of one predictor against the disparity, after its least-squares fit.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -48,8 +48,8 @@ pub struct DisparityScores {
 
 /// A scored pixel: its position, the predicted inverse depth and the disparity.
 struct Px {
-    x: f64,
-    y: f64,
+    x: usize,
+    y: usize,
     q: f64,
     d: f64,
 }
@@ -62,14 +62,12 @@ pub fn disparity_scores(
     gt: &Raster<f32>,
     mask: Option<&Raster<bool>>,
 ) -> Result<DisparityScores, MetricError> {
-    if !pred.same_size(gt) || mask.is_some_and(|m| !m.same_size(gt)) {
-        return Err(MetricError::SizeMismatch(pred.width(), pred.height(), gt.width(), gt.height()));
-    }
+    super::check_sizes(pred, gt, mask)?;
     let w = gt.width();
     let px: Vec<Px> = (0..gt.data().len())
         .filter(|&i| mask.is_none_or(|m| m.data()[i]))
         .filter(|&i| depth_valid(pred.data()[i]) && depth_valid(gt.data()[i]))
-        .map(|i| Px { x: (i % w) as f64, y: (i / w) as f64, q: 1.0 / pred.data()[i] as f64, d: gt.data()[i] as f64 })
+        .map(|i| Px { x: i % w, y: i / w, q: 1.0 / pred.data()[i] as f64, d: gt.data()[i] as f64 })
         .collect();
     if px.is_empty() {
         return Err(MetricError::NoValidPixels);
@@ -87,27 +85,16 @@ pub fn disparity_scores(
         let rmse = (sq / n).sqrt();
         DisparityMetrics { rel_rmse: if std > 0.0 { rmse / std } else { 0.0 }, rmse, mae: abs / n, count: px.len() }
     };
-    // An inverse depth without variation can only be fitted as the constant.
-    let q: Vec<(f64, f64)> = px.iter().map(|p| (p.q, p.d)).collect();
-    let qmean = q.iter().map(|p| p.0).sum::<f64>() / n;
-    let (scale, shift) =
-        if q.iter().all(|p| (p.0 - qmean).abs() <= 1e-12 * qmean.abs()) { (0.0, mean) } else { scale_shift(&q) };
-    // The plane: normal equations of [x y 1] . c = d, coordinates centred and scaled.
-    let (sx, sy) = (gt.width() as f64 / 2.0, gt.height() as f64 / 2.0);
-    let row = |p: &Px| DVec3::new((p.x - sx) / sx, (p.y - sy) / sy, 1.0);
-    let (mut ata, mut atb) = (DMat3::ZERO, DVec3::ZERO);
-    for p in &px {
-        let r = row(p);
-        ata += DMat3::from_cols(r * r.x, r * r.y, r * r.z);
-        atb += r * p.d;
-    }
-    let c = if ata.determinant().abs() > 1e-12 * n * n * n { ata.inverse() * atb } else { DVec3::new(0.0, 0.0, mean) };
+    let (scale, shift) = scale_shift(&px.iter().map(|p| (p.q, p.d)).collect::<Vec<_>>());
+    // The plane; a degenerate one (pixels on one line) is the constant.
+    let (pa, pb, pc) =
+        fit_affine((gt.width(), gt.height()), px.iter().map(|p| (p.x, p.y, p.d))).unwrap_or((0.0, 0.0, mean));
     Ok(DisparityScores {
         prediction: score(&|p| scale * p.q + shift),
         scale,
         shift,
         constant: score(&|_| mean),
-        plane: score(&|p| row(p).dot(c)),
+        plane: score(&|p| pa * p.x as f64 + pb * p.y as f64 + pc),
     })
 }
 

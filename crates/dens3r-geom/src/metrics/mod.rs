@@ -12,6 +12,8 @@ pub use depth::{depth_metrics, DepthAlign, DepthMetrics};
 pub use disparity::{disparity_scores, DisparityMetrics, DisparityScores};
 pub use normals::{normal_metrics, NormalMetrics};
 
+use crate::raster::Raster;
+
 /// Why a metric could not be computed.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum MetricError {
@@ -21,4 +23,12 @@ pub enum MetricError {
     /// No pixel is valid in both maps (and the mask).
     #[error("no pixel is valid in both maps")]
     NoValidPixels,
+}
+
+/// `pred`, `gt` and `mask` (if given) must be one size.
+fn check_sizes<A, B>(pred: &Raster<A>, gt: &Raster<B>, mask: Option<&Raster<bool>>) -> Result<(), MetricError> {
+    if !pred.same_size(gt) || mask.is_some_and(|m| !m.same_size(gt)) {
+        return Err(MetricError::SizeMismatch(pred.width(), pred.height(), gt.width(), gt.height()));
+    }
+    Ok(())
 }

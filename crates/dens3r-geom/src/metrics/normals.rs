@@ -30,9 +30,7 @@ pub fn normal_metrics(
     gt: &Raster<Vec3>,
     mask: Option<&Raster<bool>>,
 ) -> Result<NormalMetrics, MetricError> {
-    if !pred.same_size(gt) || mask.is_some_and(|m| !m.same_size(gt)) {
-        return Err(MetricError::SizeMismatch(pred.width(), pred.height(), gt.width(), gt.height()));
-    }
+    super::check_sizes(pred, gt, mask)?;
     let valid = |n: Vec3| n.is_finite() && n.length_squared() > 1e-12;
     let mut angles: Vec<f64> = (0..gt.data().len())
         .filter(|&i| mask.is_none_or(|m| m.data()[i]))
