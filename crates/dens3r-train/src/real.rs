@@ -190,7 +190,7 @@ impl MrptReader<'_> {
         TrainError::file(
             self.path,
             format!(
-                "not the MRPT Kinect frame expected at byte {} ({what}); rerun scripts/fetch-data.sh eval",
+                "not the MRPT Kinect frame expected at byte {} ({what}); remove it and rerun scripts/fetch-data.sh",
                 self.at
             ),
         )
@@ -275,13 +275,12 @@ pub struct KinectFrame {
 /// Reads [`KinectFrame`] from the gzipped rawlog at `path`, checking every header it passes.
 pub fn read_kinect_rawlog(path: &Path) -> Result<KinectFrame, TrainError> {
     use std::io::Read;
-    let file = std::fs::File::open(path)
-        .map_err(|e| TrainError::file(path, format!("{e}; run scripts/fetch-data.sh eval")))?;
+    let file =
+        std::fs::File::open(path).map_err(|e| TrainError::file(path, format!("{e}; run scripts/fetch-data.sh")))?;
     let mut data = Vec::new();
-    flate2::read::GzDecoder::new(std::io::BufReader::new(file))
-        .take(64 << 20)
-        .read_to_end(&mut data)
-        .map_err(|e| TrainError::file(path, format!("not a readable gzip ({e}); rerun scripts/fetch-data.sh eval")))?;
+    flate2::read::GzDecoder::new(std::io::BufReader::new(file)).take(64 << 20).read_to_end(&mut data).map_err(|e| {
+        TrainError::file(path, format!("not a readable gzip ({e}); remove it and rerun scripts/fetch-data.sh"))
+    })?;
     let mut r = MrptReader { data: &data, at: 0, path };
     r.object("mrpt::obs::CObservation3DRangeScan", 9)?;
     r.f32()?; // maxRange
