@@ -7,10 +7,9 @@
 #![cfg(any(feature = "wgpu", feature = "cuda"))]
 
 use dens3r_backbone::device::{cpu, is_gpu, network_device};
-use dens3r_backbone::verify::verify_dir;
 use dens3r_backbone::{Device, ModelConfig, Params, Tensor, TensorData, Weights};
 
-use crate::fixtures::{parity, shared_parity, A};
+use crate::fixtures::{parity, A};
 
 fn gpu_or_skip() -> Option<Device> {
     match network_device(true) {
@@ -29,24 +28,7 @@ fn gpu_or_skip() -> Option<Device> {
 #[test]
 fn fixtures_match_pytorch_on_the_gpu() {
     let Some(device) = gpu_or_skip() else { return };
-    // A from the repository; B (two decoders, descriptor confidence, 48x64 beside 64x48) and C
-    // (a self-pair) from the team's shared folder where it is present (CI has it).
-    let mut cases = vec![(A, parity(A))];
-    for case in ["B_two_dec_descconf_48x64_64x48", "C_self_pair_48x64"] {
-        cases.extend(shared_parity(case, &format!("GPU parity on fixture {case}")).map(|p| (case, p)));
-    }
-    for (case, dir) in cases {
-        let results = verify_dir(&dir, &device).unwrap_or_else(|e| panic!("{case}: {e}"));
-        let failed: Vec<String> = results
-            .iter()
-            .filter(|r| !r.pass)
-            .map(|r| format!("{} abs {:.2e} rel {:.2e}", r.name, r.max_abs, r.max_rel))
-            .collect();
-        assert!(failed.is_empty(), "{case}: GPU outputs off the PyTorch reference: {failed:?}");
-        assert!(results.len() >= 10, "{case}: only {} arrays compared", results.len());
-        let worst = results.iter().map(|r| r.max_abs).fold(0.0, f64::max);
-        eprintln!("GPU parity on {case}: {} arrays, max abs error {worst:.2e}", results.len());
-    }
+    crate::parity::assert_fixtures_match(&device, "the GPU");
 }
 
 /// Fixture A's network built from flat parameters on an autodiff device, and the gradient of
