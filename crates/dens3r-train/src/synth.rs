@@ -162,9 +162,7 @@ pub fn synthesise(
             if opts.occlusion {
                 add_occlusion(&mut scene);
             }
-            if opts.plain_walls > 0.0 {
-                plain_enclosure(&mut scene, scene_seed(opts.seed, k), opts.plain_walls);
-            }
+            plain_enclosure(&mut scene, scene_seed(opts.seed, k), opts.plain_walls);
             render_cameras_to_scene(&scene.world, &scene.cameras, &classes(), opts.gt_mesh, &tmp, |_| {})?;
             write_pairs(&tmp)?;
             std::fs::rename(&tmp, &dir).map_err(|e| TrainError::file(&dir, format!("cannot rename ({e})")))?;

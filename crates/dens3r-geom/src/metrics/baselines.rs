@@ -69,8 +69,9 @@ pub(crate) fn fit_affine(
 /// docs). Pixels whose ray misses the plane (behind the camera, or beyond 100x the median
 /// depth) get the median depth. `None` with fewer than 3 valid pixels or a degenerate fit.
 pub fn plane_baseline(gt: &Raster<f32>, k: &Intrinsics, mask: Option<&Raster<bool>>) -> Option<Baseline> {
-    let (a, b, c) = fit_affine((gt.width(), gt.height()), valid_pixels(gt, mask).map(|(x, y, z)| (x, y, 1.0 / z)))?;
-    let mut depths: Vec<f64> = valid_pixels(gt, mask).map(|p| p.2).collect();
+    let px: Vec<(usize, usize, f64)> = valid_pixels(gt, mask).collect();
+    let (a, b, c) = fit_affine((gt.width(), gt.height()), px.iter().map(|&(x, y, z)| (x, y, 1.0 / z)))?;
+    let mut depths: Vec<f64> = px.iter().map(|p| p.2).collect();
     let median = crate::focal::median(&mut depths)?;
     // n^T K^-1 p = d (a, b, c) . p for every pixel p, so K^-T n ~ (a, b, c): n ~ K^T (a, b, c).
     let kt = DMat3::from_cols(DVec3::new(k.fx, 0.0, k.cx), DVec3::new(0.0, k.fy, k.cy), DVec3::new(0.0, 0.0, 1.0));
