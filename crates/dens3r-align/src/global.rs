@@ -98,6 +98,10 @@ pub struct AlignOptions {
     /// the initial cameras' frame and then kept, never optimised; images without an entry, or
     /// with `None`, are estimated.
     pub rotations: Vec<Option<DMat3>>,
+    /// Images of one size whose focal is not known share one focal (one camera's photos, as
+    /// COLMAP's single camera): it starts at the median of their own estimates and is optimised
+    /// as one parameter. Off estimates a focal per image, as DUSt3R does.
+    pub shared_focal: bool,
 }
 
 impl Default for AlignOptions {
@@ -112,6 +116,7 @@ impl Default for AlignOptions {
             optimize_focal: true,
             focals: Vec::new(),
             rotations: Vec::new(),
+            shared_focal: false,
         }
     }
 }
@@ -120,6 +125,16 @@ impl AlignOptions {
     /// Image `k`'s known focal ([`Self::focals`]), when it is a usable one (finite, positive).
     fn known_focal(&self, k: usize) -> Option<f64> {
         self.focals.get(k).copied().flatten().filter(|f| f.is_finite() && *f > 0.0)
+    }
+
+    /// The group of images that share one focal with image `k` (in order; `k` alone where its
+    /// focal is known or [`Self::shared_focal`] is off): the images of its size with no known
+    /// focal.
+    fn focal_group(&self, sizes: &[(usize, usize)], k: usize) -> Vec<usize> {
+        if !self.shared_focal || self.known_focal(k).is_some() {
+            return vec![k];
+        }
+        (0..sizes.len()).filter(|&m| sizes[m] == sizes[k] && self.known_focal(m).is_none()).collect()
     }
 
     /// Image `k`'s known rotation ([`Self::rotations`]).
@@ -261,9 +276,14 @@ pub fn global_align(
 
     let world = spanning_tree_points(n, pairs, &w, &score)?;
     let mut init = initial_cameras(sizes, pairs, &w, &score, world)?;
+    let groups: Vec<Vec<usize>> = (0..n).map(|k| opts.focal_group(sizes, k)).collect();
+    let estimates = init.focal.clone();
     for (k, f) in init.focal.iter_mut().enumerate() {
         if let Some(known) = opts.known_focal(k) {
             *f = known;
+        } else {
+            let mut own: Vec<f64> = groups[k].iter().map(|&m| estimates[m]).collect();
+            *f = dens3r_geom::focal::median(&mut own).unwrap_or(estimates[k]);
         }
     }
     // Known rotations: the one rotation `g` taking their frame into the initial cameras' frame
@@ -656,6 +676,7 @@ impl Problem {
         let mut loss0 = f64::NAN;
         let mut last = f64::NAN;
         let iters = opts.iterations;
+        let groups: Vec<Vec<usize>> = (0..n).map(|k| opts.focal_group(&self.sizes, k)).collect();
         let decay = if opts.cosine { Decay::Cosine } else { Decay::Linear };
         let schedule = Schedule { peak: opts.lr, end: opts.lr_min, warmup_steps: 0, total: iters, decay };
         for it in 0..=iters {
@@ -687,6 +708,9 @@ impl Problem {
                 }
             }
             if opts.optimize_focal {
+                // A shared focal's images each take the group's summed gradient: started equal,
+                // they take equal Adam steps and stay one focal.
+                let fg: Vec<f64> = groups.iter().map(|g| g.iter().map(|&m| fg[m]).sum()).collect();
                 // DUSt3R optimises 20 log f: the same Adam step moves log f 20 times less.
                 let step = adam_f.step(&fg, lr / 20.0, t);
                 // Fields of view between about 1 and 168 degrees: a bound that only untrained

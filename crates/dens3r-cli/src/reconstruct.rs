@@ -62,6 +62,11 @@ pub struct ReconstructArgs {
     /// Ignore the photos' EXIF focal lengths: estimate every focal not given by --focal.
     #[arg(long)]
     no_exif_focal: bool,
+    /// Photos of one size with no focal known share one focal in the alignment (one camera's
+    /// photos; COLMAP's single camera). Without it each gets its own, as DUSt3R does: a network
+    /// misjudging one photo's field of view then costs that focal, not that photo's pose.
+    #[arg(long)]
+    shared_focal: bool,
     /// Keep the network's focal even where the keypoint pairs' cycles give one (by default,
     /// photos of one size with no focal known take the focal at which the rotations of the
     /// pairs placed by keypoints close their cycles, when those pick one clearly).
@@ -181,7 +186,12 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
     let opts = ReconOptions {
         graph,
-        align: AlignOptions { iterations: a.iterations, optimize_focal: !a.fixed_focal, ..Default::default() },
+        align: AlignOptions {
+            iterations: a.iterations,
+            optimize_focal: !a.fixed_focal,
+            shared_focal: a.shared_focal,
+            ..Default::default()
+        },
         matching: MatchOptions::default(),
         tracks: TrackOptions { min_track: a.min_track, ..TrackOptions::default() },
         match_pose: (!a.no_match_pose).then(MatchPoseOptions::default),
