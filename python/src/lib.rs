@@ -194,14 +194,14 @@ impl Model {
                 .map_err(err)?;
             let hash = dens3r_heads::features::file_hash(&files.weights).map_err(err)?;
             let net = Dens3rBackbone::new(model, None, hash).map_err(err)?;
-            let min_conf = dens3r_recon::model::mesh_min_conf(files.config.as_deref()).map_err(err)?;
+            let settings = dens3r_recon::model::model_settings(files.config.as_deref()).map_err(err)?;
             Ok(Model {
                 net: Box::new(net),
                 weights: files.weights,
                 size,
-                keep_portrait,
+                keep_portrait: keep_portrait || settings.keep_portrait,
                 notice: files.default_notice,
-                min_conf,
+                min_conf: settings.min_conf,
             })
         })
     }

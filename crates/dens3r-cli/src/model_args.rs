@@ -23,7 +23,9 @@ pub struct ModelArgs {
     /// Long side of the network input (512, or 1024 for more detail).
     #[arg(long, default_value_t = 512)]
     pub size: u32,
-    /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them.
+    /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them to
+    /// landscape as the official Dens3R does (a model whose config says `"keep_portrait": true`,
+    /// dens3r-s included, keeps them without it).
     #[arg(long)]
     pub keep_portrait: bool,
     /// What the network computes in: f32 (the reference), or f16 / bf16 for speed on a GPU

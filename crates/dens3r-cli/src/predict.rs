@@ -31,7 +31,9 @@ pub struct PredictArgs {
     /// Long side of the network input (512, or 1024 for more detail).
     #[arg(long, default_value_t = 512)]
     size: u32,
-    /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them.
+    /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them to
+    /// landscape as the official Dens3R does (a model whose config says `"keep_portrait": true`,
+    /// dens3r-s included, keeps them without it).
     #[arg(long)]
     keep_portrait: bool,
     /// A head written by `dens3r train-head` (its .json); repeat for several. Every head runs
@@ -99,6 +101,8 @@ struct NamedHead {
 /// heads, and the other backbone with the heads' input size when they were trained on one.
 struct Networks {
     net: Option<Dens3rBackbone>,
+    /// Portrait images go in unrotated (`--keep-portrait`, or the network's config says so).
+    keep_portrait: bool,
     heads: Vec<NamedHead>,
     other: Option<(Box<dyn Backbone>, u32)>,
 }
@@ -126,7 +130,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
     }
     refuse_existing_scene(&a.output, a.overwrite)?;
     let nets = load_networks(&a)?;
-    let inputs = load_inputs(&a, nets.other.is_some())?;
+    let inputs = load_inputs(&a, nets.other.is_some(), nets.keep_portrait)?;
     let mut writer = match &nets.net {
         Some(_) => {
             let mut w = SceneWriter::create(&a.output)?;
@@ -193,8 +197,10 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
         None => None,
     };
     let heads_on_net = !heads.is_empty() && other.is_none();
+    let mut keep_portrait = a.keep_portrait;
     let net = if run_net {
         let (weights, config) = resolve_model(a.weights.as_deref(), a.config.as_deref())?;
+        keep_portrait |= dens3r_recon::model::model_settings(config.as_deref())?.keep_portrait;
         let model = load_network(&weights, config.as_deref(), a.gpu, a.precision)?;
         let hash = if heads_on_net {
             file_hash(&weights).with_context(|| format!("{}: cannot read", weights.display()))?
@@ -205,7 +211,7 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
     } else {
         None
     };
-    let nets = Networks { net, heads, other };
+    let nets = Networks { net, keep_portrait, heads, other };
     let head_backbone: Option<&dyn Backbone> = match (&nets.other, &nets.net) {
         (Some((b, _)), _) => Some(b.as_ref()),
         (None, n) => n.as_ref().map(|n| n as &dyn Backbone),
@@ -222,7 +228,7 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
 /// Decodes and preprocesses every image before anything is written, so a bad image fails
 /// first. The photo itself is kept only where it is read again (original size, another
 /// backbone).
-fn load_inputs(a: &PredictArgs, other_backbone: bool) -> Result<Vec<Input>> {
+fn load_inputs(a: &PredictArgs, other_backbone: bool, keep_portrait: bool) -> Result<Vec<Input>> {
     let keep_source = a.original_size || other_backbone;
     let mut names = HashSet::new();
     a.images
@@ -230,8 +236,7 @@ fn load_inputs(a: &PredictArgs, other_backbone: bool) -> Result<Vec<Input>> {
         .map(|p| {
             let bytes = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
             let img = decode_oriented(p, &bytes)?;
-            let prep =
-                preprocess(&img, a.size, !a.keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            let prep = preprocess(&img, a.size, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
             let name = dens3r_recon::input::unique_name(p, &mut names);
             let focal = match a.focal {
                 Some(f) => Some((f, FocalSource::Given)),

@@ -158,7 +158,8 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let t0 = Instant::now();
     // Every photo is decoded before the model loads: a bad photo fails in a second.
     let paths = list_images(&a.photos)?;
-    let mut images = load_images(&paths, a.model.size, a.model.keep_portrait)?;
+    let settings = dens3r_recon::model::model_settings(config.as_deref())?;
+    let mut images = load_images(&paths, a.model.size, a.model.keep_portrait || settings.keep_portrait)?;
     for im in &mut images {
         match a.focal {
             Some(f) => im.set_focal(Some(f)),
@@ -172,10 +173,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     if let Some(dir) = &a.masks {
         dens3r_recon::attach_masks(&mut images, dir)?;
     }
-    let min_conf = match a.min_conf {
-        Some(m) => m,
-        None => dens3r_recon::model::mesh_min_conf(config.as_deref())?,
-    };
+    let min_conf = a.min_conf.unwrap_or(settings.min_conf);
     let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu, a.model.precision)?;
     // The pair cache is keyed by this: another size or precision gives other outputs.
     let precision = match a.model.precision {

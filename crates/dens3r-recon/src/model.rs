@@ -98,24 +98,44 @@ pub fn load_network(
 /// DUSt3R's demo threshold: pixels under this confidence are not fused into its meshes.
 pub const DEFAULT_MIN_CONF: f32 = 3.0;
 
-/// The confidence under which `reconstruct` fuses no pixel for this model: the `"min_conf"` of
-/// its `config.json` (a model trained elsewhere has its own confidence scale), else
-/// [`DEFAULT_MIN_CONF`]. A config that cannot be read, or a value that is not a finite number,
-/// is an error naming the file.
-pub fn mesh_min_conf(config: Option<&Path>) -> Result<f32, ReconError> {
+/// What a model's `config.json` says about running it, beside its architecture.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelSettings {
+    /// The confidence under which `reconstruct` fuses no pixel: `"min_conf"` (a model trained
+    /// elsewhere has its own confidence scale), else [`DEFAULT_MIN_CONF`].
+    pub min_conf: f32,
+    /// Portrait photos go in as they are: `"keep_portrait": true` for a model trained on
+    /// upright portrait frames (every model `dens3r train` writes, dens3r-s included), which
+    /// Dens3R's rotation to landscape would show a world on its side. Else false: rotated, as
+    /// the official Dens3R code does.
+    pub keep_portrait: bool,
+}
+
+/// The [`ModelSettings`] of a model's `config` (none: the official models' defaults). A config
+/// that cannot be read, or a value of the wrong type, is an error naming the file.
+pub fn model_settings(config: Option<&Path>) -> Result<ModelSettings, ReconError> {
+    let mut s = ModelSettings { min_conf: DEFAULT_MIN_CONF, keep_portrait: false };
     let Some(c) = config.filter(|c| c.is_file()) else {
-        return Ok(DEFAULT_MIN_CONF);
+        return Ok(s);
     };
     let v = dens3r_backbone::verify::config_json(c).map_err(|e| ReconError::Other(e.to_string()))?;
-    match v.get("min_conf") {
-        None => Ok(DEFAULT_MIN_CONF),
-        Some(m) => m.as_f64().map(|m| m as f32).filter(|m| m.is_finite()).ok_or_else(|| {
+    if let Some(m) = v.get("min_conf") {
+        s.min_conf = m.as_f64().map(|m| m as f32).filter(|m| m.is_finite()).ok_or_else(|| {
             ReconError::input(
                 c,
                 format!("\"min_conf\" is {m}, not a finite number (the confidence under which no pixel is fused)"),
             )
-        }),
+        })?;
     }
+    if let Some(k) = v.get("keep_portrait") {
+        s.keep_portrait = k.as_bool().ok_or_else(|| {
+            ReconError::input(
+                c,
+                format!("\"keep_portrait\" is {k}, not true or false (whether portrait photos go in unrotated)"),
+            )
+        })?;
+    }
+    Ok(s)
 }
 
 #[cfg(test)]
@@ -123,16 +143,28 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_config_sets_the_mesh_confidence_threshold() {
+    fn a_config_sets_the_mesh_confidence_and_portrait_handling() {
         let dir = tempfile::tempdir().unwrap();
         let c = dir.path().join("config.json");
-        assert_eq!(mesh_min_conf(None).unwrap(), 3.0);
+        let official = ModelSettings { min_conf: 3.0, keep_portrait: false };
+        assert_eq!(model_settings(None).unwrap(), official);
         std::fs::write(&c, r#"{"enc_depth": 12}"#).unwrap();
-        assert_eq!(mesh_min_conf(Some(&c)).unwrap(), 3.0);
-        std::fs::write(&c, r#"{"enc_depth": 12, "min_conf": 1.0}"#).unwrap();
-        assert_eq!(mesh_min_conf(Some(&c)).unwrap(), 1.0);
-        std::fs::write(&c, r#"{"min_conf": "low"}"#).unwrap();
-        let e = mesh_min_conf(Some(&c)).unwrap_err().to_string();
-        assert!(e.contains("config.json") && e.contains("min_conf"), "{e}");
+        assert_eq!(model_settings(Some(&c)).unwrap(), official);
+        std::fs::write(&c, r#"{"enc_depth": 12, "min_conf": 1.0, "keep_portrait": true}"#).unwrap();
+        assert_eq!(model_settings(Some(&c)).unwrap(), ModelSettings { min_conf: 1.0, keep_portrait: true });
+        for bad in [r#"{"min_conf": "low"}"#, r#"{"keep_portrait": "yes"}"#] {
+            std::fs::write(&c, bad).unwrap();
+            let e = model_settings(Some(&c)).unwrap_err().to_string();
+            let key = if bad.contains("min_conf") { "min_conf" } else { "keep_portrait" };
+            assert!(e.contains("config.json") && e.contains(key), "{e}");
+        }
+    }
+
+    /// The bundled dens3r-s was trained on upright portrait frames: its config keeps them.
+    #[test]
+    fn the_bundled_model_keeps_portrait_photos() {
+        let c = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/models/dens3r-s/config.json");
+        let s = model_settings(Some(&c)).unwrap();
+        assert!(s.keep_portrait && s.min_conf == 1.0, "{s:?}");
     }
 }

@@ -143,7 +143,10 @@ impl Arch {
 }
 
 /// The `config.json` written beside a trained checkpoint: the constructor keywords the
-/// official loader and `--config` read (head counts cannot be recovered from shapes).
+/// official loader and `--config` read (head counts cannot be recovered from shapes), and
+/// `"keep_portrait": true`: training feeds portrait frames upright, so `predict` and
+/// `reconstruct` must not turn portrait photos on their side as they do for the official
+/// Dens3R.
 pub fn config_json(c: &ModelConfig) -> serde_json::Value {
     let mut v = serde_json::json!({
         "output_mode": "unify",
@@ -164,6 +167,7 @@ pub fn config_json(c: &ModelConfig) -> serde_json::Value {
         "dec_num_heads": c.dec_heads,
         "landscape_only": false,
         "symmetrize_dec": c.shared_decoder,
+        "keep_portrait": true,
     });
     if c.encoder == EncoderKind::Dinov2 {
         // The encoder is not in the weights: its file, looked up beside them (or $DENS3R_DINOV2).

@@ -907,6 +907,8 @@ fn a_dinov2_encoder_network_trains_resumes_and_reloads() {
     }
     let json = std::fs::read_to_string(whole.join("model.json")).unwrap();
     assert!(json.contains("\"dinov2_onnx\"") && json.contains("\"encoder\": \"dinov2\""), "{json}");
+    // Trained on upright portrait frames: predict and reconstruct must not turn portrait photos.
+    assert!(json.contains("\"keep_portrait\": true"), "{json}");
     std::fs::copy(&onnx, whole.join("vit_s_focus.onnx")).unwrap();
     let m = load_final(&whole, &arch);
     assert!(m.dinov2().is_some());
