@@ -166,6 +166,8 @@ impl Model {
     /// style folder, a known name (`dens3r models`; downloaded into the cache when missing),
     /// or None for the bundled dens3r-s. `size` is the long side of the network input;
     /// `precision` what the network computes in ("f32", or "f16" / "bf16" for speed on a GPU).
+    /// Portrait photos are turned to landscape as the official Dens3R does, unless
+    /// `keep_portrait` or the model's config says `"keep_portrait": true` (dens3r-s's does).
     #[staticmethod]
     #[pyo3(signature = (weights=None, *, config=None, size=512, keep_portrait=false, gpu=false, precision="f32"))]
     fn load(
