@@ -298,7 +298,7 @@ pub fn global_align(
     }
     let grids: Vec<Vec<(usize, usize)>> = sizes.iter().map(|&(wk, hk)| grid(wk, hk, opts.grid_points)).collect();
     let (problem, mut state, g) = Problem::new(sizes, pairs, &w, grids, &init)?;
-    let (loss0, last) = problem.optimise(&mut state, opts, progress);
+    let (loss0, last) = problem.optimise(&mut state, opts, &groups, progress);
     let (views, pair_transforms) = outputs(sizes, pairs, &w, &problem, &state, g);
     Ok(Alignment { views, pair_transforms, loss: (loss0 / g, last / g), warnings: init.warnings })
 }
@@ -667,8 +667,15 @@ impl Problem {
             .collect()
     }
 
-    /// Adam over every parameter for `opts.iterations` steps; the loss before and after.
-    fn optimise(&self, st: &mut State, opts: &AlignOptions, mut progress: impl FnMut(usize, f64)) -> (f64, f64) {
+    /// Adam over every parameter for `opts.iterations` steps, each image's focal shared with its
+    /// `groups` entry ([`AlignOptions::focal_group`]); the loss before and after.
+    fn optimise(
+        &self,
+        st: &mut State,
+        opts: &AlignOptions,
+        groups: &[Vec<usize>],
+        mut progress: impl FnMut(usize, f64),
+    ) -> (f64, f64) {
         let (n, pairs) = (self.sizes.len(), self.samples.len());
         let mut adam_s = Adam::new(pairs);
         let mut adam_d: Vec<Adam> = st.logd.iter().map(|d| Adam::new(d.len())).collect();
@@ -676,7 +683,6 @@ impl Problem {
         let mut loss0 = f64::NAN;
         let mut last = f64::NAN;
         let iters = opts.iterations;
-        let groups: Vec<Vec<usize>> = (0..n).map(|k| opts.focal_group(&self.sizes, k)).collect();
         let decay = if opts.cosine { Decay::Cosine } else { Decay::Linear };
         let schedule = Schedule { peak: opts.lr, end: opts.lr_min, warmup_steps: 0, total: iters, decay };
         for it in 0..=iters {
