@@ -18,8 +18,9 @@ pub struct SynthArgs {
     /// Seed of the whole set.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// rooms, objects, mixed (rooms and objects), tabletop (clutter seen from above) or bin (a
-    /// deep tote seen close from above, as a bin-picking camera does).
+    /// rooms, objects, mixed (rooms and objects), tabletop (clutter seen from above), bin (a
+    /// deep tote seen close from above, as a bin-picking camera does) or shelf (a shelf of
+    /// books against a wall, seen nearly head-on).
     #[arg(long, default_value = "mixed")]
     kind: String,
     /// Landscape image size WxH (portrait scenes swap it).
@@ -112,7 +113,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
         synthesise(&a.output, &opts, &assets, &mut |done, _| bar.set_position(done as u64)).map_err(|e| anyhow!(e))?;
     bar.finish_and_clear();
     println!(
-        "{} scenes in {} ({} rendered: {} rooms, {} object sets, {} tabletops, {} bins; {} kept), {} training pairs (co-visibility 0.1..0.98), {} photographs and {} meshes, {:.1} s",
+        "{} scenes in {} ({} rendered: {} rooms, {} object sets, {} tabletops, {} bins, {} shelves; {} kept), {} training pairs (co-visibility 0.1..0.98), {} photographs and {} meshes, {:.1} s",
         a.scenes,
         a.output.display(),
         s.rendered,
@@ -120,6 +121,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
         s.objects,
         s.tabletops,
         s.bins,
+        s.shelves,
         s.kept,
         s.pairs,
         assets.photos.len(),

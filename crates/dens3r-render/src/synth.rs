@@ -1,6 +1,6 @@
 //! Varied procedural scenes for training: rooms of random size furnished with primitives and
 //! scanned meshes, assemblies of objects seen from orbits, clutter seen from above (tabletops)
-//! and totes seen close from above (bins), with textures cut from real
+//! totes seen close from above (bins) and shelves of books seen head-on, with textures cut from real
 //! photographs (or procedural ones), random materials, lights and shading, random intrinsics
 //! (40-100 degree horizontal field of view, landscape or portrait) and camera paths whose
 //! baselines range from a few centimetres to a large part of the scene. Everything is drawn
@@ -37,10 +37,14 @@ pub enum SynthKind {
     /// around it far), many small items and flat packages piled in it: a bin-picking camera's
     /// view.
     Bin,
+    /// A shelf unit of books and objects against a wall, seen nearly head-on from 0.7-3 m
+    /// (furniture facing the camera, the wall behind it a little farther): a photo of a
+    /// bookshelf, a cupboard or a desk against a wall.
+    Shelf,
 }
 
 impl SynthKind {
-    /// `rooms`, `objects`, `mixed`, `tabletop` or `bin`.
+    /// `rooms`, `objects`, `mixed`, `tabletop`, `bin` or `shelf`.
     pub fn parse(s: &str) -> Option<Self> {
         match s {
             "rooms" => Some(Self::Rooms),
@@ -48,6 +52,7 @@ impl SynthKind {
             "mixed" => Some(Self::Mixed),
             "tabletop" => Some(Self::Tabletop),
             "bin" => Some(Self::Bin),
+            "shelf" => Some(Self::Shelf),
             _ => None,
         }
     }
@@ -145,11 +150,13 @@ pub fn synth_scene(
         SynthKind::Mixed => "objects",
         SynthKind::Tabletop => "tabletop",
         SynthKind::Bin => "bin",
+        SynthKind::Shelf => "shelf",
     };
     let (objects, poses) = match name {
         "room" => room_scene(&mut rng, views, assets),
         "objects" => object_scene(&mut rng, views, assets),
         "bin" => bin_scene(&mut rng, views, assets),
+        "shelf" => shelf_scene(&mut rng, views, assets),
         _ => tabletop_scene(&mut rng, views, assets),
     };
     let mut world = World::new(objects)?;
@@ -207,6 +214,7 @@ pub fn add_occlusion(scene: &mut SynthScene) {
         "room" => 0.5,
         "objects" => 0.3,
         "tabletop" => 0.1,
+        "shelf" => 0.15,
         _ => 0.08,
     };
     for k in 0..scene.world.objects().len() {
@@ -553,6 +561,172 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
             camera(rng, eye, target, DVec3::new(y.cos(), y.sin(), 0.0))
         })
         .collect();
+    (objs, poses)
+}
+
+/// A shelf unit (0.6-2 wide, 0.6-2.1 high, 0.22-0.45 deep, 2-5 boards, an upright in the
+/// middle sometimes) against the back wall of a room, its compartments filled with rows of
+/// books (standing, leaning, a lying stack now and then, gaps) and objects, things on top and
+/// beside it, posters on the wall; cameras 0.6-1.8 of its size in front (0.6-3), looking at
+/// points of its face within 40 degrees of head-on, a short walk apart.
+fn shelf_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object>, Vec<DMat4>) {
+    let mut objs = Vec::new();
+    // The room: its back wall at y = 0 (wall_0), the cameras in front of it.
+    let size = Vec3::new(rng.gen_range(3.0..7.0), rng.gen_range(4.0..7.0), rng.gen_range(2.4..3.2));
+    let (lo, hi) = (Vec3::new(-size.x / 2.0, 0.0, 0.0), Vec3::new(size.x / 2.0, size.y, size.z));
+    let m = material(rng, assets, 1.0);
+    objs.push(object(
+        "floor",
+        Shape::Mesh(Arc::new(quad(lo, Vec3::Y * size.y, Vec3::X * size.x))),
+        Quat::IDENTITY,
+        Vec3::ZERO,
+        1,
+        m,
+    ));
+    let m = material(rng, assets, 1.0);
+    let ceil = quad(Vec3::new(lo.x, lo.y, hi.z), Vec3::X * size.x, Vec3::Y * size.y);
+    objs.push(object("ceiling", Shape::Mesh(Arc::new(ceil)), Quat::IDENTITY, Vec3::ZERO, 3, m));
+    let m = material(rng, assets, 1.0);
+    for (i, w) in walls(lo, hi).into_iter().enumerate() {
+        objs.push(object(format!("wall_{i}"), Shape::Mesh(Arc::new(w)), Quat::IDENTITY, Vec3::ZERO, 2, m.clone()));
+    }
+    // The unit: sides, boards (bottom and top included), a back panel and a middle upright
+    // sometimes; the whole frame one material.
+    let (w, h, d) = (rng.gen_range(0.6..2.0f32), rng.gen_range(0.6..2.1f32), rng.gen_range(0.22..0.45f32));
+    let t = rng.gen_range(0.015..0.04f32);
+    let sx = rng.gen_range(-0.3..0.3) * (size.x - w).max(0.0);
+    let gap = rng.gen_range(0.0..0.08f32);
+    let yc = gap + d / 2.0;
+    let frame = material(rng, assets, 0.5);
+    let part = |objs: &mut Vec<Object>, name: String, half: Vec3, at: Vec3| {
+        objs.push(object(name, Shape::Cuboid { half }, Quat::IDENTITY, at, 4, frame.clone()));
+    };
+    for (i, x) in [sx - w / 2.0 + t / 2.0, sx + w / 2.0 - t / 2.0].into_iter().enumerate() {
+        part(&mut objs, format!("shelf_side_{i}"), Vec3::new(t / 2.0, d / 2.0, h / 2.0), Vec3::new(x, yc, h / 2.0));
+    }
+    let boards = rng.gen_range(2..=5usize);
+    let plinth = rng.gen_range(0.0..0.12f32);
+    let levels: Vec<f32> =
+        (0..boards).map(|k| plinth + t / 2.0 + (h - plinth - t) * k as f32 / (boards - 1) as f32).collect();
+    for (k, z) in levels.iter().enumerate() {
+        part(&mut objs, format!("shelf_board_{k}"), Vec3::new(w / 2.0 - t, d / 2.0, t / 2.0), Vec3::new(sx, yc, *z));
+    }
+    if rng.gen_bool(0.5) {
+        part(&mut objs, "shelf_back".into(), Vec3::new(w / 2.0, 0.004, h / 2.0), Vec3::new(sx, gap + 0.004, h / 2.0));
+    }
+    let middle = w > 1.0 && rng.gen_bool(0.6);
+    if middle {
+        part(&mut objs, "shelf_upright".into(), Vec3::new(t / 2.0, d / 2.0, h / 2.0 - t), Vec3::new(sx, yc, h / 2.0));
+    }
+    // The compartments' contents, left to right: rows of books, gaps, objects.
+    let spans: Vec<(f32, f32)> = if middle {
+        vec![(sx - w / 2.0 + t, sx - t / 2.0), (sx + t / 2.0, sx + w / 2.0 - t)]
+    } else {
+        vec![(sx - w / 2.0 + t, sx + w / 2.0 - t)]
+    };
+    let mut n = 0;
+    for pair in levels.windows(2) {
+        let (floor, room) = (pair[0] + t / 2.0, pair[1] - pair[0] - t);
+        for &(x0, x1) in &spans {
+            if rng.gen_bool(0.1) {
+                continue;
+            }
+            let mut x = x0 + rng.gen_range(0.0..0.05);
+            let books = rng.gen_bool(0.75);
+            while x < x1 - 0.02 && n < 140 {
+                n += 1;
+                if books && rng.gen_bool(0.9) {
+                    let bw = rng.gen_range(0.012..0.06f32).min(x1 - x);
+                    let bh = (room * rng.gen_range(0.55..0.95)).max(0.05);
+                    let bd = d * rng.gen_range(0.6..0.95);
+                    let front = gap + d - rng.gen_range(0.0..0.04f32).min(d - bd);
+                    let m = material(rng, assets, 0.2);
+                    let (half, lean) = if rng.gen_bool(0.08) {
+                        // A lying stack of a few books.
+                        let hh = rng.gen_range(0.015..0.035f32) * rng.gen_range(1..=4) as f32;
+                        (Vec3::new(bh.min(x1 - x) / 2.0, bd / 2.0, hh.min(room) / 2.0), 0.0)
+                    } else {
+                        (
+                            Vec3::new(bw / 2.0, bd / 2.0, bh / 2.0),
+                            if rng.gen_bool(0.1) { rng.gen_range(-0.25..0.25f32) } else { 0.0 },
+                        )
+                    };
+                    let at = Vec3::new(x + half.x, front - half.y, floor + half.z);
+                    objs.push(object(
+                        format!("book_{n}"),
+                        Shape::Cuboid { half },
+                        Quat::from_rotation_y(lean),
+                        at,
+                        4,
+                        m,
+                    ));
+                    x += 2.0 * half.x + if rng.gen_bool(0.08) { rng.gen_range(0.02..0.15) } else { 0.002 };
+                } else {
+                    let s = (room * rng.gen_range(0.4..0.9)).min(d).min(x1 - x);
+                    if s < 0.04 {
+                        break;
+                    }
+                    let at = Vec3::new(x + s / 2.0, gap + d / 2.0, floor);
+                    let (name, shape, rotation, translation, class_id) = random_object(rng, assets, s, at);
+                    let material = material(rng, assets, s);
+                    objs.push(Object { name: format!("{name}_{n}"), shape, rotation, translation, class_id, material });
+                    x += s + rng.gen_range(0.01..0.1);
+                }
+            }
+        }
+    }
+    // On top, beside it, on the wall and on the floor.
+    for i in 0..rng.gen_range(0..=3) {
+        let s = rng.gen_range(0.1..0.35f32).min(d * 1.5);
+        let at = Vec3::new(sx + rng.gen_range(-0.4..0.4) * w, yc, h);
+        objs.push(clutter_item(rng, assets, 200 + i, s, at, (0.3, 0.2, 0.2)));
+    }
+    for i in 0..rng.gen_range(0..=3) {
+        let half = Vec3::new(rng.gen_range(0.15..0.6), rng.gen_range(0.005..0.01), rng.gen_range(0.15..0.5));
+        let side = if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
+        let x = sx + side * (w / 2.0 + half.x + rng.gen_range(0.05..1.0));
+        let at = Vec3::new(x, half.y, rng.gen_range(0.8..1.9f32).min(size.z - half.z - 0.05));
+        let m = material(rng, assets, 0.5);
+        objs.push(object(format!("poster_{i}"), Shape::Cuboid { half }, Quat::IDENTITY, at, 2, m));
+    }
+    for i in 0..rng.gen_range(0..=2) {
+        let half = Vec3::new(rng.gen_range(0.2..0.5), rng.gen_range(0.2..0.4), rng.gen_range(0.2..0.55));
+        let side = if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
+        let at = Vec3::new(sx + side * (w / 2.0 + half.x + rng.gen_range(0.02..0.5)), half.y + 0.01, half.z);
+        let m = material(rng, assets, 0.5);
+        objs.push(object(format!("cabinet_{i}"), Shape::Cuboid { half }, Quat::IDENTITY, at, 4, m));
+    }
+    for i in 0..rng.gen_range(0..=3) {
+        objs.push(floor_object(rng, assets, i, (w.max(1.0) * 0.8, 0.6..2.0), 0.2..0.5));
+    }
+    // Cameras: a start 0.6-1.8 of the unit's size in front of a point of its face, within 40
+    // degrees of head-on, 25 down to 10 up, then a short walk, each view looking at a
+    // drifting point.
+    let face = |rng: &mut ChaCha8Rng| {
+        DVec3::new((sx + rng.gen_range(-0.4..0.4) * w) as f64, (gap + d) as f64, (h * rng.gen_range(0.15..0.85)) as f64)
+    };
+    let target0 = face(rng);
+    let dist = (w.max(h) as f64 * rng.gen_range(0.6..1.8)).clamp(0.6, 3.0).min(size.y as f64 - 0.6);
+    let (yaw, pitch) = (rng.gen_range(-40f64..40.0).to_radians(), rng.gen_range(-25f64..10.0).to_radians());
+    let dir = DVec3::new(yaw.sin() * pitch.cos(), yaw.cos() * pitch.cos(), pitch.sin());
+    let mut eye = target0 + dir * dist;
+    let step = rng.gen_range(0.03..0.4f64);
+    let inside = |p: DVec3| {
+        DVec3::new(
+            p.x.clamp(lo.x as f64 + 0.3, hi.x as f64 - 0.3),
+            p.y.clamp((gap + d) as f64 + 0.4, hi.y as f64 - 0.3),
+            p.z.clamp(0.3, hi.z as f64 - 0.2),
+        )
+    };
+    eye = inside(eye);
+    let mut target = target0;
+    let mut poses = Vec::with_capacity(views);
+    for _ in 0..views {
+        poses.push(camera(rng, eye, target, DVec3::Z));
+        let walk = DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-0.5..0.5), rng.gen_range(-0.3..0.3));
+        eye = inside(eye + walk.normalize_or_zero() * step);
+        target = target.lerp(face(rng), 0.3);
+    }
     (objs, poses)
 }
 

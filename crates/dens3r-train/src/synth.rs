@@ -26,7 +26,7 @@ pub struct SynthOptions {
     pub scenes: usize,
     /// Seed of the whole set (scene `k` is drawn from `scene_seed(seed, k)`).
     pub seed: u64,
-    /// `rooms`, `objects`, `mixed` or `tabletop`.
+    /// `rooms`, `objects`, `mixed`, `tabletop`, `bin` or `shelf`.
     pub kind: String,
     /// Landscape image size `(W, H)` (portrait scenes swap it).
     pub size: (usize, usize),
@@ -48,7 +48,10 @@ impl SynthOptions {
     /// Checks the options; returns the kind.
     pub fn check(&self) -> Result<SynthKind, TrainError> {
         let kind = SynthKind::parse(&self.kind).ok_or_else(|| {
-            TrainError::invalid(format!("--kind {:?}: expected rooms, objects, mixed, tabletop or bin", self.kind))
+            TrainError::invalid(format!(
+                "--kind {:?}: expected rooms, objects, mixed, tabletop, bin or shelf",
+                self.kind
+            ))
         })?;
         let (w, h) = self.size;
         if !(16..=4096).contains(&w) || !(16..=4096).contains(&h) {
@@ -102,6 +105,8 @@ pub struct SynthSummary {
     pub tabletops: usize,
     /// See `rooms`.
     pub bins: usize,
+    /// See `rooms`.
+    pub shelves: usize,
 }
 
 /// The folder of scene `k` under `out`.
@@ -171,6 +176,7 @@ pub fn synthesise(
                 "room" => summary.rooms += 1,
                 "objects" => summary.objects += 1,
                 "bin" => summary.bins += 1,
+                "shelf" => summary.shelves += 1,
                 _ => summary.tabletops += 1,
             }
         }

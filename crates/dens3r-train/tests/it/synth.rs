@@ -534,3 +534,29 @@ fn bin_scenes_look_into_a_tote_that_fills_the_frame() {
     assert!(tote[tote.len() / 2] > 0.3, "median share of tote pixels {:.2}", tote[tote.len() / 2]);
     assert!(tote[0] > 0.15, "a view that hardly sees the tote ({:.2})", tote[0]);
 }
+
+/// Shelf scenes face a shelf unit against a wall: every camera looks at the back wall (the
+/// room's y = 0 side) within 60 degrees of head-on and not steeply up or down, the room
+/// closes every view (no background), and the unit with its books and the furniture beside
+/// it (class 4) fills much of most views.
+#[test]
+fn shelf_scenes_face_a_shelf_against_a_wall() {
+    let (_tmp, scenes, s) = small_set("shelf", 6, 13);
+    assert_eq!((s.shelves, s.bins, s.tabletops, s.rooms, s.objects), (6, 0, 0, 0, 0));
+    let mut unit = Vec::new();
+    for (k, scene) in scenes.iter().enumerate() {
+        for f in scene.frames() {
+            let forward = f.pose().transform_vector3(DVec3::Z);
+            assert!(-forward.y > 0.5, "scene {k} {}: looks {forward:?}, not at the back wall", f.name);
+            let up = forward.z.asin().to_degrees();
+            assert!((-45.0..30.0).contains(&up), "scene {k} {}: looks {up:.1} deg up", f.name);
+            let depth = scene.depth(f).unwrap().unwrap();
+            assert!(depth.data().iter().all(|&z| z.is_finite() && z > 0.0), "scene {k} {}: background seen", f.name);
+            let labels = scene.labels(f).unwrap().unwrap();
+            unit.push(labels.data().iter().filter(|&&c| c == 4).count() as f64 / labels.data().len() as f64);
+        }
+    }
+    unit.sort_by(f64::total_cmp);
+    println!("class-4 share: min {:.2} median {:.2} max {:.2}", unit[0], unit[unit.len() / 2], unit[unit.len() - 1]);
+    assert!(unit[unit.len() / 2] > 0.25, "median share of shelf pixels {:.2}", unit[unit.len() / 2]);
+}
