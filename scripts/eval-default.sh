@@ -150,7 +150,10 @@ def mean(rows, key):
     v = [r[key] for r in rows if r is not None and r.get(key) is not None]
     return sum(v) / len(v) if v else None
 f = lambda v, d=3: "-" if v is None else f"{v:.{d}f}"
-out = [f"Model `{model}`, input long side {size}; depth median-aligned (scale-and-shift in brackets), "
+cfg = os.path.join(model, "config.json")
+tta = json.load(open(cfg)).get("tta_scales", []) if os.path.exists(cfg) else []
+tta = f" (predict averages in passes at {', '.join(str(round(int(size) * s)) for s in tta)}: the config's tta_scales)" if tta else ""
+out = [f"Model `{model}`, input long side {size}{tta}; depth median-aligned (scale-and-shift in brackets), "
        "normal angles in degrees. Lower AbsRel / angles and higher delta1 / %<11.25 are better.", ""]
 out.append("| data | predictor | AbsRel | delta1 | normal mean | normal median | % < 11.25 |")
 out.append("| --- | --- | --- | --- | --- | --- | --- |")

@@ -4,7 +4,7 @@
 //! is a `dens3r.Dens3rError` (or a `ValueError` / `TypeError` for arrays of the wrong shape or
 //! type) with the one-line message the CLI prints.
 
-use dens3r_backbone::predict::{predict_mono, predict_pair, Resolution, ViewMaps};
+use dens3r_backbone::predict::{merge_scales, predict_mono, predict_pair, Resolution, ViewMaps};
 use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
 use dens3r_fusion::extract::{extract_mesh, ExtractOptions};
 use dens3r_fusion::scene::{fuse_frames, FusionFrame, SceneFusion};
@@ -114,6 +114,9 @@ struct Model {
     #[pyo3(get)]
     size: u32,
     keep_portrait: bool,
+    /// Long sides of the extra passes a single image's prediction averages in (the config's
+    /// `"tta_scales"` times `size`; dens3r-s: 0.75).
+    tta_sizes: Vec<u32>,
     /// The line shown when this is the bundled default model (how to use the official
     /// checkpoints instead); None for other weights.
     #[pyo3(get)]
@@ -126,8 +129,12 @@ struct Model {
 
 impl Model {
     fn prepare(&self, obj: &Bound<'_, PyAny>) -> PyResult<Prepared> {
+        self.prepare_at(obj, self.size)
+    }
+
+    fn prepare_at(&self, obj: &Bound<'_, PyAny>, size: u32) -> PyResult<Prepared> {
         let img = image_arg(obj)?;
-        preprocess(&img, self.size, !self.keep_portrait).map_err(err)
+        preprocess(&img, size, !self.keep_portrait).map_err(err)
     }
 }
 
@@ -168,6 +175,8 @@ impl Model {
     /// `precision` what the network computes in ("f32", or "f16" / "bf16" for speed on a GPU).
     /// Portrait photos are turned to landscape as the official Dens3R does, unless
     /// `keep_portrait` or the model's config says `"keep_portrait": true` (dens3r-s's does).
+    /// A single image's prediction averages in passes at the config's `"tta_scales"` of
+    /// `size` (dens3r-s: 0.75), as `dens3r predict` does; `predict(..., tta=False)` skips them.
     #[staticmethod]
     #[pyo3(signature = (weights=None, *, config=None, size=512, keep_portrait=false, gpu=false, precision="f32"))]
     fn load(
@@ -197,7 +206,10 @@ impl Model {
             let hash = dens3r_heads::features::file_hash(&files.weights).map_err(err)?;
             let net = Dens3rBackbone::new(model, None, hash).map_err(err)?;
             let settings = dens3r_recon::model::model_settings(files.config.as_deref()).map_err(err)?;
+            let tta_sizes =
+                settings.tta_scales.iter().map(|s| (f64::from(size) * s).round().clamp(16.0, 8192.0) as u32).collect();
             Ok(Model {
+                tta_sizes,
                 net: Box::new(net),
                 weights: files.weights,
                 size,
@@ -234,7 +246,9 @@ impl Model {
     /// (the second view has no `depth` / `K`); normals each in their own camera frame. Maps are
     /// at the network size, or the photo's with `original_size=True`. `focal` (pixels of the
     /// photo as given) sets a single image's `K`, scaled to the maps, as `dens3r predict --focal`.
-    #[pyo3(signature = (image, image2=None, *, original_size=false, focal=None))]
+    /// A single image averages in the model's extra passes (its config's `"tta_scales"`, as
+    /// `dens3r predict`) unless `tta=False`.
+    #[pyo3(signature = (image, image2=None, *, original_size=false, focal=None, tta=true))]
     fn predict<'py>(
         &self,
         py: Python<'py>,
@@ -242,6 +256,7 @@ impl Model {
         image2: Option<&Bound<'py, PyAny>>,
         original_size: bool,
         focal: Option<f64>,
+        tta: bool,
     ) -> PyResult<Bound<'py, PyAny>> {
         if focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
             return Err(PyValueError::new_err("focal: must be a positive number of pixels of the photo"));
@@ -255,7 +270,14 @@ impl Model {
         let first = self.prepare(image)?;
         match image2 {
             None => {
-                let pred = py.detach(|| predict_mono(self.net.model(), &first, res, dens3r_backbone::HeadOutputs::ALL));
+                let extra = if tta { self.tta_sizes.clone() } else { Vec::new() };
+                let extra = extra.into_iter().map(|s| self.prepare_at(image, s)).collect::<PyResult<Vec<_>>>()?;
+                let pred = py.detach(|| {
+                    let all = dens3r_backbone::HeadOutputs::ALL;
+                    let others: Vec<_> =
+                        extra.iter().map(|e| predict_mono(self.net.model(), e, Resolution::Network, all)).collect();
+                    merge_scales(predict_mono(self.net.model(), &first, res, all), res, &others)
+                });
                 // Pixels of the maps: the photo's at original size, else scaled by the resize.
                 let scale = if original_size { 1.0 } else { first.info.resize_factor() };
                 Ok(view_dict(py, &pred, true, focal.map(|f| f * scale))?.into_any())

@@ -62,6 +62,12 @@ def test_predict_equals_cli(model, tmp_path):
     assert np.allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4)
     assert np.mean(np.sum(n * out["pts3d"], axis=-1) < 0) > 0.95
     assert out["desc"].shape == (h, w, 24)
+    # dens3r-s's config averages in a pass at 0.75 of the size; tta=False is --no-tta.
+    plain = model.predict(str(PHOTO), tta=False)
+    cli("predict", "--no-tta", PHOTO, "-o", tmp_path / "p")
+    np.testing.assert_array_equal(plain["depth"], np.load(tmp_path / "p" / "depth" / "coffee.npy"))
+    np.testing.assert_array_equal(plain["normals"], np.load(tmp_path / "p" / "normals" / "coffee.npy"))
+    assert np.median(np.abs(plain["depth"] / out["depth"] - 1)) > 1e-3
 
 
 def test_original_size_and_arrays(model):

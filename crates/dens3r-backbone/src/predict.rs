@@ -200,3 +200,242 @@ pub fn pair_maps(pred: &Predictions, first: &Prepared, second: &Prepared, res: R
     let r = first.info.rotated;
     [view_maps(&pred.views[0], first, 0, r, res), view_maps(&pred.views[1], second, 0, r, res)]
 }
+
+/// A single-image prediction averaged over several network input sizes (test-time
+/// augmentation): `primary` at its own resolution, each of `others` at
+/// [`Resolution::Network`] of the same photo at another size. Each other prediction is read
+/// at the primary's pixels through the photo's coordinates (bilinear), its depth scaled to
+/// the primary's median; the depth becomes the geometric mean of all, the points move along
+/// the primary's rays to it (so the focal they give stays the primary's), and the normals are
+/// the normalised sum. Confidence, descriptors and colours stay the primary's.
+pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others: &[MonoPrediction]) -> MonoPrediction {
+    if others.is_empty() {
+        return primary;
+    }
+    let (w, h) = (primary.depth.width(), primary.depth.height());
+    let valid = |z: f32| z.is_finite() && z > 0.0;
+    let median = |d: &Raster<f32>| {
+        let mut v: Vec<f32> = d.data().iter().copied().filter(|&z| valid(z)).collect();
+        v.sort_by(f32::total_cmp);
+        v.get(v.len() / 2).copied()
+    };
+    let Some(m0) = median(&primary.depth) else { return primary };
+    // Sums of log depth and of normals, and how many predictions each pixel has.
+    let mut log_sum: Vec<f64> =
+        primary.depth.data().iter().map(|&z| if valid(z) { f64::from(z).ln() } else { 0.0 }).collect();
+    let mut count: Vec<u32> = primary.depth.data().iter().map(|&z| u32::from(valid(z))).collect();
+    let mut normal_sum: Option<Vec<Vec3>> = primary.normals.as_ref().map(|n| n.data().to_vec());
+    for o in others {
+        let Some(mo) = median(&o.depth) else { continue };
+        let scale = f64::from(m0) / f64::from(mo);
+        for y in 0..h {
+            for x in 0..w {
+                let (xo, yo) = photo_coords(&primary.info, primary_res, (x as f64, y as f64));
+                let (xn, yn) = network_coords(&o.info, (xo, yo));
+                let i = y * w + x;
+                if let Some(z) = bilinear(&o.depth, (xn, yn), |&z| valid(z).then_some(f64::from(z))) {
+                    if valid(primary.depth.data()[i]) {
+                        log_sum[i] += (z * scale).ln();
+                        count[i] += 1;
+                    }
+                }
+                if let (Some(sum), Some(n)) = (normal_sum.as_mut(), &o.normals) {
+                    if let Some(v) = bilinear3(n, (xn, yn)) {
+                        sum[i] += v;
+                    }
+                }
+            }
+        }
+    }
+    let old = primary.depth.clone();
+    primary.depth = Raster::from_vec(
+        w,
+        h,
+        old.data()
+            .iter()
+            .zip(&log_sum)
+            .zip(&count)
+            .map(|((&z, &s), &c)| if c > 0 { (s / f64::from(c)).exp() as f32 } else { z })
+            .collect(),
+    )
+    .expect("same size");
+    let pts: Vec<Vec3> = primary
+        .points
+        .data()
+        .iter()
+        .zip(old.data().iter().zip(primary.depth.data()))
+        .map(|(p, (&z0, &z))| {
+            if valid(z0) {
+                // Along the ray, with the depth exactly its z.
+                let q = *p * (z / z0);
+                Vec3::new(q.x, q.y, z)
+            } else {
+                *p
+            }
+        })
+        .collect();
+    primary.points = Raster::from_vec(w, h, pts).expect("same size");
+    if let Some(sum) = normal_sum {
+        let n: Vec<Vec3> = sum.into_iter().map(|v| v.normalize_or_zero()).collect();
+        primary.normals = Some(Raster::from_vec(w, h, n).expect("same size"));
+    }
+    primary
+}
+
+/// The resized image's size, the crop's offset and the photo's size, in the photo's own
+/// orientation (`rescale_to_original`'s convention for rotated images).
+fn oriented_geometry(info: &PrepInfo) -> ((f64, f64), (f64, f64), (f64, f64)) {
+    let (mut rw, mut rh) = info.resized;
+    let (mut x0, mut y0) = (info.crop.0, info.crop.1);
+    if info.rotated {
+        (rw, rh, x0, y0) = (rh, rw, y0, x0);
+    }
+    let o = info.original;
+    ((f64::from(rw), f64::from(rh)), (f64::from(x0), f64::from(y0)), (f64::from(o.0), f64::from(o.1)))
+}
+
+/// The photo's pixel coordinates of pixel `(x, y)` of a map at `res`.
+fn photo_coords(info: &PrepInfo, res: Resolution, (x, y): (f64, f64)) -> (f64, f64) {
+    match res {
+        Resolution::Original => (x, y),
+        Resolution::Network => {
+            let ((rw, rh), (x0, y0), (ow, oh)) = oriented_geometry(info);
+            ((x + x0 + 0.5) * ow / rw - 0.5, (y + y0 + 0.5) * oh / rh - 0.5)
+        }
+    }
+}
+
+/// The network-resolution map coordinates (photo orientation) of the photo's pixel `(x, y)`.
+fn network_coords(info: &PrepInfo, (x, y): (f64, f64)) -> (f64, f64) {
+    let ((rw, rh), (x0, y0), (ow, oh)) = oriented_geometry(info);
+    ((x + 0.5) * rw / ow - 0.5 - x0, (y + 0.5) * rh / oh - 0.5 - y0)
+}
+
+/// Bilinear sample of `map` at `(x, y)` (clamped to its edges) of the values `read` accepts;
+/// `None` when any of the four neighbours is not accepted.
+fn bilinear<T>(map: &Raster<T>, (x, y): (f64, f64), read: impl Fn(&T) -> Option<f64>) -> Option<f64> {
+    let (w, h) = (map.width(), map.height());
+    let x = x.clamp(0.0, (w - 1) as f64);
+    let y = y.clamp(0.0, (h - 1) as f64);
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+    let at = |xx: usize, yy: usize| read(&map.data()[yy * w + xx]);
+    let top = at(x0, y0)? * (1.0 - fx) + at(x1, y0)? * fx;
+    let bottom = at(x0, y1)? * (1.0 - fx) + at(x1, y1)? * fx;
+    Some(top * (1.0 - fy) + bottom * fy)
+}
+
+/// [`bilinear`] of a vector map, component by component.
+fn bilinear3(map: &Raster<Vec3>, p: (f64, f64)) -> Option<Vec3> {
+    let c = |k: usize| bilinear(map, p, |v: &Vec3| v.is_finite().then_some(f64::from(v[k])));
+    Some(Vec3::new(c(0)? as f32, c(1)? as f32, c(2)? as f32))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::preprocess::preprocess;
+
+    /// The photo <-> network-map coordinates agree with the official `rescale_to_orig`
+    /// (nearest neighbour) that `Resolution::Original` writes: landscape and a portrait photo
+    /// turned to landscape, at two sizes.
+    #[test]
+    fn map_coordinates_follow_the_official_rescaling() {
+        for ((w, h), rotate, size) in
+            [((741, 500), true, 512), ((741, 500), true, 384), ((500, 741), true, 384), ((500, 741), false, 320)]
+        {
+            let img = image::DynamicImage::ImageRgb8(RgbImage::new(w, h));
+            let info = preprocess(&img, size, rotate).unwrap().info;
+            let (iw, ih) = info.input_size();
+            let (mw, mh) = if info.rotated { (ih as usize, iw as usize) } else { (iw as usize, ih as usize) };
+            // A network map (photo orientation) holding its own pixel coordinates, at the
+            // photo's size through the official rescaling.
+            let idx: Vec<f32> = (0..mw * mh).flat_map(|i| [(i % mw) as f32, (i / mw) as f32]).collect();
+            let (up, oh, ow) = rescale_to_original(&idx, &PrepInfo { rotated: false, ..oriented(&info) }, 2);
+            assert_eq!((ow, oh), (w as usize, h as usize));
+            let mut worst = 0.0f64;
+            for y in 0..oh {
+                for x in 0..ow {
+                    let (xn, yn) = network_coords(&info, (x as f64, y as f64));
+                    let i = 2 * (y * ow + x);
+                    // Nearest neighbour picks a pixel within one of the exact position (less at
+                    // the padded edges, which the clamp keeps).
+                    let (ex, ey) = (xn.clamp(0.0, (mw - 1) as f64), yn.clamp(0.0, (mh - 1) as f64));
+                    worst = worst.max((ex - f64::from(up[i])).abs()).max((ey - f64::from(up[i + 1])).abs());
+                    // And back: the network map's pixel through `photo_coords`.
+                    let (px, py) = photo_coords(&info, Resolution::Network, (xn, yn));
+                    assert!((px - x as f64).abs() < 1e-9 && (py - y as f64).abs() < 1e-9);
+                }
+            }
+            assert!(worst <= 1.0, "{w}x{h} at {size}: {worst} pixels off");
+        }
+    }
+
+    /// The photo-orientation geometry of `info` as an unrotated `PrepInfo`.
+    fn oriented(info: &PrepInfo) -> PrepInfo {
+        let ((rw, rh), (x0, y0), _) = oriented_geometry(info);
+        let (iw, ih) = info.input_size();
+        let (iw, ih) = if info.rotated { (ih, iw) } else { (iw, ih) };
+        let (x0, y0) = (x0 as u32, y0 as u32);
+        PrepInfo {
+            original: info.original,
+            rotated: false,
+            resized: (rw as u32, rh as u32),
+            crop: (x0, y0, x0 + iw, y0 + ih),
+        }
+    }
+
+    fn maps(info: &PrepInfo, depth: impl Fn(usize, usize) -> f32, normal: Vec3) -> MonoPrediction {
+        let (iw, ih) = info.input_size();
+        let (w, h) = if info.rotated { (ih as usize, iw as usize) } else { (iw as usize, ih as usize) };
+        let z: Vec<f32> = (0..w * h).map(|i| depth(i % w, i / w)).collect();
+        ViewMaps {
+            rgb: RgbImage::new(w as u32, h as u32),
+            points: Raster::from_vec(w, h, z.iter().map(|&z| Vec3::new(0.1 * z, 0.0, z)).collect()).unwrap(),
+            depth: Raster::from_vec(w, h, z).unwrap(),
+            normals: Some(Raster::from_vec(w, h, vec![normal; w * h]).unwrap()),
+            conf: None,
+            desc: None,
+            desc_conf: None,
+            frame: 0,
+            info: info.clone(),
+        }
+    }
+
+    /// Merging: a pass at another size whose depth is the same surface at twice the scale
+    /// changes nothing but the normals (the normalised sum); with itself, nothing at all;
+    /// without others, the prediction as it was.
+    #[test]
+    fn merging_scales_averages_depth_and_normals() {
+        let img = image::DynamicImage::ImageRgb8(RgbImage::new(741, 500));
+        let (a, b) = (preprocess(&img, 512, true).unwrap().info, preprocess(&img, 384, true).unwrap().info);
+        // A depth that is a function of the photo's coordinates (a tilted plane's 1/z is
+        // linear in the pixel), so each map samples the same surface.
+        let surface = |info: &PrepInfo, k: f32| {
+            let info = info.clone();
+            move |x: usize, y: usize| {
+                let (px, py) = photo_coords(&info, Resolution::Network, (x as f64, y as f64));
+                k / (1.0 + 0.0004 * px as f32 + 0.0008 * py as f32)
+            }
+        };
+        let up = Vec3::new(0.0, 0.0, -1.0);
+        let side = Vec3::new(1.0, 0.0, -1.0).normalize();
+        let primary = maps(&a, surface(&a, 1.0), up);
+        let merged = merge_scales(primary.clone(), Resolution::Network, &[maps(&b, surface(&b, 2.0), side)]);
+        let worst =
+            merged.depth.data().iter().zip(primary.depth.data()).map(|(m, p)| (m / p - 1.0).abs()).fold(0.0, f32::max);
+        // The two maps' medians differ by their sampling of the surface, a fraction of a
+        // percent; the bilinear read of a 1/z surface by less.
+        assert!(worst < 3e-3, "depth moved by {worst}");
+        let want = (up + side).normalize();
+        assert!(merged.normals.as_ref().unwrap().data().iter().all(|n| n.angle_between(want) < 1e-4));
+        for (p, z) in merged.points.data().iter().zip(merged.depth.data()) {
+            assert!((p.z - z).abs() < 1e-5 * z && (p.x - 0.1 * z).abs() < 1e-5 * z, "points leave their rays");
+        }
+        let same = merge_scales(primary.clone(), Resolution::Network, std::slice::from_ref(&primary));
+        assert!(same.depth.data().iter().zip(primary.depth.data()).all(|(s, p)| (s - p).abs() <= 1e-6 * p));
+        let alone = merge_scales(primary.clone(), Resolution::Network, &[]);
+        assert_eq!(alone.depth.data(), primary.depth.data());
+    }
+}

@@ -4,7 +4,7 @@
 use crate::model_args::{load_network, open_backbone, resolve_model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use dens3r_backbone::predict::{predict_mono, predict_mono_features, to_image_grid, Resolution};
+use dens3r_backbone::predict::{merge_scales, predict_mono, predict_mono_features, to_image_grid, Resolution};
 use dens3r_backbone::preprocess::{decode_oriented, preprocess, Prepared};
 use dens3r_geom::FALLBACK_HFOV_DEG;
 use dens3r_heads::data::resize_nearest;
@@ -36,6 +36,15 @@ pub struct PredictArgs {
     /// dens3r-s included, keeps them without it).
     #[arg(long)]
     keep_portrait: bool,
+    /// Also run the network at these fractions of --size and average the depth (geometric
+    /// mean after matching medians) and normals into the --size prediction (test-time
+    /// augmentation; each costs one more network pass). Default: the model's config
+    /// (`"tta_scales"`; dens3r-s: 0.75), else none.
+    #[arg(long, value_delimiter = ',', conflicts_with = "no_tta")]
+    tta_scales: Option<Vec<f64>>,
+    /// One network pass at --size only, whatever the model's config says.
+    #[arg(long)]
+    no_tta: bool,
     /// A head written by `dens3r train-head` (its .json); repeat for several. Every head runs
     /// on the same backbone pass: the Dens3R network of --weights for heads trained on it,
     /// else the backbone of --backbone. Outputs go to OUTPUT/heads/HEAD/ (label PNGs with
@@ -103,6 +112,8 @@ struct Networks {
     net: Option<Dens3rBackbone>,
     /// Portrait images go in unrotated (`--keep-portrait`, or the network's config says so).
     keep_portrait: bool,
+    /// Long sides of the extra network passes averaged in (`--tta-scales` or the config's).
+    tta_sizes: Vec<u32>,
     heads: Vec<NamedHead>,
     other: Option<(Box<dyn Backbone>, u32)>,
 }
@@ -114,9 +125,9 @@ impl Networks {
 }
 
 /// An input image: its unique name, the network input, and the photo where it is read again.
-/// One image: frame name, network input, the photo where it is read again, and its known
-/// focal (pixels of the photo as read) with the source.
-type Input = (String, Prepared, Option<image::RgbImage>, Option<(f64, FocalSource)>);
+/// One image: frame name, network input, the photo where it is read again, its known focal
+/// (pixels of the photo as read) with the source, and its inputs at the extra sizes.
+type Input = (String, Prepared, Option<image::RgbImage>, Option<(f64, FocalSource)>, Vec<Prepared>);
 
 pub fn run(a: PredictArgs) -> Result<()> {
     crate::model_args::check_size(a.size)?;
@@ -130,7 +141,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
     }
     refuse_existing_scene(&a.output, a.overwrite)?;
     let nets = load_networks(&a)?;
-    let inputs = load_inputs(&a, nets.other.is_some(), nets.keep_portrait)?;
+    let inputs = load_inputs(&a, &nets)?;
     let mut writer = match &nets.net {
         Some(_) => {
             let mut w = SceneWriter::create(&a.output)?;
@@ -198,9 +209,19 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
     };
     let heads_on_net = !heads.is_empty() && other.is_none();
     let mut keep_portrait = a.keep_portrait;
+    let mut tta_sizes = Vec::new();
     let net = if run_net {
         let (weights, config) = resolve_model(a.weights.as_deref(), a.config.as_deref())?;
-        keep_portrait |= dens3r_recon::model::model_settings(config.as_deref())?.keep_portrait;
+        let settings = dens3r_recon::model::model_settings(config.as_deref())?;
+        keep_portrait |= settings.keep_portrait;
+        let scales = if a.no_tta { Vec::new() } else { a.tta_scales.clone().unwrap_or(settings.tta_scales) };
+        for s in scales {
+            let size = (f64::from(a.size) * s).round();
+            if !(s.is_finite() && s > 0.0 && (16.0..=8192.0).contains(&size)) {
+                bail!("--tta-scales {s}: each scale times --size must give a long side in 16..=8192 (e.g. 0.75)");
+            }
+            tta_sizes.push(size as u32);
+        }
         let model = load_network(&weights, config.as_deref(), a.gpu, a.precision)?;
         let hash = if heads_on_net {
             file_hash(&weights).with_context(|| format!("{}: cannot read", weights.display()))?
@@ -211,7 +232,7 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
     } else {
         None
     };
-    let nets = Networks { net, keep_portrait, heads, other };
+    let nets = Networks { net, keep_portrait, tta_sizes, heads, other };
     let head_backbone: Option<&dyn Backbone> = match (&nets.other, &nets.net) {
         (Some((b, _)), _) => Some(b.as_ref()),
         (None, n) => n.as_ref().map(|n| n as &dyn Backbone),
@@ -228,8 +249,9 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
 /// Decodes and preprocesses every image before anything is written, so a bad image fails
 /// first. The photo itself is kept only where it is read again (original size, another
 /// backbone).
-fn load_inputs(a: &PredictArgs, other_backbone: bool, keep_portrait: bool) -> Result<Vec<Input>> {
-    let keep_source = a.original_size || other_backbone;
+fn load_inputs(a: &PredictArgs, nets: &Networks) -> Result<Vec<Input>> {
+    let keep_source = a.original_size || nets.other.is_some();
+    let keep_portrait = nets.keep_portrait;
     let mut names = HashSet::new();
     a.images
         .iter()
@@ -237,13 +259,17 @@ fn load_inputs(a: &PredictArgs, other_backbone: bool, keep_portrait: bool) -> Re
             let bytes = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
             let img = decode_oriented(p, &bytes)?;
             let prep = preprocess(&img, a.size, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            // (Empty unless the network runs.)
+            let extra = (nets.tta_sizes.iter())
+                .map(|&s| preprocess(&img, s, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display())))
+                .collect::<Result<Vec<_>>>()?;
             let name = dens3r_recon::input::unique_name(p, &mut names);
             let focal = match a.focal {
                 Some(f) => Some((f, FocalSource::Given)),
                 None if a.no_exif_focal => None,
                 None => exif_focal_px(&bytes, (img.width(), img.height())).map(|f| (f, FocalSource::Exif)),
             };
-            Ok((name, prep, keep_source.then(|| img.to_rgb8()), focal))
+            Ok((name, prep, keep_source.then(|| img.to_rgb8()), focal, extra))
         })
         .collect()
 }
@@ -268,7 +294,7 @@ fn predict_one(
     nets: &Networks,
     writer: Option<&mut SceneWriter>,
     root: &Path,
-    (name, prep, source, focal): &Input,
+    (name, prep, source, focal, extra): &Input,
 ) -> Result<()> {
     let res = if a.original_size { Resolution::Original } else { Resolution::Network };
     let device = burn::tensor::Device::flex();
@@ -283,6 +309,11 @@ fn predict_one(
         } else {
             (predict_mono(net.model(), prep, res, want), None)
         };
+        if !extra.is_empty() {
+            let others: Vec<_> =
+                extra.iter().map(|e| predict_mono(net.model(), e, Resolution::Network, want)).collect();
+            pred = merge_scales(pred, res, &others);
+        }
         if let Some(src) = source.as_ref().filter(|_| a.original_size) {
             pred.rgb = src.clone();
         }

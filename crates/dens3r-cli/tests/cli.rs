@@ -1224,6 +1224,71 @@ fn the_default_model_reads_portrait_photos_upright() {
     assert!(upright.0 < 0.8 * turned.0 && upright.1 < turned.1 - 10.0, "upright {upright:?} vs turned {turned:?}");
 }
 
+/// dens3r-s's config asks `predict` for a second pass at three quarters of the size, averaged
+/// in (test-time augmentation): the written depth is the geometric mean of the two passes
+/// (the smaller one's median matched to the larger's) and the normals their normalised sum,
+/// checked against the two passes run alone at the photos' size (`--no-tta`), which read the
+/// smaller map by nearest neighbour where the merge reads it bilinearly; the points follow the
+/// depth and the camera keeps the larger pass's focal.
+#[test]
+fn predict_averages_the_models_smaller_pass_in() {
+    let Some(model) = default_model_ready() else { return };
+    let cfg: serde_json::Value = serde_json::from_slice(&std::fs::read(model.join("config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["tta_scales"], serde_json::json!([0.75]));
+    let dir = tempfile::tempdir().unwrap();
+    let (set, empty) = (dir.path().join("set"), dir.path().join("empty"));
+    std::fs::create_dir_all(&empty).unwrap();
+    let (set_s, empty_s) = (set.to_str().unwrap(), empty.to_str().unwrap());
+    #[rustfmt::skip]
+    ok(&["synth", "-o", set_s, "--scenes", "1", "--seed", "424243", "--kind", "mixed", "--size", "320x240",
+        "--views", "2", "--textures", empty_s, "--meshes", empty_s]);
+    let image = set.join("scene_00000/images/0000.png");
+    let run = |extra: &[&str], name: &str| -> std::path::PathBuf {
+        let out = dir.path().join(name);
+        let mut args = vec!["predict", "--original-size", "-o", out.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        args.push(image.to_str().unwrap());
+        ok(&args);
+        out
+    };
+    let (tta, large, small) = (
+        run(&["--size", "320"], "tta"),
+        run(&["--size", "320", "--no-tta"], "large"),
+        run(&["--size", "240", "--no-tta"], "small"),
+    );
+    let read =
+        |d: &std::path::Path, layer: &str| dens3r_scene::npy::read_f32(&d.join(layer).join("0000.npy")).unwrap().1;
+    let median = |v: &[f32]| {
+        let mut v: Vec<f32> = v.iter().copied().filter(|z| *z > 0.0).collect();
+        v.sort_by(f32::total_cmp);
+        v[v.len() / 2]
+    };
+    let (zt, zl, zs) = (read(&tta, "depth"), read(&large, "depth"), read(&small, "depth"));
+    let k = median(&zl) / median(&zs);
+    let mut rel: Vec<f32> =
+        zt.iter().zip(zl.iter().zip(&zs)).map(|(t, (l, s))| (t / (l * s * k).sqrt() - 1.0).abs()).collect();
+    let mut off: Vec<f32> = zt.iter().zip(&zl).map(|(t, l)| (t / l - 1.0).abs()).collect();
+    rel.sort_by(f32::total_cmp);
+    off.sort_by(f32::total_cmp);
+    let (nt, nl, ns) = (read(&tta, "normals"), read(&large, "normals"), read(&small, "normals"));
+    let mut angle: Vec<f32> = (0..nt.len() / 3)
+        .map(|i| {
+            let v = |n: &[f32]| glam::Vec3::from_slice(&n[3 * i..3 * i + 3]);
+            v(&nt).angle_between((v(&nl) + v(&ns)).normalize()).to_degrees()
+        })
+        .collect();
+    angle.sort_by(f32::total_cmp);
+    let q = |v: &[f32], f: f64| v[((v.len() - 1) as f64 * f) as usize];
+    eprintln!(
+        "tta vs the mean of the passes: depth {:.4} median / {:.4} 90th, normals {:.2} / {:.2} deg; vs the large pass alone: depth {:.4} median",
+        q(&rel, 0.5), q(&rel, 0.9), q(&angle, 0.5), q(&angle, 0.9), q(&off, 0.5)
+    );
+    assert!(q(&rel, 0.5) < 0.005 && q(&angle, 0.5) < 1.0, "not the mean of the two passes");
+    assert!(q(&off, 0.5) > 4.0 * q(&rel, 0.5), "the smaller pass was not averaged in");
+    let cams = |d: &std::path::Path| dens3r_scene::Scene::open(d).unwrap().frames()[0].k[0][0];
+    assert!((cams(&tta) - cams(&large)).abs() < 1e-6 * cams(&large), "the focal is the larger pass's");
+}
+
 /// The bundled model folder when dens3r-s can run (its DINOv2 encoder fetched beside it);
 /// `None` after saying why (an error under CI, where scripts/fetch-data.sh runs first).
 fn default_model_ready() -> Option<std::path::PathBuf> {

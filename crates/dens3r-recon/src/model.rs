@@ -99,7 +99,7 @@ pub fn load_network(
 pub const DEFAULT_MIN_CONF: f32 = 3.0;
 
 /// What a model's `config.json` says about running it, beside its architecture.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ModelSettings {
     /// The confidence under which `reconstruct` fuses no pixel: `"min_conf"` (a model trained
     /// elsewhere has its own confidence scale), else [`DEFAULT_MIN_CONF`].
@@ -109,12 +109,15 @@ pub struct ModelSettings {
     /// Dens3R's rotation to landscape would show a world on its side. Else false: rotated, as
     /// the official Dens3R code does.
     pub keep_portrait: bool,
+    /// `"tta_scales"`: fractions of the input size at which `predict` also runs the network
+    /// and averages the results in (test-time augmentation); else none.
+    pub tta_scales: Vec<f64>,
 }
 
 /// The [`ModelSettings`] of a model's `config` (none: the official models' defaults). A config
 /// that cannot be read, or a value of the wrong type, is an error naming the file.
 pub fn model_settings(config: Option<&Path>) -> Result<ModelSettings, ReconError> {
-    let mut s = ModelSettings { min_conf: DEFAULT_MIN_CONF, keep_portrait: false };
+    let mut s = ModelSettings { min_conf: DEFAULT_MIN_CONF, keep_portrait: false, tta_scales: Vec::new() };
     let Some(c) = config.filter(|c| c.is_file()) else {
         return Ok(s);
     };
@@ -135,6 +138,13 @@ pub fn model_settings(config: Option<&Path>) -> Result<ModelSettings, ReconError
             )
         })?;
     }
+    if let Some(t) = v.get("tta_scales") {
+        let scales: Option<Vec<f64>> =
+            t.as_array().and_then(|a| a.iter().map(|x| x.as_f64().filter(|x| x.is_finite() && *x > 0.0)).collect());
+        s.tta_scales = scales.ok_or_else(|| {
+            ReconError::input(c, format!("\"tta_scales\" is {t}, not a list of positive numbers (e.g. [0.75])"))
+        })?;
+    }
     Ok(s)
 }
 
@@ -146,25 +156,32 @@ mod tests {
     fn a_config_sets_the_mesh_confidence_and_portrait_handling() {
         let dir = tempfile::tempdir().unwrap();
         let c = dir.path().join("config.json");
-        let official = ModelSettings { min_conf: 3.0, keep_portrait: false };
+        let official = ModelSettings { min_conf: 3.0, keep_portrait: false, tta_scales: Vec::new() };
         assert_eq!(model_settings(None).unwrap(), official);
         std::fs::write(&c, r#"{"enc_depth": 12}"#).unwrap();
         assert_eq!(model_settings(Some(&c)).unwrap(), official);
-        std::fs::write(&c, r#"{"enc_depth": 12, "min_conf": 1.0, "keep_portrait": true}"#).unwrap();
-        assert_eq!(model_settings(Some(&c)).unwrap(), ModelSettings { min_conf: 1.0, keep_portrait: true });
-        for bad in [r#"{"min_conf": "low"}"#, r#"{"keep_portrait": "yes"}"#] {
+        std::fs::write(&c, r#"{"enc_depth": 12, "min_conf": 1.0, "keep_portrait": true, "tta_scales": [0.75]}"#)
+            .unwrap();
+        let want = ModelSettings { min_conf: 1.0, keep_portrait: true, tta_scales: vec![0.75] };
+        assert_eq!(model_settings(Some(&c)).unwrap(), want);
+        for (bad, key) in [
+            (r#"{"min_conf": "low"}"#, "min_conf"),
+            (r#"{"keep_portrait": "yes"}"#, "keep_portrait"),
+            (r#"{"tta_scales": 0.75}"#, "tta_scales"),
+            (r#"{"tta_scales": [0.75, -1]}"#, "tta_scales"),
+        ] {
             std::fs::write(&c, bad).unwrap();
             let e = model_settings(Some(&c)).unwrap_err().to_string();
-            let key = if bad.contains("min_conf") { "min_conf" } else { "keep_portrait" };
             assert!(e.contains("config.json") && e.contains(key), "{e}");
         }
     }
 
-    /// The bundled dens3r-s was trained on upright portrait frames: its config keeps them.
+    /// The bundled dens3r-s was trained on upright portrait frames: its config keeps them; and
+    /// `predict` averages in a pass at three quarters of the size.
     #[test]
     fn the_bundled_model_keeps_portrait_photos() {
         let c = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/models/dens3r-s/config.json");
         let s = model_settings(Some(&c)).unwrap();
-        assert!(s.keep_portrait && s.min_conf == 1.0, "{s:?}");
+        assert!(s.keep_portrait && s.min_conf == 1.0 && s.tta_scales == [0.75], "{s:?}");
     }
 }
