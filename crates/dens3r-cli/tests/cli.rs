@@ -1066,7 +1066,7 @@ fn synth_writes_a_set_that_train_reads() {
     assert!(out.contains("from 2 scenes"), "{out}");
     assert!(run.join("model.safetensors").is_file());
     let e = fails(&["synth", "-o", &s(&dir.path().join("x")), "--kind", "caves"]);
-    assert!(e.contains("--kind") && e.contains("rooms, objects, mixed, tabletop or bin"), "{e}");
+    assert!(e.contains("--kind") && e.contains("rooms, objects, mixed, tabletop, bin or shelf"), "{e}");
     let other: Vec<&str> = args.iter().map(|a| if *a == "3" { "4" } else { a }).collect();
     let e = fails(&other);
     assert!(e.contains("synth.json") && e.contains("other options"), "{e}");
@@ -1183,13 +1183,7 @@ fn the_default_model_sees_depth_and_normals_of_an_unseen_scene() {
 fn the_default_model_reads_portrait_photos_upright() {
     let Some(model) = default_model_ready() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let (set, empty) = (dir.path().join("set"), dir.path().join("empty"));
-    std::fs::create_dir_all(&empty).unwrap();
-    let (set_s, empty_s) = (set.to_str().unwrap(), empty.to_str().unwrap());
-    #[rustfmt::skip]
-    ok(&["synth", "-o", set_s, "--scenes", "3", "--seed", "424242", "--kind", "mixed", "--size", "320x240",
-        "--views", "3", "--textures", empty_s, "--meshes", empty_s]);
-    let scene = set.join("scene_00002");
+    let scene = unseen_scenes(dir.path(), 424242, 3, 3).join("scene_00002");
     let cams = dens3r_scene::Scene::open(&scene).unwrap();
     assert!(cams.frames().iter().all(|f| f.height > f.width), "the scene is portrait");
     let mut cfg: serde_json::Value =
@@ -1236,13 +1230,7 @@ fn predict_averages_the_models_smaller_pass_in() {
     let cfg: serde_json::Value = serde_json::from_slice(&std::fs::read(model.join("config.json")).unwrap()).unwrap();
     assert_eq!(cfg["tta_scales"], serde_json::json!([0.75]));
     let dir = tempfile::tempdir().unwrap();
-    let (set, empty) = (dir.path().join("set"), dir.path().join("empty"));
-    std::fs::create_dir_all(&empty).unwrap();
-    let (set_s, empty_s) = (set.to_str().unwrap(), empty.to_str().unwrap());
-    #[rustfmt::skip]
-    ok(&["synth", "-o", set_s, "--scenes", "1", "--seed", "424243", "--kind", "mixed", "--size", "320x240",
-        "--views", "2", "--textures", empty_s, "--meshes", empty_s]);
-    let image = set.join("scene_00000/images/0000.png");
+    let image = unseen_scenes(dir.path(), 424243, 1, 2).join("scene_00000/images/0000.png");
     let run = |extra: &[&str], name: &str| -> std::path::PathBuf {
         let out = dir.path().join(name);
         let mut args = vec!["predict", "--original-size", "-o", out.to_str().unwrap()];
@@ -1287,6 +1275,19 @@ fn predict_averages_the_models_smaller_pass_in() {
     assert!(q(&off, 0.5) > 4.0 * q(&rel, 0.5), "the smaller pass was not averaged in");
     let cams = |d: &std::path::Path| dens3r_scene::Scene::open(d).unwrap().frames()[0].k[0][0];
     assert!((cams(&tta) - cams(&large)).abs() < 1e-6 * cams(&large), "the focal is the larger pass's");
+}
+
+/// `scenes` mixed scenes of `views` views at 320x240 from `seed` (outside every training
+/// seed), procedural only (no photographs or meshes), written under `dir/set`; returns the set.
+fn unseen_scenes(dir: &std::path::Path, seed: u64, scenes: usize, views: usize) -> std::path::PathBuf {
+    let (set, empty) = (dir.join("set"), dir.join("empty"));
+    std::fs::create_dir_all(&empty).unwrap();
+    let (set_s, empty_s) = (set.to_str().unwrap(), empty.to_str().unwrap());
+    let (seed, scenes, views) = (seed.to_string(), scenes.to_string(), views.to_string());
+    #[rustfmt::skip]
+    ok(&["synth", "-o", set_s, "--scenes", &scenes, "--seed", &seed, "--kind", "mixed", "--size", "320x240",
+        "--views", &views, "--textures", empty_s, "--meshes", empty_s]);
+    set
 }
 
 /// The bundled model folder when dens3r-s can run (its DINOv2 encoder fetched beside it);
