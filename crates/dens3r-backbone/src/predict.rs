@@ -215,9 +215,8 @@ pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others
     let (w, h) = (primary.depth.width(), primary.depth.height());
     let valid = |z: f32| z.is_finite() && z > 0.0;
     let median = |d: &Raster<f32>| {
-        let mut v: Vec<f32> = d.data().iter().copied().filter(|&z| valid(z)).collect();
-        v.sort_by(f32::total_cmp);
-        v.get(v.len() / 2).copied()
+        let mut v: Vec<f64> = d.data().iter().filter(|&&z| valid(z)).map(|&z| f64::from(z)).collect();
+        dens3r_geom::focal::median(&mut v)
     };
     let Some(m0) = median(&primary.depth) else { return primary };
     // Sums of log depth and of normals, and how many predictions each pixel has.
@@ -227,7 +226,7 @@ pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others
     let mut normal_sum: Option<Vec<Vec3>> = primary.normals.as_ref().map(|n| n.data().to_vec());
     for o in others {
         let Some(mo) = median(&o.depth) else { continue };
-        let scale = f64::from(m0) / f64::from(mo);
+        let scale = m0 / mo;
         for y in 0..h {
             for x in 0..w {
                 let (xo, yo) = photo_coords(&primary.info, primary_res, (x as f64, y as f64));
@@ -283,13 +282,9 @@ pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others
 }
 
 /// The resized image's size, the crop's offset and the photo's size, in the photo's own
-/// orientation (`rescale_to_original`'s convention for rotated images).
+/// orientation ([`PrepInfo::oriented`]).
 fn oriented_geometry(info: &PrepInfo) -> ((f64, f64), (f64, f64), (f64, f64)) {
-    let (mut rw, mut rh) = info.resized;
-    let (mut x0, mut y0) = (info.crop.0, info.crop.1);
-    if info.rotated {
-        (rw, rh, x0, y0) = (rh, rw, y0, x0);
-    }
+    let ((rw, rh), (x0, y0), _) = info.oriented();
     let o = info.original;
     ((f64::from(rw), f64::from(rh)), (f64::from(x0), f64::from(y0)), (f64::from(o.0), f64::from(o.1)))
 }
@@ -374,21 +369,13 @@ mod tests {
 
     /// The photo-orientation geometry of `info` as an unrotated `PrepInfo`.
     fn oriented(info: &PrepInfo) -> PrepInfo {
-        let ((rw, rh), (x0, y0), _) = oriented_geometry(info);
-        let (iw, ih) = info.input_size();
-        let (iw, ih) = if info.rotated { (ih, iw) } else { (iw, ih) };
-        let (x0, y0) = (x0 as u32, y0 as u32);
-        PrepInfo {
-            original: info.original,
-            rotated: false,
-            resized: (rw as u32, rh as u32),
-            crop: (x0, y0, x0 + iw, y0 + ih),
-        }
+        let (resized, (x0, y0), (iw, ih)) = info.oriented();
+        PrepInfo { original: info.original, rotated: false, resized, crop: (x0, y0, x0 + iw, y0 + ih) }
     }
 
     fn maps(info: &PrepInfo, depth: impl Fn(usize, usize) -> f32, normal: Vec3) -> MonoPrediction {
-        let (iw, ih) = info.input_size();
-        let (w, h) = if info.rotated { (ih as usize, iw as usize) } else { (iw as usize, ih as usize) };
+        let (w, h) = info.oriented().2;
+        let (w, h) = (w as usize, h as usize);
         let z: Vec<f32> = (0..w * h).map(|i| depth(i % w, i / w)).collect();
         ViewMaps {
             rgb: RgbImage::new(w as u32, h as u32),

@@ -31,6 +31,20 @@ impl PrepInfo {
         let (o, r) = (self.original, self.resized);
         f64::from(r.0.max(r.1)) / f64::from(o.0.max(o.1).max(1))
     }
+
+    /// The resized size, the crop's offset in it and the network input's size, each
+    /// `(width, height)` in the photo's own orientation (a rotated image's `size_info`
+    /// permuted as `[1,0,3,2,5,4,7,6]`, as `rescale_to_orig` reads it).
+    pub fn oriented(&self) -> ((u32, u32), (u32, u32), (u32, u32)) {
+        let (rw, rh) = self.resized;
+        let (x0, y0) = (self.crop.0, self.crop.1);
+        let (iw, ih) = self.input_size();
+        if self.rotated {
+            ((rh, rw), (y0, x0), (ih, iw))
+        } else {
+            ((rw, rh), (x0, y0), (iw, ih))
+        }
+    }
 }
 
 /// A preprocessed image.
@@ -209,15 +223,8 @@ pub fn rotate_map_clockwise<T: Copy>(data: &[T], h: usize, w: usize, c: usize) -
 /// (OpenCV's `INTER_NEAREST`, source index `floor(dst * src_size / dst_size)`) to the original
 /// size. Returns the map and its `(H, W)`.
 pub fn rescale_to_original<T: Copy>(data: &[T], info: &PrepInfo, c: usize) -> (Vec<T>, usize, usize) {
-    let (iw, ih) = info.input_size();
-    let (mut rw, mut rh) = info.resized;
-    let (mut x0, mut y0) = (info.crop.0, info.crop.1);
-    let (mut iw, mut ih) = (iw as usize, ih as usize);
-    if info.rotated {
-        // size_info permuted as [1,0,3,2,5,4,7,6]
-        (rw, rh, x0, y0, iw, ih) = (rh, rw, y0, x0, ih, iw);
-    }
-    let (rw, rh, x0, y0) = (rw as usize, rh as usize, x0 as usize, y0 as usize);
+    let ((rw, rh), (x0, y0), (iw, ih)) = info.oriented();
+    let (rw, rh, x0, y0, iw, ih) = (rw as usize, rh as usize, x0 as usize, y0 as usize, iw as usize, ih as usize);
     assert_eq!(data.len(), iw * ih * c, "map does not have the network-input size");
     let (ow, oh) = (info.original.0 as usize, info.original.1 as usize);
     let mut out = Vec::with_capacity(ow * oh * c);
