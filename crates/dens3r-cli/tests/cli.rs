@@ -1093,6 +1093,9 @@ fn real_scenes_from_the_fetched_material() {
     let shelf = data.join("mrpt/tests_rgbd.rawlog").is_file();
     assert!(text.contains(if shelf { "bookshelf: " } else { "bookshelf: skipped" }), "{text}");
     assert_eq!(out.join("bookshelf/cameras.json").is_file(), shelf);
+    let castle = data.join("visp/depth_image_0000.bin").is_file();
+    assert!(text.contains(if castle { "castle: " } else { "castle: skipped" }), "{text}");
+    assert_eq!(out.join("castle/cameras.json").is_file(), castle);
     assert!(ok(&["real-scenes", "-o", &s(&out), "--data", &s(&data)]).contains("kept"));
     // The ground truth against itself: zero error (motorcycle's right frame has no depth, so
     // it is scored through a prediction of the left image alone).

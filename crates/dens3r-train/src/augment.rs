@@ -1,5 +1,5 @@
 //! Photometric augmentations of training images, normalised `(3, H, W)` planes in `[-1, 1]`:
-//! colour jitter, and a camera's degradations (vignetting, white balance, lens blur, tone curve,
+//! colour jitter, grey, and a camera's degradations (vignetting, white balance, lens blur, tone curve,
 //! sensor noise) that rendered images lack and photographs have.
 
 use dens3r_render::noise::gauss;
@@ -26,6 +26,19 @@ pub fn jitter(mut img: Vec<f32>, amp: f32, rng: &mut ChaCha8Rng) -> Vec<f32> {
         }
     }
     img
+}
+
+/// A normalised `(3, H, W)` image as a monochrome camera sees it: every channel the luma
+/// `0.299 R + 0.587 G + 0.114 B` (ITU-R BT.601, as common image libraries turn colour into
+/// grey).
+pub fn to_grey(img: &mut [f32]) {
+    let n = img.len() / 3;
+    let (r, rest) = img.split_at_mut(n);
+    let (g, b) = rest.split_at_mut(n);
+    for ((r, g), b) in r.iter_mut().zip(g.iter_mut()).zip(b.iter_mut()) {
+        let y = 0.299 * *r + 0.587 * *g + 0.114 * *b;
+        (*r, *g, *b) = (y, y, y);
+    }
 }
 
 /// A camera's degradations of one image, applied in this order to intensities in `[0, 1]`.

@@ -16,14 +16,21 @@
 //!   (1 mm steps). Depth only: the colour camera's recorded intrinsics (fx 521.2, fy 493.0)
 //!   are not those of square pixels, so normals derived from them would not be ground truth;
 //!   its K is written as recorded.
+//! * `castle`: ViSP's RGB-D sequence of a model castle on a table (`mbt-depth/castel/castel` of
+//!   Debian's `visp-images-data`, an Intel SR300, 640x480, grey images), every fifth of its 30
+//!   frames ([`CASTLE_FRAMES`]), 0.2-0.5 m away: the depth camera's range image moved into the
+//!   colour camera ([`register_depth`]) with the calibration ViSP's tracking example uses
+//!   ([`CASTLE_DEPTH_UNIT`], [`CASTLE_DEPTH_K`], [`CASTLE_DEPTH_COEFFS`], [`CASTLE_COLOR_K`],
+//!   [`CASTLE_DEPTH_FROM_COLOR`]). The frames' poses are not known: each is written at the
+//!   identity, to be scored one frame at a time.
 //!
-//! The first two carry normals derived from their ground-truth depth (neither source has
+//! All but the bookshelf carry normals derived from their ground-truth depth (no source has
 //! measured normals).
 
 use crate::TrainError;
 use dens3r_geom::normals::normals_from_pointmap_robust;
 use dens3r_geom::pointmap::depth_to_pointmap;
-use dens3r_geom::{DMat4, DVec3, Intrinsics, PinholeCamera, Raster};
+use dens3r_geom::{DMat4, DVec3, Intrinsics, PinholeCamera, Raster, Vec3};
 use dens3r_scene::{Frame, SceneWriter};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -364,6 +371,181 @@ pub fn bookshelf(src: &Path, out: &Path) -> Result<(), TrainError> {
     let mut wr = SceneWriter::create(out)?;
     add_depth_frame(&mut wr, "rgb", &cam, &f.image, &f.depth)?;
     wr.set_extra("source", serde_json::json!("Debian mrpt-common /usr/share/mrpt/datasets/tests_rgbd.rawlog (Kinect)"));
+    wr.finish()?;
+    Ok(())
+}
+
+/// The frames of ViSP's castle sequence that `castle` writes (every fifth of its 30).
+pub const CASTLE_FRAMES: [usize; 6] = [0, 5, 10, 15, 20, 25];
+/// The SR300's depth unit (m per step of its range image).
+pub const CASTLE_DEPTH_UNIT: f64 = 0.000124986647;
+/// The SR300 depth camera's intrinsics (`chateau_depth.xml`).
+pub const CASTLE_DEPTH_K: Intrinsics =
+    Intrinsics { fx: 476.0536193848, fy: 476.0534973145, cx: 311.4845581055, cy: 246.2832336426 };
+/// The depth camera's distortion (Intel's inverse Brown-Conrady: k1, k2, p1, p2, k3), applied to
+/// a pixel's normalised coordinates to find its ray.
+pub const CASTLE_DEPTH_COEFFS: [f64; 5] = [0.165056542, -0.0508309528, 0.00435937941, 0.00541406544, 0.250085592];
+/// The colour camera's intrinsics (`chateau.xml`; its images are undistorted).
+pub const CASTLE_COLOR_K: Intrinsics =
+    Intrinsics { fx: 615.1674804688, fy: 615.1675415039, cx: 312.1889953613, cy: 243.4373779297 };
+/// The colour camera's frame in the depth camera's (`depth_M_color.txt`, rows): a point `X_c`
+/// of the colour camera is `M X_c` in the depth camera.
+pub const CASTLE_DEPTH_FROM_COLOR: [[f64; 4]; 3] = [
+    [0.9999922514, -0.003901827615, -0.000573842437, -0.02470519207],
+    [0.003898504889, 0.9999762774, -0.005681734998, 0.0006583171198],
+    [0.0005959979608, 0.005679453723, 0.9999836683, -0.003773850389],
+];
+
+/// [`CASTLE_DEPTH_FROM_COLOR`] as a 4x4 transform.
+pub fn castle_depth_from_color() -> DMat4 {
+    let r = CASTLE_DEPTH_FROM_COLOR;
+    let row = |i: usize| glam::DVec4::from_array(r[i]);
+    DMat4::from_cols(row(0), row(1), row(2), glam::DVec4::W).transpose()
+}
+
+/// Reads a ViSP range image (`.bin`): height and width as little-endian u32, then the rows of
+/// little-endian u16 steps.
+pub fn read_visp_depth(path: &Path) -> Result<Raster<u16>, TrainError> {
+    let bytes =
+        std::fs::read(path).map_err(|e| TrainError::file(path, format!("{e}; run scripts/fetch-data.sh eval")))?;
+    let u32_at = |k: usize| bytes.get(k..k + 4).map(|b| u32::from_le_bytes(b.try_into().unwrap()) as usize);
+    let (h, w) = (u32_at(0).unwrap_or(0), u32_at(4).unwrap_or(0));
+    if !(1..=8192).contains(&h) || !(1..=8192).contains(&w) || bytes.len() != 8 + 2 * w * h {
+        return Err(TrainError::file(
+            path,
+            format!(
+                "not a ViSP range image ({} bytes for {w}x{h}); remove it and rerun scripts/fetch-data.sh eval",
+                bytes.len()
+            ),
+        ));
+    }
+    let steps = bytes[8..].chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]])).collect();
+    Ok(Raster::from_vec(w, h, steps)?)
+}
+
+/// The ray of depth-camera pixel `(u, v)` at unit depth under Intel's inverse Brown-Conrady model
+/// (`k1, k2, p1, p2, k3` applied to the normalised coordinates).
+fn inverse_brown_conrady_ray(k: &Intrinsics, c: &[f64; 5], u: f64, v: f64) -> DVec3 {
+    let (x, y) = ((u - k.cx) / k.fx, (v - k.cy) / k.fy);
+    let r2 = x * x + y * y;
+    let f = 1.0 + c[0] * r2 + c[1] * r2 * r2 + c[4] * r2 * r2 * r2;
+    DVec3::new(
+        x * f + 2.0 * c[2] * x * y + c[3] * (r2 + 2.0 * x * x),
+        y * f + 2.0 * c[3] * x * y + c[2] * (r2 + 2.0 * y * y),
+        1.0,
+    )
+}
+
+/// Depth and ground-truth normals of a colour camera, from another camera's range image
+/// ([`register_depth`]).
+pub struct Registered {
+    /// z-depth in metres, 0 where no ranged point lands.
+    pub depth: Raster<f32>,
+    /// Unit normals (OpenCV frame, facing the camera), zero where there are none.
+    pub normals: Raster<Vec3>,
+}
+
+/// A depth camera's range image seen from a colour camera (`width` x `height`, intrinsics
+/// `color_k`, its frame `depth_from_color` in the depth camera's). Every ranged pixel
+/// (`steps x unit` metres along its ray, [`inverse_brown_conrady_ray`] with `coeffs`) is moved
+/// into the colour frame, with its normal taken on the depth camera's own grid (the robust
+/// rule of [`normals_of`], so resampling leaves no steps in it), and lands on the four colour
+/// pixels around its projection: each pixel keeps, of the points within 1% of the nearest one
+/// landing there (the visible surface), the one projecting closest to its centre.
+#[allow(clippy::too_many_arguments)]
+pub fn register_depth(
+    steps: &Raster<u16>,
+    unit: f64,
+    depth_k: &Intrinsics,
+    coeffs: &[f64; 5],
+    depth_from_color: &DMat4,
+    color_k: &Intrinsics,
+    width: usize,
+    height: usize,
+) -> Registered {
+    let points = Raster::from_fn(steps.width(), steps.height(), |u, v| match *steps.get(u, v) {
+        0 => Vec3::NAN,
+        s => (inverse_brown_conrady_ray(depth_k, coeffs, u as f64, v as f64) * (s as f64 * unit)).as_vec3(),
+    });
+    let normals = normals_from_pointmap_robust(&points, 0.05);
+    let color_from_depth = depth_from_color.inverse();
+    let turn = glam::DMat3::from_mat4(color_from_depth).as_mat3();
+    // Each landing: (colour pixel index, z, squared distance from its centre, point index).
+    let mut landings = Vec::new();
+    for (i, p) in points.data().iter().enumerate() {
+        if !p.is_finite() {
+            continue;
+        }
+        let q = color_from_depth.transform_point3(p.as_dvec3());
+        if q.z <= 0.0 {
+            continue;
+        }
+        let (x, y) = color_k.project(q);
+        let (x0, y0) = (x.floor(), y.floor());
+        for (px, py) in [(x0, y0), (x0 + 1.0, y0), (x0, y0 + 1.0), (x0 + 1.0, y0 + 1.0)] {
+            if px >= 0.0 && py >= 0.0 && (px as usize) < width && (py as usize) < height {
+                let d2 = (px - x).powi(2) + (py - y).powi(2);
+                landings.push((py as usize * width + px as usize, q.z as f32, d2, i));
+            }
+        }
+    }
+    let mut nearest = vec![f32::INFINITY; width * height];
+    for &(k, z, _, _) in &landings {
+        nearest[k] = nearest[k].min(z);
+    }
+    let mut best = vec![(f64::INFINITY, 0.0f32, Vec3::ZERO); width * height];
+    for &(k, z, d2, i) in &landings {
+        if z <= nearest[k] * 1.01 && d2 < best[k].0 {
+            let n = normals.data()[i];
+            best[k] = (d2, z, if n == Vec3::ZERO { n } else { (turn * n).normalize() });
+        }
+    }
+    Registered {
+        depth: Raster::from_vec(width, height, best.iter().map(|b| b.1).collect()).expect("width x height values"),
+        normals: Raster::from_vec(width, height, best.iter().map(|b| b.2).collect()).expect("width x height values"),
+    }
+}
+
+/// The frames' file names in ViSP's castle folder: `image_NNNN.pgm` and `depth_image_NNNN.bin`.
+pub fn castle_files(frame: usize) -> [String; 2] {
+    [format!("image_{frame:04}.pgm"), format!("depth_image_{frame:04}.bin")]
+}
+
+/// Writes [`CASTLE_FRAMES`] of ViSP's castle sequence (its files in `src`) into `out`: grey
+/// image as RGB, registered depth and normals ([`register_depth`]), mask; poses unknown
+/// (identity).
+pub fn castle(src: &Path, out: &Path) -> Result<(), TrainError> {
+    let depth_from_color = castle_depth_from_color();
+    let mut wr = SceneWriter::create(out)?;
+    for frame in CASTLE_FRAMES {
+        let [img, bin] = castle_files(frame);
+        let ipath = src.join(img);
+        let grey = image::open(&ipath)
+            .map_err(|e| TrainError::file(&ipath, format!("cannot read ({e}); run scripts/fetch-data.sh eval")))?;
+        let rgb = grey.to_rgb8();
+        let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+        let steps = read_visp_depth(&src.join(bin))?;
+        let reg = register_depth(
+            &steps,
+            CASTLE_DEPTH_UNIT,
+            &CASTLE_DEPTH_K,
+            &CASTLE_DEPTH_COEFFS,
+            &depth_from_color,
+            &CASTLE_COLOR_K,
+            w,
+            h,
+        );
+        let cam = PinholeCamera { intrinsics: CASTLE_COLOR_K, width: w, height: h, cam_to_world: DMat4::IDENTITY };
+        let name = format!("{frame:04}");
+        add_depth_frame(&mut wr, &name, &cam, &rgb, &reg.depth)?;
+        wr.write_normals(&name, &reg.normals)?;
+    }
+    wr.set_extra(
+        "source",
+        serde_json::json!(
+            "Debian visp-images-data ViSP-images/mbt-depth/castel/castel (Intel SR300), depth registered to the colour camera; poses unknown (each frame at the identity)"
+        ),
+    );
     wr.finish()?;
     Ok(())
 }

@@ -3,7 +3,7 @@
 //! warm-up and cosine decay, global gradient-norm clipping, checkpoints that resume exactly
 //! (each step's draw and augmentation are seeded by its index), and a JSONL log.
 
-use crate::augment::{jitter, Degradation};
+use crate::augment::{jitter, to_grey, Degradation};
 use crate::loss::{conf_regr3d, matching_loss, normal_l1, pointmap_normal_loss, ssi_depth_l1, Matches, RegrView};
 use crate::pair::{covisibility, crop_window, missing_depth, pair_target, PairTarget, View};
 use crate::TrainError;
@@ -144,6 +144,10 @@ pub struct TrainConfig {
     /// lack them and photographs have them (0 = never).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub degrade: f32,
+    /// Probability that a pair is shown in grey (both views, as a monochrome camera gives
+    /// them, after their jitter and degradations: [`to_grey`]) (0 = never).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub grey: f32,
     /// Strength of the encoder tokens' statistics jitter on half the pairs ([`style_jitter`]:
     /// each channel's mean and spread over the tokens moved by this times Gaussian draws),
     /// so the decoder and heads do not lean on the renders' feature statistics (0 = off).
@@ -192,6 +196,7 @@ impl Default for TrainConfig {
             self_pairs: 0.0,
             roll_top_down: 0.0,
             degrade: 0.0,
+            grey: 0.0,
             style_jitter: 0.0,
             depth_ssi: 0.0,
             taps_lr_mult: 1.0,
@@ -237,6 +242,9 @@ impl TrainConfig {
         }
         if !(0.0..=1.0).contains(&self.degrade) {
             return Err(TrainError::invalid(format!("--degrade {}: expected a probability in [0, 1]", self.degrade)));
+        }
+        if !(0.0..=1.0).contains(&self.grey) {
+            return Err(TrainError::invalid(format!("--grey {}: expected a probability in [0, 1]", self.grey)));
         }
         if !(0.0..=1.0).contains(&self.style_jitter) {
             return Err(TrainError::invalid(format!(
@@ -675,6 +683,8 @@ impl Dataset {
         degrade_rng.set_stream(1);
         let mut style_rng = rng.clone();
         style_rng.set_stream(2);
+        let mut grey_rng = rng.clone();
+        grey_rng.set_stream(3);
         let mut style = Vec::new();
         let picks: Vec<(usize, usize, usize)> =
             (0..cfg.batch).map(|_| self.pairs[rng.gen_range(0..self.pairs.len())]).collect();
@@ -701,10 +711,14 @@ impl Dataset {
             }
             let mut t = pair_target(&v1, &v2);
             t.matches = sample_matches(&t.matches, cfg.n_corres, &mut rng);
+            let grey = cfg.grey > 0.0 && grey_rng.gen_range(0.0f32..1.0) < cfg.grey;
             for (k, v) in [&v1, &v2].into_iter().enumerate() {
                 let mut img = jitter(normalise(&v.image), cfg.jitter, &mut rng);
                 if cfg.degrade > 0.0 && degrade_rng.gen_range(0.0f32..1.0) < cfg.degrade {
                     Degradation::draw(&mut degrade_rng).apply(&mut img, (w, h), &mut degrade_rng);
+                }
+                if grey {
+                    to_grey(&mut img);
                 }
                 imgs[k].extend(img);
             }
@@ -779,6 +793,7 @@ pub fn validate(params: &Params, data: &Dataset, cfg: &TrainConfig, batches: usi
         self_pairs: 0.0,
         roll_top_down: 0.0,
         degrade: 0.0,
+        grey: 0.0,
         style_jitter: 0.0,
         seed: 0x5eed_0a11_d00d,
         ..cfg.clone()

@@ -1,6 +1,6 @@
-//! The camera degradations of training images, against closed forms.
+//! The camera degradations and grey of training images, against closed forms.
 
-use dens3r_train::augment::{gaussian_blur, Degradation};
+use dens3r_train::augment::{gaussian_blur, to_grey, Degradation};
 use dens3r_train::{Dataset, TrainConfig};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -88,5 +88,67 @@ fn degrade_changes_the_images_only() {
     }
     for p in [-0.1, 1.5, f32::NAN] {
         assert!(TrainConfig { degrade: p, ..base.clone() }.check(16).is_err(), "{p}");
+    }
+}
+
+/// Grey is BT.601 luma in every channel (red 0.299, green 0.587, blue 0.114 of the way up from
+/// black, in the normalised [-1, 1] range too, since the weights sum to 1).
+#[test]
+fn grey_is_bt601_luma() {
+    // Three pixels, planes R, G, B: pure red, pure green, pure blue (normalised: 1 on, -1 off).
+    let mut img = vec![1.0, -1.0, -1.0, -1.0, 1.0, -1.0, -1.0, -1.0, 1.0];
+    to_grey(&mut img);
+    for (px, w) in [0.299f32, 0.587, 0.114].into_iter().enumerate() {
+        let want = 2.0 * w - 1.0;
+        for c in 0..3 {
+            assert!((img[c * 3 + px] - want).abs() < 1e-6, "pixel {px} channel {c}: {}", img[c * 3 + px]);
+        }
+    }
+}
+
+/// `grey = 1` makes both views of every pair grey and leaves the pairs, their ground truth and
+/// correspondences as drawn without it; `grey = 0.5` greys some pairs and not others, both views
+/// together; out of [0, 1] it is refused.
+#[test]
+fn grey_pairs_change_the_images_only() {
+    let orbit = crate::fixtures::repo_root().join("data-samples/orbit");
+    let device = dens3r_backbone::Device::flex();
+    let base = TrainConfig { size: (64, 48), batch: 2, n_corres: 64, ..Default::default() };
+    let data = Dataset::load(&[orbit], (64, 48), (0.1, 0.98)).unwrap();
+    let vals = |t: dens3r_backbone::Tensor<4>| t.into_data().try_to_vec::<f32>().unwrap();
+    // Per pair and view: whether its three planes are equal.
+    let grey_views = |x: &[f32], b: usize| -> Vec<bool> {
+        let n = x.len() / b / 3;
+        (0..b)
+            .map(|i| (0..n).all(|p| (0..3).all(|c| (x[(i * 3 + c) * n + p] - x[i * 3 * n + p]).abs() < 1e-6)))
+            .collect()
+    };
+    let (mut some, mut none) = (false, false);
+    for step in 0..8 {
+        let a = data.batch(&base, 16, step, &device).unwrap();
+        let all = data.batch(&TrainConfig { grey: 1.0, ..base.clone() }, 16, step, &device).unwrap();
+        let half = data.batch(&TrainConfig { grey: 0.5, ..base.clone() }, 16, step, &device).unwrap();
+        for k in 0..2 {
+            let x = vals(a.images[k].clone());
+            assert!(grey_views(&x, 2).iter().all(|g| !g), "step {step}: the renders are in colour");
+            let y = vals(all.images[k].clone());
+            assert!(grey_views(&y, 2).iter().all(|g| *g), "step {step} view {k}");
+            // The same jittered view, turned grey.
+            let mut want = x.clone();
+            want.chunks_mut(x.len() / 2).for_each(to_grey);
+            assert!(want.iter().zip(&y).all(|(p, q)| (p - q).abs() < 1e-6), "step {step} view {k}");
+        }
+        let (h1, h2) = (grey_views(&vals(half.images[0].clone()), 2), grey_views(&vals(half.images[1].clone()), 2));
+        assert_eq!(h1, h2, "step {step}: both views of a pair or neither");
+        some |= h1.iter().any(|g| *g);
+        none |= h1.iter().any(|g| !*g);
+        for (ta, tb) in a.targets.iter().zip(&all.targets) {
+            assert_eq!(ta.pts, tb.pts, "step {step}: same ground truth");
+            assert_eq!(ta.matches.idx1, tb.matches.idx1, "step {step}: same correspondences");
+        }
+    }
+    assert!(some && none, "grey 0.5 greys some pairs and not others");
+    for p in [-0.1, 1.5, f32::NAN] {
+        assert!(TrainConfig { grey: p, ..base.clone() }.check(16).is_err(), "{p}");
     }
 }
