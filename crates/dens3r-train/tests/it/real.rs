@@ -213,7 +213,8 @@ fn kinect_rawlog_layout_and_damage() {
 /// The castle sequence's ray model, written out independently: Intel's inverse Brown-Conrady
 /// distortion applied to a depth pixel's normalised coordinates.
 fn sr300_ray(u: f64, v: f64) -> dens3r_geom::DVec3 {
-    use dens3r_train::real::{CASTLE_DEPTH_COEFFS as c, CASTLE_DEPTH_K as k};
+    let cam = dens3r_train::real::CASTLE_DEPTH_CAMERA;
+    let (c, k) = (cam.distortion, cam.intrinsics);
     let (x, y) = ((u - k.cx) / k.fx, (v - k.cy) / k.fy);
     let r2 = x * x + y * y;
     let radial = 1.0 + c[0] * r2 + c[1] * r2 * r2 + c[4] * r2.powi(3);
@@ -232,7 +233,10 @@ fn sr300_ray(u: f64, v: f64) -> dens3r_geom::DVec3 {
 #[test]
 fn registered_depth_of_a_plane_is_the_plane_seen_from_the_colour_camera() {
     use dens3r_geom::DVec3;
-    use dens3r_train::real::{castle_depth_from_color, register_depth, CASTLE_COLOR_K, CASTLE_DEPTH_FROM_COLOR};
+    use dens3r_train::real::{
+        castle_depth_from_color, register_depth, RangeCamera, CASTLE_COLOR_K, CASTLE_DEPTH_CAMERA,
+        CASTLE_DEPTH_FROM_COLOR,
+    };
     let depth_from_color = castle_depth_from_color();
     // Its rows as recorded: the colour camera 2.5 cm along the depth camera's -x.
     let m = CASTLE_DEPTH_FROM_COLOR;
@@ -253,16 +257,8 @@ fn registered_depth_of_a_plane_is_the_plane_seen_from_the_colour_camera() {
         let t = (c - n.dot(o)) / n.dot(d);
         (t / UNIT).round() as u16
     });
-    let reg = register_depth(
-        &steps,
-        UNIT,
-        &dens3r_train::real::CASTLE_DEPTH_K,
-        &dens3r_train::real::CASTLE_DEPTH_COEFFS,
-        &depth_from_color,
-        &CASTLE_COLOR_K,
-        w,
-        h,
-    );
+    let camera = RangeCamera { unit: UNIT, ..CASTLE_DEPTH_CAMERA };
+    let reg = register_depth(&steps, &camera, &depth_from_color, &CASTLE_COLOR_K, (w, h));
     let k = CASTLE_COLOR_K;
     let (mut worst, mut angles, mut filled) = (0.0f64, Vec::new(), 0usize);
     // The central region: the depth camera's wider view covers it.
