@@ -309,6 +309,10 @@ fn visp_range_images_are_read_and_damage_refused() {
     assert!(e.contains("depth_image_0000.bin") && e.contains("fetch-data.sh"), "{e}");
     std::fs::write(&p, [0u8; 3]).unwrap();
     assert!(read_visp_depth(&p).is_err());
+    // A (sparse) 200 MB file is refused by its size before it is read.
+    std::fs::File::create(&p).unwrap().set_len(200 << 20).unwrap();
+    let Err(e) = read_visp_depth(&p) else { panic!("a 200 MB file was read") };
+    assert!(e.to_string().contains("larger than any"), "{e}");
     assert!(read_visp_depth(&dir.path().join("none.bin")).err().unwrap().to_string().contains("fetch-data.sh"));
 }
 
