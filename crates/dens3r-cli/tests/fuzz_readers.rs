@@ -263,6 +263,7 @@ fuzz_tests! {
     onnx => "onnx",
     png => "png",
     jpeg => "jpeg",
+    pnm => "pnm",
     label_png => "label-png",
     mesh_ply => "mesh-ply",
     mesh_ply_ascii => "mesh-ply-ascii",

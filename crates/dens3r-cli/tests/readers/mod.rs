@@ -302,6 +302,17 @@ pub fn targets() -> Vec<Target> {
             read: |d| ok(dens3r_backbone::preprocess::open_oriented(&d.join("a.jpg"))),
         },
         Target {
+            name: "pnm",
+            file: "a.pgm",
+            seed: |_| {
+                png(
+                    &image::DynamicImage::ImageLuma8(image::imageops::grayscale(&gradient(20, 12))),
+                    image::ImageFormat::Pnm,
+                )
+            },
+            read: |d| ok(dens3r_backbone::preprocess::open_oriented(&d.join("a.pgm"))),
+        },
+        Target {
             name: "label-png",
             file: "labels.png",
             seed: |_| {
