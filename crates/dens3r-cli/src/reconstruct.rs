@@ -31,7 +31,7 @@ enum Graph {
 
 #[derive(Args)]
 pub struct ReconstructArgs {
-    /// Photos: a folder (its .png / .jpg / .jpeg files, sorted by name) or files.
+    /// Photos: a folder (its .png / .jpg / .jpeg / .pgm / .ppm files, sorted by name) or files.
     #[arg(required = true)]
     photos: Vec<PathBuf>,
     /// Output folder (scene/, colmap/, matches/, mesh.glb, cache/).

@@ -7,8 +7,9 @@ use image::RgbImage;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
-/// File extensions read from a photo folder (case-insensitive).
-pub const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
+/// File extensions read from a photo folder (case-insensitive): PNG, JPEG, and PGM / PPM (a
+/// monochrome camera's frames often come as PGM).
+pub const IMAGE_EXTENSIONS: [&str; 5] = ["png", "jpg", "jpeg", "pgm", "ppm"];
 
 /// One input photo, preprocessed for the network.
 #[derive(Debug, Clone)]
@@ -82,7 +83,7 @@ pub fn list_images(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, ReconError> {
                 .collect();
             files.sort();
             if files.is_empty() {
-                return Err(ReconError::input(p, "no .png / .jpg / .jpeg images in this folder"));
+                return Err(ReconError::input(p, "no .png / .jpg / .jpeg / .pgm / .ppm images in this folder"));
             }
             out.extend(files);
         } else if p.is_file() {
@@ -206,6 +207,21 @@ mod tests {
         assert!((im.focal.unwrap() - 320.0).abs() < 1e-9);
         im.set_focal(None);
         assert_eq!(im.focal, None);
+    }
+
+    /// A folder's PGM photos are listed (other files are not) and decode to grey RGB.
+    #[test]
+    fn pgm_photos_are_listed_and_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let grey = image::GrayImage::from_fn(64, 48, |x, y| image::Luma([(x * 3 + y) as u8]));
+        grey.save(dir.path().join("a.pgm")).unwrap();
+        std::fs::write(dir.path().join("notes.txt"), "not a photo").unwrap();
+        let paths = list_images(&[dir.path().to_path_buf()]).unwrap();
+        assert_eq!(paths, vec![dir.path().join("a.pgm")]);
+        let img = &load_images(&paths, 64, false).unwrap()[0];
+        let rgb = img.rgb();
+        let px = rgb.get_pixel(10, 5).0;
+        assert!(px[0] == px[1] && px[1] == px[2] && px[0] == (10 * 3 + 5) as u8, "{px:?}");
     }
 
     #[test]

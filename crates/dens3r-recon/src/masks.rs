@@ -10,7 +10,7 @@ use image::imageops::rotate90;
 use image::{DynamicImage, GrayImage};
 use std::path::{Path, PathBuf};
 
-/// The mask file of `image` in `dir`: the photo's file stem with a .png / .jpg / .jpeg extension.
+/// The mask file of `image` in `dir`: the photo's file stem with one of [`IMAGE_EXTENSIONS`].
 pub fn mask_path(image: &InputImage, dir: &Path) -> Result<PathBuf, ReconError> {
     let stem = image.path.file_stem().and_then(|s| s.to_str()).unwrap_or(&image.name);
     IMAGE_EXTENSIONS
