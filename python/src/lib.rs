@@ -206,8 +206,7 @@ impl Model {
             let hash = dens3r_heads::features::file_hash(&files.weights).map_err(err)?;
             let net = Dens3rBackbone::new(model, None, hash).map_err(err)?;
             let settings = dens3r_recon::model::model_settings(files.config.as_deref()).map_err(err)?;
-            let tta_sizes =
-                settings.tta_scales.iter().map(|s| (f64::from(size) * s).round().clamp(16.0, 8192.0) as u32).collect();
+            let tta_sizes = dens3r_recon::model::tta_sizes(&settings.tta_scales, size).map_err(err)?;
             Ok(Model {
                 tta_sizes,
                 net: Box::new(net),

@@ -215,13 +215,7 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
         let settings = dens3r_recon::model::model_settings(config.as_deref())?;
         keep_portrait |= settings.keep_portrait;
         let scales = if a.no_tta { Vec::new() } else { a.tta_scales.clone().unwrap_or(settings.tta_scales) };
-        for s in scales {
-            let size = (f64::from(a.size) * s).round();
-            if !(s.is_finite() && s > 0.0 && (16.0..=8192.0).contains(&size)) {
-                bail!("--tta-scales {s}: each scale times --size must give a long side in 16..=8192 (e.g. 0.75)");
-            }
-            tta_sizes.push(size as u32);
-        }
+        tta_sizes = dens3r_recon::model::tta_sizes(&scales, a.size).context("--tta-scales")?;
         let model = load_network(&weights, config.as_deref(), a.gpu, a.precision)?;
         let hash = if heads_on_net {
             file_hash(&weights).with_context(|| format!("{}: cannot read", weights.display()))?

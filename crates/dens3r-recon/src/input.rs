@@ -83,7 +83,8 @@ pub fn list_images(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, ReconError> {
                 .collect();
             files.sort();
             if files.is_empty() {
-                return Err(ReconError::input(p, "no .png / .jpg / .jpeg / .pgm / .ppm images in this folder"));
+                let kinds: Vec<String> = IMAGE_EXTENSIONS.iter().map(|e| format!(".{e}")).collect();
+                return Err(ReconError::input(p, format!("no {} images in this folder", kinds.join(" / "))));
             }
             out.extend(files);
         } else if p.is_file() {

@@ -148,9 +148,39 @@ pub fn model_settings(config: Option<&Path>) -> Result<ModelSettings, ReconError
     Ok(s)
 }
 
+/// The long sides of the extra passes at `scales` of `size` (`predict`'s test-time
+/// augmentation): each rounded, and refused unless in 16..=8192.
+pub fn tta_sizes(scales: &[f64], size: u32) -> Result<Vec<u32>, ReconError> {
+    scales
+        .iter()
+        .map(|&s| {
+            let side = (f64::from(size) * s).round();
+            if s.is_finite() && s > 0.0 && (16.0..=8192.0).contains(&side) {
+                Ok(side as u32)
+            } else {
+                Err(ReconError::Other(format!(
+                    "test-time scale {s}: each scale times the size ({size}) must give a long side in 16..=8192 (e.g. 0.75)"
+                )))
+            }
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// 0.75 of 512 is 384, rounded to the nearest pixel; a side outside 16..=8192, a zero,
+    /// negative or NaN scale is refused naming it.
+    #[test]
+    fn tta_sizes_round_and_refuse_what_cannot_run() {
+        assert_eq!(tta_sizes(&[0.75, 0.5, 1.0 / 3.0], 512).unwrap(), vec![384, 256, 171]);
+        assert_eq!(tta_sizes(&[], 512).unwrap(), Vec::<u32>::new());
+        for bad in [0.01, 20.0, 0.0, -0.5, f64::NAN] {
+            let e = tta_sizes(&[0.75, bad], 512).unwrap_err().to_string();
+            assert!(e.contains(&format!("scale {bad}")), "{e}");
+        }
+    }
 
     #[test]
     fn a_config_sets_the_mesh_confidence_and_portrait_handling() {

@@ -432,16 +432,17 @@ pub fn castle_depth_from_color() -> DMat4 {
 /// Reads a ViSP range image (`.bin`): height and width as little-endian u32, then the rows of
 /// little-endian u16 steps.
 pub fn read_visp_depth(path: &Path) -> Result<Raster<u16>, TrainError> {
-    let fail = |e: String| TrainError::file(path, format!("{e}; run scripts/fetch-data.sh eval"));
     // At most 8192 x 8192 steps: a larger file is refused before it is read.
+    const SIDE: usize = 8192;
+    let fail = |e: String| TrainError::file(path, format!("{e}; run scripts/fetch-data.sh eval"));
     let len = std::fs::metadata(path).map_err(|e| fail(e.to_string()))?.len();
-    if len > 8 + 2 * 8192 * 8192 {
+    if len > (8 + 2 * SIDE * SIDE) as u64 {
         return Err(fail(format!("{len} bytes: larger than any ViSP range image")));
     }
     let bytes = std::fs::read(path).map_err(|e| fail(e.to_string()))?;
     let u32_at = |k: usize| bytes.get(k..k + 4).map(|b| u32::from_le_bytes(b.try_into().unwrap()) as usize);
     let (h, w) = (u32_at(0).unwrap_or(0), u32_at(4).unwrap_or(0));
-    if !(1..=8192).contains(&h) || !(1..=8192).contains(&w) || bytes.len() != 8 + 2 * w * h {
+    if !(1..=SIDE).contains(&h) || !(1..=SIDE).contains(&w) || bytes.len() != 8 + 2 * w * h {
         return Err(TrainError::file(
             path,
             format!(

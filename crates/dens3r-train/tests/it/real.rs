@@ -249,10 +249,10 @@ fn registered_depth_of_a_plane_is_the_plane_seen_from_the_colour_camera() {
     // Steps of 0.01 mm (the SR300's are 0.125 mm, whose rounding alone turns single normals
     // by degrees): the check is on the geometry.
     const UNIT: f64 = 1e-5;
+    // Depth-frame point t r; in the colour frame (depth_from_color)^-1 (t r).
+    let inv = depth_from_color.inverse();
     let steps = dens3r_geom::Raster::from_fn(w, h, |u, v| {
         let r = sr300_ray(u as f64, v as f64);
-        // Depth-frame point t r; in the colour frame (depth_from_color)^-1 (t r).
-        let inv = depth_from_color.inverse();
         let (o, d) = (inv.transform_point3(DVec3::ZERO), inv.transform_vector3(r));
         let t = (c - n.dot(o)) / n.dot(d);
         (t / UNIT).round() as u16
