@@ -44,7 +44,7 @@ impl Linear {
             }
             Self::Cpu(k) => {
                 let device = x.device();
-                let w = cpu::from_vec(k.weight().to_vec(), [k.inp, k.out], &device);
+                let w = cpu::from_vec(k.weight().into_owned(), [k.inp, k.out], &device);
                 let b = k.bias().map(|b| cpu::from_vec(b.to_vec(), [k.out], &device));
                 burn::tensor::module::linear(x, w, b)
             }

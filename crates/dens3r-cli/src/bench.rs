@@ -403,6 +403,12 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             profiles.push((format!("{w}x{h} {precision}"), r["stages"].clone(), tp));
         }
     }
+    if !a.gpu && a.precision.contains(&Precision::BF16) {
+        println!(
+            "  bf16 on the CPU: ours takes the linear layers' products in bf16 (operands rounded, sums in f32; \
+             the rest f32), PyTorch runs the whole model in bf16"
+        );
+    }
     gpu_names.sort();
     gpu_names.dedup();
     for n in &gpu_names {

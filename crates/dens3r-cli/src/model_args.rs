@@ -28,8 +28,9 @@ pub struct ModelArgs {
     /// dens3r-s included, keeps them without it).
     #[arg(long)]
     pub keep_portrait: bool,
-    /// What the network computes in: f32 (the reference), or f16 / bf16 for speed on a GPU
-    /// (`dens3r verify --precision` measures their error; on the CPU they are slower).
+    /// What the network computes in: f32 (the reference), or f16 / bf16 for speed on a GPU;
+    /// on the CPU bf16 takes the linear layers' products in bf16 (faster on CPUs with AVX-512
+    /// BF16) and f16 is slower (`dens3r verify --precision` measures their error).
     #[arg(long, default_value_t = Precision::F32)]
     pub precision: Precision,
 }
@@ -67,6 +68,9 @@ impl ModelArgs {
 /// `precision` ([`dens3r_backbone::device::network_device_at`]), warning about unused
 /// checkpoint keys.
 pub fn load_network(weights: &Path, config: Option<&Path>, gpu: bool, precision: Precision) -> Result<Dens3r> {
+    if let Some(note) = dens3r_backbone::device::precision_note(gpu, precision) {
+        eprintln!("{note}");
+    }
     let (model, unexpected) = dens3r_recon::model::load_network(weights, config, gpu, precision)?;
     if !unexpected.is_empty() {
         eprintln!("warning: {} checkpoint keys are not used by the model (first: {})", unexpected.len(), unexpected[0]);

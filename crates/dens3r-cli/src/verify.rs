@@ -22,6 +22,9 @@ pub struct VerifyArgs {
 
 pub fn run(a: VerifyArgs) -> Result<()> {
     let device = dens3r_backbone::device::network_device_at(a.gpu, a.precision)?;
+    if let Some(note) = dens3r_backbone::device::precision_note(a.gpu, a.precision) {
+        eprintln!("{note}");
+    }
     let results = verify_dir(&a.dir, &device)?;
     let reduced = a.precision != Precision::F32;
     // A reduced precision is measured over each array's scale (Comparison::range_error).
@@ -50,9 +53,11 @@ pub fn run(a: VerifyArgs) -> Result<()> {
     );
     if reduced {
         let worst = results.iter().map(Comparison::range_error).fold(0.0, f64::max);
+        let what =
+            if a.precision == Precision::BF16 && !a.gpu { " (on the CPU: the linear layers' products)" } else { "" };
         println!(
-            "computed in {}: the errors above are that precision's against the f32 reference (largest {:.2}% of an \
-             array's range); the tolerance holds for f32 only",
+            "computed in {}{what}: the errors above are that precision's against the f32 reference (largest {:.2}% \
+             of an array's range); the tolerance holds for f32 only",
             a.precision,
             100.0 * worst
         );

@@ -245,14 +245,16 @@ fn reduced_error_percent(out: &str) -> f64 {
 #[test]
 fn verify_measures_reduced_precisions_against_f32() {
     // In f16 (10-bit mantissa) fixture A's outputs move off the f32 reference by more than
-    // f32 rounding but stay within a few percent of each array's range; bf16 (7-bit mantissa)
-    // moves them further. Each run is its own process: burn fixes a device's dtype per process.
+    // f32 rounding but stay within a few percent of each array's range; bf16 (7-bit mantissa;
+    // on the CPU the linear layers' operands only, 2.5% measured) moves them further. Each run
+    // is its own process: burn fixes a device's dtype per process.
     let a = parity(A);
     let f16 = ok(&["verify", a.to_str().unwrap(), "--precision", "f16"]);
     let bf16 = ok(&["verify", a.to_str().unwrap(), "--precision", "bf16"]);
     let (e16, eb16) = (reduced_error_percent(&f16), reduced_error_percent(&bf16));
     assert!(e16 > 0.01 && e16 < 3.0, "f16 error {e16}% of the range: {f16}");
-    assert!(eb16 > 2.0 * e16 && eb16 < 20.0, "bf16 error {eb16}% against f16's {e16}%: {bf16}");
+    assert!(eb16 > 2.0 * e16 && eb16 < 6.0, "bf16 error {eb16}% against f16's {e16}%: {bf16}");
+    assert!(bf16.contains("computed in bf16 (on the CPU: the linear layers' products)"), "{bf16}");
     assert!(f16.contains("computed in f16") && f16.contains("over f32 tolerance"), "{f16}");
     let e = fails(&["verify", a.to_str().unwrap(), "--precision", "f8"]);
     assert!(e.contains("use f32, f16 or bf16"), "{e}");

@@ -1,11 +1,23 @@
 //! `x W^T + b` on raw buffers. The product is split over output features into a few
 //! single-threaded `gemm` calls run on rayon: on the backbone's shapes (768 tokens x 1024..4096)
-//! this keeps both cores busy where one multithreaded call often does not.
+//! this keeps both cores busy where one multithreaded call often does not. With the matmul
+//! precision at bf16 ([`super::set_matmul_precision`]) the weight is kept in bf16 and the
+//! product is [`super::bf16`]'s.
+
+use super::bf16::Bf16Weight;
+use std::borrow::Cow;
+
+/// A linear layer's weight as `(in, out)`: f32 row-major, or packed bf16.
+#[derive(Debug, Clone)]
+enum Weight {
+    F32(Vec<f32>),
+    Bf16(Bf16Weight),
+}
 
 /// A linear layer's weight as `(in, out)` row-major, with its bias.
 #[derive(Debug, Clone)]
 pub struct LinearKernel {
-    w: Vec<f32>,
+    w: Weight,
     b: Option<Vec<f32>>,
     /// Input features.
     pub inp: usize,
@@ -14,16 +26,24 @@ pub struct LinearKernel {
 }
 
 impl LinearKernel {
-    /// From an `(in, out)` row-major weight and an optional `(out)` bias.
+    /// From an `(in, out)` row-major weight and an optional `(out)` bias, in the matmul
+    /// precision set now ([`super::matmul_precision`]).
     pub fn new(w_in_out: Vec<f32>, bias: Option<Vec<f32>>, inp: usize, out: usize) -> Self {
         assert_eq!(w_in_out.len(), inp * out, "linear weight size mismatch");
         assert!(bias.as_ref().is_none_or(|b| b.len() == out), "linear bias size mismatch");
-        Self { w: w_in_out, b: bias, inp, out }
+        let w = match super::matmul_precision() {
+            crate::Precision::BF16 => Weight::Bf16(Bf16Weight::new(&w_in_out, inp, out)),
+            _ => Weight::F32(w_in_out),
+        };
+        Self { w, b: bias, inp, out }
     }
 
-    /// The `(in, out)` row-major weight.
-    pub fn weight(&self) -> &[f32] {
-        &self.w
+    /// The `(in, out)` row-major weight (bf16 values widened, for a bf16 kernel).
+    pub fn weight(&self) -> Cow<'_, [f32]> {
+        match &self.w {
+            Weight::F32(w) => Cow::Borrowed(w),
+            Weight::Bf16(w) => Cow::Owned(w.to_f32()),
+        }
     }
 
     /// The bias.
@@ -39,7 +59,10 @@ impl LinearKernel {
         if let Some(b) = &self.b {
             y.chunks_exact_mut(n).for_each(|r| r.copy_from_slice(b));
         }
-        super::gemm_by_columns(x, &self.w, (n, 1), &mut y, n, (rows, k, n), self.b.is_some(), 64);
+        match &self.w {
+            Weight::F32(w) => super::gemm_by_columns(x, w, (n, 1), &mut y, n, (rows, k, n), self.b.is_some(), 64),
+            Weight::Bf16(w) => w.matmul(x, rows, &mut y, self.b.is_some()),
+        }
         y
     }
 }
