@@ -82,7 +82,7 @@ impl Bf16Weight {
         }
         let (kp, panels) = (k.div_ceil(2), n.div_ceil(NR));
         let mut packed = vec![0u32; panels * kp * NR];
-        packed.par_chunks_mut(kp * NR).enumerate().for_each(|(panel, dst)| {
+        packed.par_chunks_mut((kp * NR).max(1)).enumerate().for_each(|(panel, dst)| {
             for p in 0..kp {
                 for c in 0..NR {
                     let col = panel * NR + c;
@@ -129,6 +129,12 @@ impl Bf16Weight {
         let (k, n) = (self.k, self.n);
         assert_eq!(x.len(), rows * k, "bf16 matmul input size mismatch");
         assert_eq!(y.len(), rows * n, "bf16 matmul output size mismatch");
+        if k == 0 {
+            if !accumulate {
+                y.fill(0.0);
+            }
+            return;
+        }
         match &self.store {
             Store::Packed(packed) => self.matmul_packed(packed, x, rows, y, accumulate),
             Store::Widened(w) => {
@@ -262,7 +268,8 @@ mod tests {
     fn products_of_the_rounded_operands() {
         // Odd sizes: a tail of rows (not whole tiles), of columns (not whole panels) and an odd
         // input width (an unpaired last feature).
-        for &(rows, k, n) in &[(1, 1, 1), (7, 5, 3), (13, 64, 70), (100, 257, 130), (6, 1024, 64)] {
+        for &(rows, k, n) in &[(1, 1, 1), (7, 5, 3), (13, 64, 70), (100, 257, 130), (6, 1024, 64), (0, 4, 3), (3, 0, 5)]
+        {
             let x = crate::cpu::test_values(rows * k, 11 + k as u64, 1.0);
             let w = crate::cpu::test_values(k * n, 23 + n as u64, 1.0);
             let bias = crate::cpu::test_values(n, 5, 1.0);
