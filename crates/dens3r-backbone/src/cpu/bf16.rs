@@ -77,23 +77,11 @@ impl Bf16Weight {
     pub(crate) fn stored(w: &[f32], k: usize, n: usize, packed: bool) -> Self {
         assert_eq!(w.len(), k * n, "bf16 weight size mismatch");
         if !packed {
-            let rounded = w.par_iter().map(|&v| f32::from_bits((bf16_bits(v) as u32) << 16)).collect();
+            let rounded = w.par_iter().map(|&v| round(v)).collect();
             return Self { store: Store::Widened(rounded), k, n };
         }
-        let (kp, panels) = (k.div_ceil(2), n.div_ceil(NR));
-        let mut packed = vec![0u32; panels * kp * NR];
-        packed.par_chunks_mut((kp * NR).max(1)).enumerate().for_each(|(panel, dst)| {
-            for p in 0..kp {
-                for c in 0..NR {
-                    let col = panel * NR + c;
-                    if col >= n {
-                        continue;
-                    }
-                    let hi = if 2 * p + 1 < k { w[(2 * p + 1) * n + col] } else { 0.0 };
-                    dst[p * NR + c] = pair(w[2 * p * n + col], hi);
-                }
-            }
-        });
+        let mut packed = Vec::new();
+        pack_into(w, k, n, n, &mut packed);
         Self { store: Store::Packed(packed), k, n }
     }
 
@@ -139,75 +127,135 @@ impl Bf16Weight {
             Store::Packed(packed) => self.matmul_packed(packed, x, rows, y, accumulate),
             Store::Widened(w) => {
                 let mut xr = vec![0.0f32; x.len()];
-                xr.par_chunks_mut(k.max(1)).zip(x.par_chunks(k.max(1))).for_each(|(d, s)| {
-                    super::with_avx2(|| {
-                        d.iter_mut().zip(s).for_each(|(d, &v)| *d = f32::from_bits((bf16_bits(v) as u32) << 16))
-                    })
-                });
+                xr.par_chunks_mut(k.max(1))
+                    .zip(x.par_chunks(k.max(1)))
+                    .for_each(|(d, s)| super::with_avx2(|| d.iter_mut().zip(s).for_each(|(d, &v)| *d = round(v))));
                 super::gemm_by_columns(&xr, w, (n, 1), y, n, (rows, k, n), accumulate, 64);
             }
         }
     }
 
-    /// The product on `VDPBF16PS`, over [`Store::Packed`] panels.
+    /// The product on `VDPBF16PS`, over [`Store::Packed`] panels, in tasks of (panel, rows).
     fn matmul_packed(&self, packed: &[u32], x: &[f32], rows: usize, y: &mut [f32], accumulate: bool) {
         let (k, n, kp) = (self.k, self.n, self.kp());
-        assert!(native(), "the AVX-512 BF16 kernel on a CPU without it");
-        // The input in pairs, rows padded to whole tiles with zeros.
-        let padded = rows.next_multiple_of(MR);
-        let mut xp = vec![0u32; padded * kp];
-        xp.par_chunks_mut(kp).take(rows).enumerate().for_each(|(r, dst)| {
-            let row = &x[r * k..(r + 1) * k];
-            super::with_avx2(|| {
-                for (d, two) in dst.iter_mut().zip(row.chunks_exact(2)) {
-                    *d = pair(two[0], two[1]);
-                }
-            });
-            if k % 2 == 1 {
-                dst[kp - 1] = pair(row[k - 1], 0.0);
-            }
-        });
-        let (panels, chunks) = (n.div_ceil(NR), padded.div_ceil(ROWS_PER_TASK));
+        let xp = pairs(x, rows, k, k);
+        let (panels, chunks) = (n.div_ceil(NR), rows.next_multiple_of(MR).div_ceil(ROWS_PER_TASK));
         let y_ptr = SendPtr(y.as_mut_ptr());
         (0..panels * chunks).into_par_iter().for_each(|t| {
             let (panel, chunk) = (t / chunks, t % chunks);
-            let b = &packed[panel * kp * NR..(panel + 1) * kp * NR];
-            let (c0, cols) = (panel * NR, NR.min(n - panel * NR));
-            let y_ptr = &y_ptr;
-            let r_begin = chunk * ROWS_PER_TASK;
-            let r_end = ((chunk + 1) * ROWS_PER_TASK).min(padded);
-            let mut tiles = vec![[[0.0f32; NR]; MR]; (r_end - r_begin) / MR];
-            // Blocks of KC input pairs, so that the panel's block stays in cache across tiles.
-            for p0 in (0..kp).step_by(KC) {
-                let len = KC.min(kp - p0);
-                let b = &b[p0 * NR..(p0 + len) * NR];
-                for (i, tile) in tiles.iter_mut().enumerate() {
-                    let a = &xp[(r_begin + i * MR) * kp + p0..];
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: `native()` was asserted; `a` starts MR rows of kp words (the
-                    // block's len words of each read) and `b` holds len pairs of NR columns.
-                    unsafe {
-                        tile_avx512(a.as_ptr(), kp, b.as_ptr(), len, tile, p0 > 0)
-                    };
-                    #[cfg(not(target_arch = "x86_64"))]
-                    unreachable!("packed bf16 weights off x86-64 ({a:?}, {b:?}, {tile:?})");
-                }
-            }
-            for (i, tile) in tiles.iter().enumerate() {
-                let r0 = r_begin + i * MR;
-                for (r, row) in tile.iter().enumerate().take(rows.saturating_sub(r0).min(MR)) {
-                    // SAFETY: row r0 + r < rows and columns c0..c0 + cols < n: this task's
-                    // block of y, disjoint from every other task's (panel, chunk).
-                    let dst = unsafe { std::slice::from_raw_parts_mut(y_ptr.0.add((r0 + r) * n + c0), cols) };
-                    if accumulate {
-                        dst.iter_mut().zip(row).for_each(|(d, v)| *d += v);
-                    } else {
-                        dst.copy_from_slice(&row[..cols]);
-                    }
-                }
-            }
+            let r = chunk * ROWS_PER_TASK..((chunk + 1) * ROWS_PER_TASK).min(rows);
+            // SAFETY: `y` holds rows x n values; this task writes rows r of panel's columns
+            // only, disjoint from every other task's (panel, chunk).
+            unsafe {
+                panel_rows(&xp, kp, r, &packed[panel * kp * NR..(panel + 1) * kp * NR], panel, n, &y_ptr, accumulate)
+            };
         });
     }
+}
+
+/// `x (rows x k, row stride x_rs)` rounded to bf16 pairs: `rows` padded to whole tiles with
+/// zero rows, each row `k.div_ceil(2)` words (an odd `k`'s last paired with zero).
+fn pairs(x: &[f32], rows: usize, k: usize, x_rs: usize) -> Vec<u32> {
+    let kp = k.div_ceil(2);
+    let mut xp = vec![0u32; rows.next_multiple_of(MR) * kp];
+    if kp == 0 {
+        return xp;
+    }
+    xp.par_chunks_mut(kp).take(rows).enumerate().for_each(|(r, dst)| {
+        let row = &x[r * x_rs..r * x_rs + k];
+        super::with_avx2(|| {
+            for (d, two) in dst.iter_mut().zip(row.chunks_exact(2)) {
+                *d = pair(two[0], two[1]);
+            }
+        });
+        if k % 2 == 1 {
+            dst[kp - 1] = pair(row[k - 1], 0.0);
+        }
+    });
+    xp
+}
+
+/// Packs `w (k x n, row stride w_rs)` into `dst` as bf16 panels of [`NR`] columns, in each
+/// the `k` rows in pairs (`k` padded to even, columns past `n` zero).
+fn pack_into(w: &[f32], k: usize, n: usize, w_rs: usize, dst: &mut Vec<u32>) {
+    let (kp, panels) = (k.div_ceil(2), n.div_ceil(NR));
+    dst.clear();
+    dst.resize(panels * kp * NR, 0);
+    if kp == 0 {
+        return;
+    }
+    dst.par_chunks_mut(kp * NR).enumerate().for_each(|(panel, dst)| {
+        let cols = NR.min(n - panel * NR);
+        for p in 0..kp {
+            let lo = &w[2 * p * w_rs + panel * NR..][..cols];
+            let d = &mut dst[p * NR..][..cols];
+            if 2 * p + 1 < k {
+                let hi = &w[(2 * p + 1) * w_rs + panel * NR..][..cols];
+                super::with_avx2(|| d.iter_mut().zip(lo).zip(hi).for_each(|((d, &l), &h)| *d = pair(l, h)));
+            } else {
+                d.iter_mut().zip(lo).for_each(|(d, &l)| *d = pair(l, 0.0));
+            }
+        }
+    });
+}
+
+/// Rows `r` (starting at a whole tile) of one panel's columns of `y (.. x n)`: `xp`'s pairs
+/// (`kp` words a row, padded to whole tiles) times the panel `b` (`kp` rows of NR words), in
+/// blocks of [`KC`] pairs so the panel's block stays in cache across the tiles.
+///
+/// # Safety
+/// `y` must hold `r.end` rows of `n` values, no other thread may touch those rows of this
+/// panel's columns, and the CPU must have AVX-512 BF16 ([`native`]).
+#[allow(clippy::too_many_arguments)]
+unsafe fn panel_rows(
+    xp: &[u32],
+    kp: usize,
+    r: std::ops::Range<usize>,
+    b: &[u32],
+    panel: usize,
+    n: usize,
+    y: &SendPtr,
+    accumulate: bool,
+) {
+    assert!(native(), "the AVX-512 BF16 kernel on a CPU without it");
+    let (c0, cols) = (panel * NR, NR.min(n - panel * NR));
+    let tiles_n = (r.end - r.start).div_ceil(MR);
+    assert!(xp.len() >= (r.start + tiles_n * MR) * kp && b.len() >= kp * NR, "bf16 panel out of bounds");
+    let mut tiles = vec![[[0.0f32; NR]; MR]; tiles_n];
+    for p0 in (0..kp).step_by(KC) {
+        let len = KC.min(kp - p0);
+        let b = &b[p0 * NR..(p0 + len) * NR];
+        for (i, tile) in tiles.iter_mut().enumerate() {
+            let a = &xp[(r.start + i * MR) * kp + p0..];
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: the CPU has the features (asserted); `a` starts MR rows of kp words (the
+            // block's len words of each read, inside xp by the assert) and `b` holds len pairs
+            // of NR columns.
+            unsafe {
+                tile_avx512(a.as_ptr(), kp, b.as_ptr(), len, tile, p0 > 0)
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            unreachable!("packed bf16 weights off x86-64 ({a:?}, {b:?}, {tile:?})");
+        }
+    }
+    for (i, tile) in tiles.iter().enumerate() {
+        let r0 = r.start + i * MR;
+        for (rr, row) in tile.iter().enumerate().take(r.end.saturating_sub(r0).min(MR)) {
+            // SAFETY: row r0 + rr < r.end and columns c0..c0 + cols <= n, ours by the contract.
+            let dst = unsafe { std::slice::from_raw_parts_mut(y.0.add((r0 + rr) * n + c0), cols) };
+            if accumulate {
+                dst.iter_mut().zip(row).for_each(|(d, v)| *d += v);
+            } else {
+                dst.copy_from_slice(&row[..cols]);
+            }
+        }
+    }
+}
+
+/// `v` rounded to bf16, as f32.
+#[inline(always)]
+fn round(v: f32) -> f32 {
+    f32::from_bits((bf16_bits(v) as u32) << 16)
 }
 
 /// One tile on `VDPBF16PS`: `a` points at MR rows of `a_rs` words (the block's pairs first),
