@@ -404,9 +404,14 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         }
     }
     if !a.gpu && a.precision.contains(&Precision::BF16) {
+        let how = if dens3r_backbone::cpu::bf16::native() {
+            "on this CPU's AVX-512 BF16 (VDPBF16PS)"
+        } else {
+            "this CPU has no AVX-512 BF16, so through the f32 kernel: no faster"
+        };
         println!(
             "  bf16 on the CPU: ours takes the linear layers' products in bf16 (operands rounded, sums in f32; \
-             the rest f32), PyTorch runs the whole model in bf16"
+             the rest f32; {how}), PyTorch runs the whole model in bf16"
         );
     }
     gpu_names.sort();
