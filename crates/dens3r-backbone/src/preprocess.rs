@@ -142,7 +142,8 @@ pub fn open_oriented(path: &Path) -> Result<DynamicImage, BackboneError> {
 /// [`open_oriented`] of a file's `bytes` already in memory (`path` names it in errors).
 pub fn decode_oriented(path: &Path, bytes: &[u8]) -> Result<DynamicImage, BackboneError> {
     let file = |m: String| BackboneError::file(path, m);
-    let err = |e: image::ImageError| file(format!("unreadable image ({e}); use PNG or JPEG"));
+    let err =
+        |e: image::ImageError| file(format!("unreadable image ({e}); give an undamaged PNG, JPEG, PGM or PPM file"));
     let mut decoder = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|e| file(format!("cannot read ({e})")))?
@@ -286,6 +287,14 @@ mod tests {
         trailer.extend_from_slice(b"trailer bytes");
         std::fs::write(&cut, &trailer).unwrap();
         assert!(open_oriented(&cut).is_ok());
+        // A cut PNG fails in its decoder: named, with the formats read.
+        let png = dir.path().join("whole.png");
+        img.save(&png).unwrap();
+        let bytes = std::fs::read(&png).unwrap();
+        let cut = dir.path().join("cut.png");
+        std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+        let e = open_oriented(&cut).unwrap_err().to_string();
+        assert!(e.contains("cut.png") && e.contains("unreadable image") && e.contains("PNG, JPEG, PGM or PPM"), "{e}");
     }
 
     #[test]

@@ -69,7 +69,7 @@ pub struct PredictArgs {
     /// Ignore the photos' EXIF focal lengths: estimate every focal not given by --focal.
     #[arg(long)]
     no_exif_focal: bool,
-    /// Input images (PNG or JPEG).
+    /// Input images (PNG, JPEG, PGM or PPM).
     #[arg(required = true)]
     images: Vec<PathBuf>,
     /// Output folder (a scene folder when the network runs).
