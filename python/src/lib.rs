@@ -173,7 +173,7 @@ impl Model {
     /// style folder, a known name (`dens3r models`; downloaded into the cache when missing),
     /// or None for the bundled dens3r-s. `size` is the long side of the network input;
     /// `precision` what the network computes in ("f32", or "f16" / "bf16" for speed on a GPU;
-    /// "bf16" on a CPU with AVX-512 BF16 too: its linear layers' products in bf16).
+    /// "bf16" on a CPU with AVX-512 BF16 too: its linear layers' and attention's products in bf16).
     /// Portrait photos are turned to landscape as the official Dens3R does, unless
     /// `keep_portrait` or the model's config says `"keep_portrait": true` (dens3r-s's does).
     /// A single image's prediction averages in passes at the config's `"tta_scales"` of

@@ -32,7 +32,7 @@ fn main() {
     time("conv3x3 256->256 @ 96x128", 2.0 * 96.0 * 128.0 * 256.0 * 256.0 * 9.0, || conv.forward(img.clone()).to_data());
     let q = Tensor::<4>::random([1, 16, 768, 64], Distribution::Normal(0.0, 1.0), &d);
     time("attention 16x768x64", 4.0 * 16.0 * 768.0 * 768.0 * 64.0, || {
-        dens3r_backbone::ops::sdpa(q.clone(), q.clone(), q.clone()).to_data()
+        dens3r_backbone::ops::sdpa(q.clone(), q.clone(), q.clone(), false).to_data()
     });
     let a = Tensor::<4>::random([1, 256, 96, 128], Distribution::Normal(0.0, 1.0), &d);
     time("upsample2x 256 @ 96x128", 0.0, || dens3r_backbone::ops::upsample2x(a.clone()).to_data());

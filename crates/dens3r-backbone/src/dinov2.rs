@@ -237,7 +237,12 @@ impl Dinov2 {
         let split = |t: Tensor<3>| t.reshape([b, n + 1, heads, d / heads]).swap_dims(1, 2);
         for (i, blk) in self.blocks.iter().enumerate() {
             let y = blk.norm1.forward(x.clone());
-            let a = sdpa(split(blk.q.forward(y.clone())), split(blk.k.forward(y.clone())), split(blk.v.forward(y)));
+            let a = sdpa(
+                split(blk.q.forward(y.clone())),
+                split(blk.k.forward(y.clone())),
+                split(blk.v.forward(y)),
+                blk.proj.is_bf16(),
+            );
             let a = blk.proj.forward(a.swap_dims(1, 2).reshape([b, n + 1, d]));
             x = x + a * blk.ls1.clone().reshape([1, 1, d]);
             let y = blk.fc2.forward(gelu(blk.fc1.forward(blk.norm2.forward(x.clone()))));

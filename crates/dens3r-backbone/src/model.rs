@@ -108,7 +108,7 @@ impl SelfAttention {
         let qkv = self.qkv.forward(x).reshape([b, n, 3, self.heads, dh]).permute([2, 0, 3, 1, 4]);
         let take = |i: usize| qkv.clone().narrow(0, i, 1).reshape([b, self.heads, n, dh]);
         let (q, k, v) = (rope.apply(take(0)), rope.apply(take(1)), take(2));
-        self.proj.forward(merge_heads(sdpa(q, k, v)))
+        self.proj.forward(merge_heads(sdpa(q, k, v, self.proj.is_bf16())))
     }
 }
 
@@ -125,7 +125,7 @@ impl CrossAttention {
         let q = rope_q.apply(split_heads(self.q.forward(x), self.heads));
         let k = rope_k.apply(split_heads(self.k.forward(y.clone()), self.heads));
         let v = split_heads(self.v.forward(y), self.heads);
-        self.proj.forward(merge_heads(sdpa(q, k, v)))
+        self.proj.forward(merge_heads(sdpa(q, k, v, self.proj.is_bf16())))
     }
 }
 

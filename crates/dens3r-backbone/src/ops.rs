@@ -31,6 +31,12 @@ impl Linear {
         Self::Burn(Box::new((weight.transpose(), bias)))
     }
 
+    /// Whether its products are bf16 (`--precision bf16` on the CPU when it was built); the
+    /// attention beside it follows it ([`sdpa`]).
+    pub fn is_bf16(&self) -> bool {
+        matches!(self, Self::Cpu(k) if k.is_bf16())
+    }
+
     /// `x @ W^T + b` over the last dimension.
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
         match self {
@@ -301,11 +307,13 @@ pub fn gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
 }
 
 /// Softmax attention of `(B, heads, N, Dh)` queries, keys and values, scaled by `Dh^-1/2`:
-/// [`cpu::attention`] on the flex CPU device, burn's fused op elsewhere.
-pub fn sdpa(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>) -> Tensor<4> {
+/// [`cpu::attention`] on the flex CPU device (its products in bf16 when `bf16`: a block built
+/// in bf16, [`Linear::is_bf16`]), burn's fused op elsewhere.
+pub fn sdpa(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, bf16: bool) -> Tensor<4> {
     if cpu::serves(&q.device()) {
         let ([b, h, nq, dh], nk, device) = (q.dims(), k.dims()[2], q.device());
-        let out = cpu::attention::attention(&cpu::to_vec(q), &cpu::to_vec(k), &cpu::to_vec(v), b * h, nq, nk, dh);
+        let (q, k, v) = (cpu::to_vec(q), cpu::to_vec(k), cpu::to_vec(v));
+        let out = cpu::attention::attention_with(&q, &k, &v, b * h, nq, nk, dh, bf16);
         return cpu::from_vec(out, [b, h, nq, dh], &device);
     }
     attention(q, k, v, None, None, AttentionModuleOptions::default())

@@ -410,8 +410,8 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             "this CPU has no AVX-512 BF16, so through the f32 kernel: no faster"
         };
         println!(
-            "  bf16 on the CPU: ours takes the linear layers' products in bf16 (operands rounded, sums in f32; \
-             the rest f32; {how}), PyTorch runs the whole model in bf16"
+            "  bf16 on the CPU: ours takes the linear layers' and attention's products in bf16 (operands rounded, \
+             sums in f32; the rest f32; {how}), PyTorch runs the whole model in bf16"
         );
     }
     gpu_names.sort();

@@ -29,7 +29,7 @@ pub struct ModelArgs {
     #[arg(long)]
     pub keep_portrait: bool,
     /// What the network computes in: f32 (the reference), or f16 / bf16 for speed on a GPU;
-    /// on the CPU bf16 takes the linear layers' products in bf16 (faster on CPUs with AVX-512
+    /// on the CPU bf16 takes the linear layers' and attention's products in bf16 (faster on CPUs with AVX-512
     /// BF16) and f16 is slower (`dens3r verify --precision` measures their error).
     #[arg(long, default_value_t = Precision::F32)]
     pub precision: Precision,

@@ -53,8 +53,11 @@ pub fn run(a: VerifyArgs) -> Result<()> {
     );
     if reduced {
         let worst = results.iter().map(Comparison::range_error).fold(0.0, f64::max);
-        let what =
-            if a.precision == Precision::BF16 && !a.gpu { " (on the CPU: the linear layers' products)" } else { "" };
+        let what = if a.precision == Precision::BF16 && !a.gpu {
+            " (on the CPU: the linear layers' and attention's products)"
+        } else {
+            ""
+        };
         println!(
             "computed in {}{what}: the errors above are that precision's against the f32 reference (largest {:.2}% \
              of an array's range); the tolerance holds for f32 only",

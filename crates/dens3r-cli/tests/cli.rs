@@ -246,15 +246,16 @@ fn reduced_error_percent(out: &str) -> f64 {
 fn verify_measures_reduced_precisions_against_f32() {
     // In f16 (10-bit mantissa) fixture A's outputs move off the f32 reference by more than
     // f32 rounding but stay within a few percent of each array's range; bf16 (7-bit mantissa;
-    // on the CPU the linear layers' operands only, 2.5% measured) moves them further. Each run
+    // on the CPU the linear layers' and attention's operands only, 2.0% measured) moves them
+    // further. Each run
     // is its own process: burn fixes a device's dtype per process.
     let a = parity(A);
     let f16 = ok(&["verify", a.to_str().unwrap(), "--precision", "f16"]);
     let bf16 = ok(&["verify", a.to_str().unwrap(), "--precision", "bf16"]);
     let (e16, eb16) = (reduced_error_percent(&f16), reduced_error_percent(&bf16));
     assert!(e16 > 0.01 && e16 < 3.0, "f16 error {e16}% of the range: {f16}");
-    assert!(eb16 > 2.0 * e16 && eb16 < 6.0, "bf16 error {eb16}% against f16's {e16}%: {bf16}");
-    assert!(bf16.contains("computed in bf16 (on the CPU: the linear layers' products)"), "{bf16}");
+    assert!(eb16 > e16 && eb16 > 0.5 && eb16 < 6.0, "bf16 error {eb16}% against f16's {e16}%: {bf16}");
+    assert!(bf16.contains("computed in bf16 (on the CPU: the linear layers' and attention's products)"), "{bf16}");
     assert!(f16.contains("computed in f16") && f16.contains("over f32 tolerance"), "{f16}");
     let e = fails(&["verify", a.to_str().unwrap(), "--precision", "f8"]);
     assert!(e.contains("use f32, f16 or bf16"), "{e}");
@@ -1282,9 +1283,10 @@ fn predict_averages_the_models_smaller_pass_in() {
     assert!((cams(&tta) - cams(&large)).abs() < 1e-6 * cams(&large), "the focal is the larger pass's");
 }
 
-/// `predict --precision bf16` (on the CPU: the linear layers' products in bf16, the rest f32)
-/// moves dens3r-s's depth and normals on an unseen scene by a small fraction of f32's (0.03%
-/// and 0.05 deg median measured on the motorcycle photo), and does move them (the bf16 path
+/// `predict --precision bf16` (on the CPU: the linear layers' and attention's products in bf16,
+/// the rest f32)
+/// moves dens3r-s's depth and normals on an unseen scene by a small fraction of f32's (0.08%
+/// and 0.06 deg median measured here), and does move them (the bf16 path
 /// runs, on AVX-512 BF16 or, without it, through the f32 kernel on the rounded values), and
 /// its AbsRel against the ground truth stays within 0.005 of f32's.
 #[test]

@@ -11,14 +11,73 @@ const BLOCK: usize = 64;
 
 /// `softmax(q k^T / sqrt(dh)) v` for row-major `q: (bh, nq, dh)`, `k, v: (bh, nk, dh)`.
 pub fn attention(q: &[f32], k: &[f32], v: &[f32], bh: usize, nq: usize, nk: usize, dh: usize) -> Vec<f32> {
+    run(q, k, v, (bh, nq, nk, dh), &Products::F32)
+}
+
+/// [`attention`] with its two products in bf16 when `bf16` (as [`super::bf16`]'s linear
+/// layers: queries, keys, values and the softmax's unnormalised weights rounded to bf16,
+/// exact products summed in f32; the scores, the exponentials, their sums and the
+/// normalisation stay f32); on `VDPBF16PS` where the CPU has AVX-512 BF16, else the rounded
+/// values through the f32 kernel.
+#[allow(clippy::too_many_arguments)]
+pub fn attention_with(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    bh: usize,
+    nq: usize,
+    nk: usize,
+    dh: usize,
+    bf16: bool,
+) -> Vec<f32> {
+    let dims = (bh, nq, nk, dh);
+    if !bf16 {
+        return run(q, k, v, dims, &Products::F32);
+    }
+    check(q, k, v, dims);
+    if !super::bf16::native() {
+        let round = |x: &[f32]| x.par_iter().map(|&y| super::bf16::round(y)).collect::<Vec<f32>>();
+        return run(&round(q), &round(k), &round(v), dims, &Products::Rounded);
+    }
+    // Each head's keys (transposed: dh x nk) and values (nk x dh) packed once for all its
+    // query blocks.
+    let packed = (0..bh)
+        .into_par_iter()
+        .map(|h| {
+            let (kh, vh) = (&k[h * nk * dh..][..nk * dh], &v[h * nk * dh..][..nk * dh]);
+            let (mut pk, mut pv) = (Vec::new(), Vec::new());
+            super::bf16::pack_strided_into(kh, dh, nk, (1, dh), &mut pk);
+            super::bf16::pack_strided_into(vh, nk, dh, (dh, 1), &mut pv);
+            (pk, pv)
+        })
+        .collect();
+    run(q, k, v, dims, &Products::Packed(packed))
+}
+
+/// How [`run`] multiplies.
+enum Products {
+    /// f32 operands.
+    F32,
+    /// Operands already rounded to bf16; round the softmax's weights too.
+    Rounded,
+    /// On `VDPBF16PS`: each head's packed keys (transposed) and values.
+    Packed(Vec<(Vec<u32>, Vec<u32>)>),
+}
+
+fn check(q: &[f32], k: &[f32], v: &[f32], (bh, nq, nk, dh): (usize, usize, usize, usize)) {
     assert_eq!(q.len(), bh * nq * dh, "query size mismatch");
     assert_eq!(k.len(), bh * nk * dh, "key size mismatch");
     assert_eq!(v.len(), bh * nk * dh, "value size mismatch");
+}
+
+fn run(q: &[f32], k: &[f32], v: &[f32], dims: (usize, usize, usize, usize), products: &Products) -> Vec<f32> {
+    check(q, k, v, dims);
+    let (bh, nq, nk, dh) = dims;
     let mut out = vec![0.0f32; bh * nq * dh];
     let scale = 1.0 / (dh as f32).sqrt();
     out.par_chunks_mut(BLOCK * dh).enumerate().for_each_init(
-        || vec![0.0f32; BLOCK * nk],
-        |scores, (chunk, o)| {
+        || (vec![0.0f32; BLOCK * nk], Vec::new()),
+        |(scores, pairs), (chunk, o)| {
             // Blocks never straddle heads when nq is a multiple of BLOCK; otherwise split.
             let row0 = chunk * BLOCK;
             let mut done = 0;
@@ -30,58 +89,75 @@ pub fn attention(q: &[f32], k: &[f32], v: &[f32], bh: usize, nq: usize, nk: usiz
                 let kh = &k[head * nk * dh..][..nk * dh];
                 let vh = &v[head * nk * dh..][..nk * dh];
                 let s = &mut scores[..rows * nk];
-                // SAFETY: row-major (rows x dh) * (dh x nk, i.e. k transposed) -> (rows x nk).
-                unsafe {
-                    gemm::gemm(
-                        rows,
-                        nk,
-                        dh,
-                        s.as_mut_ptr(),
-                        1,
-                        nk as isize,
-                        false,
-                        qb.as_ptr(),
-                        1,
-                        dh as isize,
-                        kh.as_ptr(),
-                        dh as isize,
-                        1,
-                        0.0,
-                        scale,
-                        false,
-                        false,
-                        false,
-                        Parallelism::None,
-                    );
+                if let Products::Packed(packed) = products {
+                    super::bf16::pairs_into(qb, rows, dh, dh, pairs);
+                    super::bf16::product(pairs, rows, dh, &packed[head].0, nk, s);
+                    s.iter_mut().for_each(|x| *x *= scale);
+                } else {
+                    // SAFETY: row-major (rows x dh) * (dh x nk, i.e. k transposed) -> (rows x nk).
+                    unsafe {
+                        gemm::gemm(
+                            rows,
+                            nk,
+                            dh,
+                            s.as_mut_ptr(),
+                            1,
+                            nk as isize,
+                            false,
+                            qb.as_ptr(),
+                            1,
+                            dh as isize,
+                            kh.as_ptr(),
+                            dh as isize,
+                            1,
+                            0.0,
+                            scale,
+                            false,
+                            false,
+                            false,
+                            Parallelism::None,
+                        );
+                    }
                 }
                 let mut sums = [0.0f32; BLOCK];
                 for (srow, sum) in s.chunks_exact_mut(nk).zip(sums.iter_mut()) {
                     *sum = exp_row(srow);
                 }
                 let ob = &mut o[done * dh..][..rows * dh];
-                // SAFETY: row-major (rows x nk) * (nk x dh) -> (rows x dh).
-                unsafe {
-                    gemm::gemm(
-                        rows,
-                        dh,
-                        nk,
-                        ob.as_mut_ptr(),
-                        1,
-                        dh as isize,
-                        false,
-                        s.as_ptr(),
-                        1,
-                        nk as isize,
-                        vh.as_ptr(),
-                        1,
-                        dh as isize,
-                        0.0,
-                        1.0,
-                        false,
-                        false,
-                        false,
-                        Parallelism::None,
-                    );
+                match products {
+                    Products::Packed(packed) => {
+                        super::bf16::pairs_into(s, rows, nk, nk, pairs);
+                        super::bf16::product(pairs, rows, nk, &packed[head].1, dh, ob);
+                    }
+                    _ => {
+                        if matches!(products, Products::Rounded) {
+                            super::with_avx2(|| s.iter_mut().for_each(|x| *x = super::bf16::round(*x)));
+                        }
+                        // SAFETY: row-major (rows x nk) * (nk x dh) -> (rows x dh).
+                        unsafe {
+                            gemm::gemm(
+                                rows,
+                                dh,
+                                nk,
+                                ob.as_mut_ptr(),
+                                1,
+                                dh as isize,
+                                false,
+                                s.as_ptr(),
+                                1,
+                                nk as isize,
+                                vh.as_ptr(),
+                                1,
+                                dh as isize,
+                                0.0,
+                                1.0,
+                                false,
+                                false,
+                                false,
+                                Parallelism::None,
+                            );
+                        }
+                    }
                 }
                 for (orow, sum) in ob.chunks_exact_mut(dh).zip(&sums) {
                     let inv = 1.0 / sum;
@@ -157,6 +233,61 @@ mod tests {
             let x = -(i as f32) * 1e-3;
             let (got, want) = (exp_approx(x) as f64, (x as f64).exp());
             assert!((got - want).abs() <= 4e-7 * want, "exp({x}) = {got}, want {want}");
+        }
+    }
+
+    /// Softmax attention in f64 of one head's row.
+    fn exact_row(
+        q: &[f32],
+        k: &[f32],
+        v: &[f32],
+        (h, i): (usize, usize),
+        (nq, nk, dh): (usize, usize, usize),
+    ) -> Vec<f64> {
+        let sc: Vec<f64> = (0..nk)
+            .map(|j| {
+                (0..dh).map(|d| q[(h * nq + i) * dh + d] as f64 * k[(h * nk + j) * dh + d] as f64).sum::<f64>()
+                    / (dh as f64).sqrt()
+            })
+            .collect();
+        let m = sc.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let e: Vec<f64> = sc.iter().map(|x| (x - m).exp()).collect();
+        let z: f64 = e.iter().sum();
+        (0..dh).map(|d| (0..nk).map(|j| e[j] / z * v[(h * nk + j) * dh + d] as f64).sum()).collect()
+    }
+
+    #[test]
+    fn bf16_attention_stays_near_exact_and_its_kernels_agree() {
+        // Values within +-3: bf16's 8-bit mantissa moves the output by about 1% of them.
+        for &(bh, nq, nk, dh) in &[(3, 70, 50, 8), (2, 128, 129, 16), (1, 5, 200, 64)] {
+            let (q, k, v) = (
+                crate::cpu::test_values(bh * nq * dh, 1, 3.0),
+                crate::cpu::test_values(bh * nk * dh, 2, 3.0),
+                crate::cpu::test_values(bh * nk * dh, 3, 3.0),
+            );
+            let got = attention_with(&q, &k, &v, bh, nq, nk, dh, true);
+            let f32_out = attention(&q, &k, &v, bh, nq, nk, dh);
+            let round = |x: &[f32]| x.iter().map(|&y| crate::cpu::bf16::round(y)).collect::<Vec<f32>>();
+            let rounded = run(&round(&q), &round(&k), &round(&v), (bh, nq, nk, dh), &Products::Rounded);
+            let (mut worst, mut moved, mut apart) = (0.0f64, 0.0f64, 0.0f64);
+            for h in 0..bh {
+                for i in 0..nq {
+                    for (d, want) in exact_row(&q, &k, &v, (h, i), (nq, nk, dh)).into_iter().enumerate() {
+                        let at = (h * nq + i) * dh + d;
+                        worst = worst.max((got[at] as f64 - want).abs());
+                        moved = moved.max((got[at] - f32_out[at]).abs() as f64);
+                        apart = apart.max((got[at] - rounded[at]).abs() as f64);
+                    }
+                }
+            }
+            eprintln!(
+                "({bh},{nq},{nk},{dh}): bf16 {worst:.2e} off the exact, {moved:.2e} off f32, paths {apart:.2e} apart"
+            );
+            assert!(worst < 0.05, "({bh},{nq},{nk},{dh}) bf16 attention {worst} off the exact");
+            assert!(moved > 1e-4, "({bh},{nq},{nk},{dh}) bf16 gave f32's output");
+            // The AVX-512 BF16 kernel and the rounded values through the f32 one: the same
+            // operands, sums in another order (an exponential may round to the next bf16).
+            assert!(apart < 1e-4, "({bh},{nq},{nk},{dh}) the two bf16 paths {apart} apart");
         }
     }
 

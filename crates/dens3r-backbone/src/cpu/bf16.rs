@@ -1,6 +1,7 @@
 //! Linear layers with bf16 products (`--precision bf16` on the CPU): the weight stored as
 //! bfloat16, the input rounded to bfloat16 (nearest even), each product exact and summed in
-//! f32, as PyTorch's `set_float32_matmul_precision("medium")` does; everything else stays f32.
+//! f32, as PyTorch's `set_float32_matmul_precision("medium")` does (attention's products take
+//! the same kernel, [`super::attention::attention_with`]); everything else stays f32.
 //! On CPUs with AVX-512 BF16 (AMD Zen 4 and later, Intel Cooper Lake / Sapphire Rapids and
 //! later) `VDPBF16PS` does two such products per f32 lane, twice the multiplies of an f32 FMA;
 //! elsewhere the rounded values are multiplied by the f32 kernel (the same sums in another
@@ -161,18 +162,71 @@ fn pairs(x: &[f32], rows: usize, k: usize, x_rs: usize) -> Vec<u32> {
     if kp == 0 {
         return xp;
     }
-    xp.par_chunks_mut(kp).take(rows).enumerate().for_each(|(r, dst)| {
-        let row = &x[r * x_rs..r * x_rs + k];
-        super::with_avx2(|| {
-            for (d, two) in dst.iter_mut().zip(row.chunks_exact(2)) {
-                *d = pair(two[0], two[1]);
-            }
-        });
-        if k % 2 == 1 {
-            dst[kp - 1] = pair(row[k - 1], 0.0);
+    xp.par_chunks_mut(kp).take(rows).enumerate().for_each(|(r, dst)| pair_row(&x[r * x_rs..r * x_rs + k], dst));
+    xp
+}
+
+/// [`pairs`] on this thread, into `dst` (for small blocks, where a parallel split costs more
+/// than it saves).
+pub(crate) fn pairs_into(x: &[f32], rows: usize, k: usize, x_rs: usize, dst: &mut Vec<u32>) {
+    let kp = k.div_ceil(2);
+    dst.clear();
+    dst.resize(rows.next_multiple_of(MR) * kp, 0);
+    if kp == 0 {
+        return;
+    }
+    for (r, d) in dst.chunks_exact_mut(kp).take(rows).enumerate() {
+        pair_row(&x[r * x_rs..r * x_rs + k], d);
+    }
+}
+
+/// One row of `k` values into `k.div_ceil(2)` pair words.
+fn pair_row(row: &[f32], dst: &mut [u32]) {
+    super::with_avx2(|| {
+        for (d, two) in dst.iter_mut().zip(row.chunks_exact(2)) {
+            *d = pair(two[0], two[1]);
         }
     });
-    xp
+    if row.len() % 2 == 1 {
+        dst[row.len() / 2] = pair(row[row.len() - 1], 0.0);
+    }
+}
+
+/// [`pack_into`] of a matrix with any strides (`w[(i, j)]` at `w[i * rs + j * cs]`, e.g. a
+/// transposed view), on this thread.
+pub(crate) fn pack_strided_into(w: &[f32], k: usize, n: usize, (rs, cs): (usize, usize), dst: &mut Vec<u32>) {
+    let (kp, panels) = (k.div_ceil(2), n.div_ceil(NR));
+    dst.clear();
+    dst.resize(panels * kp * NR, 0);
+    for (panel, d) in dst.chunks_exact_mut((kp * NR).max(1)).take(panels).enumerate() {
+        for p in 0..kp {
+            for c in 0..NR.min(n - panel * NR) {
+                let j = panel * NR + c;
+                let hi = if 2 * p + 1 < k { w[(2 * p + 1) * rs + j * cs] } else { 0.0 };
+                d[p * NR + c] = pair(w[2 * p * rs + j * cs], hi);
+            }
+        }
+    }
+}
+
+/// `y (rows x n, contiguous) = xp (rows x k, from [`pairs_into`]) * packed (k x n, from
+/// [`pack_strided_into`])` on `VDPBF16PS`, on this thread. The CPU must have AVX-512 BF16.
+pub(crate) fn product(xp: &[u32], rows: usize, k: usize, packed: &[u32], n: usize, y: &mut [f32]) {
+    let kp = k.div_ceil(2);
+    assert!(xp.len() >= rows.next_multiple_of(MR) * kp, "bf16 product input too small");
+    assert!(packed.len() >= n.div_ceil(NR) * kp * NR, "bf16 product weight too small");
+    assert!(y.len() >= rows * n, "bf16 product output too small");
+    if kp == 0 {
+        y[..rows * n].fill(0.0);
+        return;
+    }
+    let y_ptr = SendPtr(y.as_mut_ptr());
+    for panel in 0..n.div_ceil(NR) {
+        // SAFETY: the asserts above; this thread alone writes y.
+        unsafe {
+            panel_rows(xp, kp, 0..rows, &packed[panel * kp * NR..(panel + 1) * kp * NR], panel, n, &y_ptr, false)
+        };
+    }
 }
 
 /// Packs `w (k x n, row stride w_rs)` into `dst` as bf16 panels of [`NR`] columns, in each
@@ -254,7 +308,7 @@ unsafe fn panel_rows(
 
 /// `v` rounded to bf16, as f32.
 #[inline(always)]
-fn round(v: f32) -> f32 {
+pub(crate) fn round(v: f32) -> f32 {
     f32::from_bits((bf16_bits(v) as u32) << 16)
 }
 

@@ -46,6 +46,11 @@ impl LinearKernel {
         }
     }
 
+    /// Whether its products are bf16 ([`super::set_matmul_precision`] when it was built).
+    pub fn is_bf16(&self) -> bool {
+        matches!(self.w, Weight::Bf16(_))
+    }
+
     /// The bias.
     pub fn bias(&self) -> Option<&[f32]> {
         self.b.as_deref()

@@ -24,7 +24,8 @@ static MATMUL_BF16: AtomicBool = AtomicBool::new(false);
 /// PyTorch's `set_float32_matmul_precision`): `BF16` rounds their weights and inputs to bf16
 /// and sums the exact products in f32 ([`bf16`]; twice the multiplies per instruction on
 /// CPUs with AVX-512 BF16); `F32` (the default, and what `F16` gives here) is exact f32.
-/// Attention, convolutions, normalisation and activations stay f32 either way.
+/// Attention follows the precision of its block's projections ([`crate::ops::sdpa`]);
+/// convolutions, normalisation and activations stay f32 either way.
 pub fn set_matmul_precision(precision: crate::Precision) {
     MATMUL_BF16.store(precision == crate::Precision::BF16, Ordering::Relaxed);
 }
