@@ -65,9 +65,8 @@ fn set_precision(device: &mut Device, precision: Precision) -> Result<(), String
 /// speed.
 pub fn network_device_at(gpu: bool, precision: Precision) -> Result<Device, BackboneError> {
     if !gpu {
-        let bf16 = precision == Precision::BF16;
-        crate::cpu::set_matmul_precision(if bf16 { Precision::BF16 } else { Precision::F32 });
-        if bf16 {
+        crate::cpu::set_matmul_precision(precision);
+        if precision == Precision::BF16 {
             return Ok(cpu());
         }
         let mut d = cpu();
@@ -96,6 +95,9 @@ pub fn network_device_at(gpu: bool, precision: Precision) -> Result<Device, Back
         tried.join("; ")
     )))
 }
+
+/// What `--precision bf16` computes in bf16 on the CPU (the rest stays f32), for messages.
+pub const CPU_BF16_SCOPE: &str = "the linear layers' and attention's products";
 
 /// A one-line note when `precision` gains no speed where the network runs: bf16 on a CPU
 /// without AVX-512 BF16 (same numbers as with it, at f32's speed).

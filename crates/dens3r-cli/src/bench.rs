@@ -410,8 +410,9 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             "this CPU has no AVX-512 BF16, so through the f32 kernel: no faster"
         };
         println!(
-            "  bf16 on the CPU: ours takes the linear layers' and attention's products in bf16 (operands rounded, \
-             sums in f32; the rest f32; {how}), PyTorch runs the whole model in bf16"
+            "  bf16 on the CPU: ours takes {} in bf16 (operands rounded, sums in f32; the rest f32; {how}), \
+             PyTorch runs the whole model in bf16",
+            dens3r_backbone::device::CPU_BF16_SCOPE
         );
     }
     gpu_names.sort();

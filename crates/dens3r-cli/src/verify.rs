@@ -54,9 +54,9 @@ pub fn run(a: VerifyArgs) -> Result<()> {
     if reduced {
         let worst = results.iter().map(Comparison::range_error).fold(0.0, f64::max);
         let what = if a.precision == Precision::BF16 && !a.gpu {
-            " (on the CPU: the linear layers' and attention's products)"
+            format!(" (on the CPU: {})", dens3r_backbone::device::CPU_BF16_SCOPE)
         } else {
-            ""
+            String::new()
         };
         println!(
             "computed in {}{what}: the errors above are that precision's against the f32 reference (largest {:.2}% \

@@ -30,14 +30,15 @@ pub fn attention_with(
     dh: usize,
     bf16: bool,
 ) -> Vec<f32> {
-    let dims = (bh, nq, nk, dh);
     if !bf16 {
-        return run(q, k, v, dims, &Products::F32);
+        return attention(q, k, v, bh, nq, nk, dh);
     }
+    // Sizes checked before the operands are rounded or packed (`run` checks them again).
+    let dims = (bh, nq, nk, dh);
     check(q, k, v, dims);
     if !super::bf16::native() {
-        let round = |x: &[f32]| x.par_iter().map(|&y| super::bf16::round(y)).collect::<Vec<f32>>();
-        return run(&round(q), &round(k), &round(v), dims, &Products::Rounded);
+        use super::bf16::rounded;
+        return run(&rounded(q), &rounded(k), &rounded(v), dims, &Products::Rounded);
     }
     // Each head's keys (transposed: dh x nk) and values (nk x dh) packed once for all its
     // query blocks.
@@ -46,8 +47,8 @@ pub fn attention_with(
         .map(|h| {
             let (kh, vh) = (&k[h * nk * dh..][..nk * dh], &v[h * nk * dh..][..nk * dh]);
             let (mut pk, mut pv) = (Vec::new(), Vec::new());
-            super::bf16::pack_strided_into(kh, dh, nk, (1, dh), &mut pk);
-            super::bf16::pack_strided_into(vh, nk, dh, (dh, 1), &mut pv);
+            super::bf16::pack(kh, dh, nk, (1, dh), &mut pk);
+            super::bf16::pack(vh, nk, dh, (dh, 1), &mut pv);
             (pk, pv)
         })
         .collect();
@@ -90,7 +91,7 @@ fn run(q: &[f32], k: &[f32], v: &[f32], dims: (usize, usize, usize, usize), prod
                 let vh = &v[head * nk * dh..][..nk * dh];
                 let s = &mut scores[..rows * nk];
                 if let Products::Packed(packed) = products {
-                    super::bf16::pairs_into(qb, rows, dh, dh, pairs);
+                    super::bf16::pairs_into(qb, rows, dh, pairs);
                     super::bf16::product(pairs, rows, dh, &packed[head].0, nk, s);
                     s.iter_mut().for_each(|x| *x *= scale);
                 } else {
@@ -126,7 +127,7 @@ fn run(q: &[f32], k: &[f32], v: &[f32], dims: (usize, usize, usize, usize), prod
                 let ob = &mut o[done * dh..][..rows * dh];
                 match products {
                     Products::Packed(packed) => {
-                        super::bf16::pairs_into(s, rows, nk, nk, pairs);
+                        super::bf16::pairs_into(s, rows, nk, pairs);
                         super::bf16::product(pairs, rows, nk, &packed[head].1, dh, ob);
                     }
                     _ => {
@@ -267,7 +268,7 @@ mod tests {
             );
             let got = attention_with(&q, &k, &v, bh, nq, nk, dh, true);
             let f32_out = attention(&q, &k, &v, bh, nq, nk, dh);
-            let round = |x: &[f32]| x.iter().map(|&y| crate::cpu::bf16::round(y)).collect::<Vec<f32>>();
+            let round = crate::cpu::bf16::rounded;
             let rounded = run(&round(&q), &round(&k), &round(&v), (bh, nq, nk, dh), &Products::Rounded);
             let (mut worst, mut moved, mut apart) = (0.0f64, 0.0f64, 0.0f64);
             for h in 0..bh {

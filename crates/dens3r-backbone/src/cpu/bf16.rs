@@ -78,11 +78,10 @@ impl Bf16Weight {
     pub(crate) fn stored(w: &[f32], k: usize, n: usize, packed: bool) -> Self {
         assert_eq!(w.len(), k * n, "bf16 weight size mismatch");
         if !packed {
-            let rounded = w.par_iter().map(|&v| round(v)).collect();
-            return Self { store: Store::Widened(rounded), k, n };
+            return Self { store: Store::Widened(rounded(w)), k, n };
         }
         let mut packed = Vec::new();
-        pack_into(w, k, n, n, &mut packed);
+        pack(w, k, n, (n, 1), &mut packed);
         Self { store: Store::Packed(packed), k, n }
     }
 
@@ -127,11 +126,7 @@ impl Bf16Weight {
         match &self.store {
             Store::Packed(packed) => self.matmul_packed(packed, x, rows, y, accumulate),
             Store::Widened(w) => {
-                let mut xr = vec![0.0f32; x.len()];
-                xr.par_chunks_mut(k.max(1))
-                    .zip(x.par_chunks(k.max(1)))
-                    .for_each(|(d, s)| super::with_avx2(|| d.iter_mut().zip(s).for_each(|(d, &v)| *d = round(v))));
-                super::gemm_by_columns(&xr, w, (n, 1), y, n, (rows, k, n), accumulate, 64);
+                super::gemm_by_columns(&rounded(x), w, (n, 1), y, n, (rows, k, n), accumulate, 64);
             }
         }
     }
@@ -139,7 +134,7 @@ impl Bf16Weight {
     /// The product on `VDPBF16PS`, over [`Store::Packed`] panels, in tasks of (panel, rows).
     fn matmul_packed(&self, packed: &[u32], x: &[f32], rows: usize, y: &mut [f32], accumulate: bool) {
         let (k, n, kp) = (self.k, self.n, self.kp());
-        let xp = pairs(x, rows, k, k);
+        let xp = pairs(x, rows, k);
         let (panels, chunks) = (n.div_ceil(NR), rows.next_multiple_of(MR).div_ceil(ROWS_PER_TASK));
         let y_ptr = SendPtr(y.as_mut_ptr());
         (0..panels * chunks).into_par_iter().for_each(|t| {
@@ -154,30 +149,28 @@ impl Bf16Weight {
     }
 }
 
-/// `x (rows x k, row stride x_rs)` rounded to bf16 pairs: `rows` padded to whole tiles with
-/// zero rows, each row `k.div_ceil(2)` words (an odd `k`'s last paired with zero).
-fn pairs(x: &[f32], rows: usize, k: usize, x_rs: usize) -> Vec<u32> {
+/// `x (rows x k, row-major)` rounded to bf16 pairs: `rows` padded to whole tiles with zero
+/// rows, each row `k.div_ceil(2)` words (an odd `k`'s last paired with zero).
+fn pairs(x: &[f32], rows: usize, k: usize) -> Vec<u32> {
     let kp = k.div_ceil(2);
     let mut xp = vec![0u32; rows.next_multiple_of(MR) * kp];
     if kp == 0 {
         return xp;
     }
-    xp.par_chunks_mut(kp).take(rows).enumerate().for_each(|(r, dst)| pair_row(&x[r * x_rs..r * x_rs + k], dst));
+    xp.par_chunks_mut(kp).zip(x.par_chunks(k)).for_each(|(dst, row)| pair_row(row, dst));
     xp
 }
 
 /// [`pairs`] on this thread, into `dst` (for small blocks, where a parallel split costs more
 /// than it saves).
-pub(crate) fn pairs_into(x: &[f32], rows: usize, k: usize, x_rs: usize, dst: &mut Vec<u32>) {
+pub(crate) fn pairs_into(x: &[f32], rows: usize, k: usize, dst: &mut Vec<u32>) {
     let kp = k.div_ceil(2);
     dst.clear();
     dst.resize(rows.next_multiple_of(MR) * kp, 0);
     if kp == 0 {
         return;
     }
-    for (r, d) in dst.chunks_exact_mut(kp).take(rows).enumerate() {
-        pair_row(&x[r * x_rs..r * x_rs + k], d);
-    }
+    dst.chunks_exact_mut(kp).zip(x[..rows * k].chunks_exact(k)).for_each(|(d, row)| pair_row(row, d));
 }
 
 /// One row of `k` values into `k.div_ceil(2)` pair words.
@@ -192,25 +185,8 @@ fn pair_row(row: &[f32], dst: &mut [u32]) {
     }
 }
 
-/// [`pack_into`] of a matrix with any strides (`w[(i, j)]` at `w[i * rs + j * cs]`, e.g. a
-/// transposed view), on this thread.
-pub(crate) fn pack_strided_into(w: &[f32], k: usize, n: usize, (rs, cs): (usize, usize), dst: &mut Vec<u32>) {
-    let (kp, panels) = (k.div_ceil(2), n.div_ceil(NR));
-    dst.clear();
-    dst.resize(panels * kp * NR, 0);
-    for (panel, d) in dst.chunks_exact_mut((kp * NR).max(1)).take(panels).enumerate() {
-        for p in 0..kp {
-            for c in 0..NR.min(n - panel * NR) {
-                let j = panel * NR + c;
-                let hi = if 2 * p + 1 < k { w[(2 * p + 1) * rs + j * cs] } else { 0.0 };
-                d[p * NR + c] = pair(w[2 * p * rs + j * cs], hi);
-            }
-        }
-    }
-}
-
 /// `y (rows x n, contiguous) = xp (rows x k, from [`pairs_into`]) * packed (k x n, from
-/// [`pack_strided_into`])` on `VDPBF16PS`, on this thread. The CPU must have AVX-512 BF16.
+/// [`pack`])` on `VDPBF16PS`, on this thread. The CPU must have AVX-512 BF16.
 pub(crate) fn product(xp: &[u32], rows: usize, k: usize, packed: &[u32], n: usize, y: &mut [f32]) {
     let kp = k.div_ceil(2);
     assert!(xp.len() >= rows.next_multiple_of(MR) * kp, "bf16 product input too small");
@@ -229,9 +205,10 @@ pub(crate) fn product(xp: &[u32], rows: usize, k: usize, packed: &[u32], n: usiz
     }
 }
 
-/// Packs `w (k x n, row stride w_rs)` into `dst` as bf16 panels of [`NR`] columns, in each
-/// the `k` rows in pairs (`k` padded to even, columns past `n` zero).
-fn pack_into(w: &[f32], k: usize, n: usize, w_rs: usize, dst: &mut Vec<u32>) {
+/// Packs `w (k x n)`, element `(i, j)` at `w[i * rs + j * cs]` (row-major, or a transposed
+/// view), into `dst` as bf16 panels of [`NR`] columns, in each the `k` rows in pairs (`k`
+/// padded to even, columns past `n` zero); the panels on rayon.
+pub(crate) fn pack(w: &[f32], k: usize, n: usize, (rs, cs): (usize, usize), dst: &mut Vec<u32>) {
     let (kp, panels) = (k.div_ceil(2), n.div_ceil(NR));
     dst.clear();
     dst.resize(panels * kp * NR, 0);
@@ -239,23 +216,27 @@ fn pack_into(w: &[f32], k: usize, n: usize, w_rs: usize, dst: &mut Vec<u32>) {
         return;
     }
     dst.par_chunks_mut(kp * NR).enumerate().for_each(|(panel, dst)| {
-        let cols = NR.min(n - panel * NR);
-        for p in 0..kp {
-            let lo = &w[2 * p * w_rs + panel * NR..][..cols];
-            let d = &mut dst[p * NR..][..cols];
-            if 2 * p + 1 < k {
-                let hi = &w[(2 * p + 1) * w_rs + panel * NR..][..cols];
-                super::with_avx2(|| d.iter_mut().zip(lo).zip(hi).for_each(|((d, &l), &h)| *d = pair(l, h)));
-            } else {
-                d.iter_mut().zip(lo).for_each(|(d, &l)| *d = pair(l, 0.0));
+        let (j0, cols) = (panel * NR, NR.min(n - panel * NR));
+        super::with_avx2(|| {
+            for (p, d) in dst.chunks_exact_mut(NR).enumerate() {
+                let (lo, hi) = (2 * p * rs, 2 * p + 1 < k);
+                let at = |i: usize, c: usize| if i == lo || hi { w[i + (j0 + c) * cs] } else { 0.0 };
+                if cs == 1 && hi {
+                    // Contiguous rows (a weight): slices, which vectorise.
+                    let (l, h) = (&w[lo + j0..][..cols], &w[lo + rs + j0..][..cols]);
+                    d.iter_mut().zip(l).zip(h).for_each(|((d, &l), &h)| *d = pair(l, h));
+                } else {
+                    d[..cols].iter_mut().enumerate().for_each(|(c, d)| *d = pair(at(lo, c), at(lo + rs, c)));
+                }
             }
-        }
+        });
     });
 }
 
 /// Rows `r` (starting at a whole tile) of one panel's columns of `y (.. x n)`: `xp`'s pairs
 /// (`kp` words a row, padded to whole tiles) times the panel `b` (`kp` rows of NR words), in
-/// blocks of [`KC`] pairs so the panel's block stays in cache across the tiles.
+/// groups of [`ROWS_PER_TASK`] rows and blocks of [`KC`] pairs, so the panel's block stays in
+/// cache across a group's tiles.
 ///
 /// # Safety
 /// `y` must hold `r.end` rows of `n` values, no other thread may touch those rows of this
@@ -273,34 +254,39 @@ unsafe fn panel_rows(
 ) {
     assert!(native(), "the AVX-512 BF16 kernel on a CPU without it");
     let (c0, cols) = (panel * NR, NR.min(n - panel * NR));
-    let tiles_n = (r.end - r.start).div_ceil(MR);
-    assert!(xp.len() >= (r.start + tiles_n * MR) * kp && b.len() >= kp * NR, "bf16 panel out of bounds");
-    let mut tiles = vec![[[0.0f32; NR]; MR]; tiles_n];
-    for p0 in (0..kp).step_by(KC) {
-        let len = KC.min(kp - p0);
-        let b = &b[p0 * NR..(p0 + len) * NR];
-        for (i, tile) in tiles.iter_mut().enumerate() {
-            let a = &xp[(r.start + i * MR) * kp + p0..];
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: the CPU has the features (asserted); `a` starts MR rows of kp words (the
-            // block's len words of each read, inside xp by the assert) and `b` holds len pairs
-            // of NR columns.
-            unsafe {
-                tile_avx512(a.as_ptr(), kp, b.as_ptr(), len, tile, p0 > 0)
-            };
-            #[cfg(not(target_arch = "x86_64"))]
-            unreachable!("packed bf16 weights off x86-64 ({a:?}, {b:?}, {tile:?})");
+    assert!(xp.len() >= r.end.next_multiple_of(MR) * kp && b.len() >= kp * NR, "bf16 panel out of bounds");
+    // The tiles of up to ROWS_PER_TASK rows at a time, on the stack (24 KB): no allocation in
+    // a call that attention makes per block and panel.
+    let mut tiles = [[[0.0f32; NR]; MR]; ROWS_PER_TASK / MR];
+    for g0 in r.clone().step_by(ROWS_PER_TASK) {
+        let g1 = (g0 + ROWS_PER_TASK).min(r.end);
+        let tiles = &mut tiles[..(g1 - g0).div_ceil(MR)];
+        for p0 in (0..kp).step_by(KC) {
+            let len = KC.min(kp - p0);
+            let b = &b[p0 * NR..(p0 + len) * NR];
+            for (i, tile) in tiles.iter_mut().enumerate() {
+                let a = &xp[(g0 + i * MR) * kp + p0..];
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: the CPU has the features (asserted); `a` starts MR rows of kp words
+                // (the block's len words of each read, inside xp by the assert) and `b` holds
+                // len pairs of NR columns.
+                unsafe {
+                    tile_avx512(a.as_ptr(), kp, b.as_ptr(), len, tile, p0 > 0)
+                };
+                #[cfg(not(target_arch = "x86_64"))]
+                unreachable!("packed bf16 weights off x86-64 ({a:?}, {b:?}, {tile:?})");
+            }
         }
-    }
-    for (i, tile) in tiles.iter().enumerate() {
-        let r0 = r.start + i * MR;
-        for (rr, row) in tile.iter().enumerate().take(r.end.saturating_sub(r0).min(MR)) {
-            // SAFETY: row r0 + rr < r.end and columns c0..c0 + cols <= n, ours by the contract.
-            let dst = unsafe { std::slice::from_raw_parts_mut(y.0.add((r0 + rr) * n + c0), cols) };
-            if accumulate {
-                dst.iter_mut().zip(row).for_each(|(d, v)| *d += v);
-            } else {
-                dst.copy_from_slice(&row[..cols]);
+        for (i, tile) in tiles.iter().enumerate() {
+            let r0 = g0 + i * MR;
+            for (rr, row) in tile.iter().enumerate().take(g1.saturating_sub(r0).min(MR)) {
+                // SAFETY: row r0 + rr < r.end and columns c0..c0 + cols <= n, ours by the contract.
+                let dst = unsafe { std::slice::from_raw_parts_mut(y.0.add((r0 + rr) * n + c0), cols) };
+                if accumulate {
+                    dst.iter_mut().zip(row).for_each(|(d, v)| *d += v);
+                } else {
+                    dst.copy_from_slice(&row[..cols]);
+                }
             }
         }
     }
@@ -310,6 +296,15 @@ unsafe fn panel_rows(
 #[inline(always)]
 pub(crate) fn round(v: f32) -> f32 {
     f32::from_bits((bf16_bits(v) as u32) << 16)
+}
+
+/// Every value of `x` rounded to bf16, as f32 (on rayon).
+pub(crate) fn rounded(x: &[f32]) -> Vec<f32> {
+    let mut out = vec![0.0f32; x.len()];
+    out.par_chunks_mut(4096)
+        .zip(x.par_chunks(4096))
+        .for_each(|(d, s)| super::with_avx2(|| d.iter_mut().zip(s).for_each(|(d, &v)| *d = round(v))));
+    out
 }
 
 /// One tile on `VDPBF16PS`: `a` points at MR rows of `a_rs` words (the block's pairs first),
