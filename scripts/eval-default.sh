@@ -154,8 +154,11 @@ def mean(rows, key):
     return sum(v) / len(v) if v else None
 f = lambda v, d=3: "-" if v is None else f"{v:.{d}f}"
 cfg = os.path.join(model, "config.json")
-tta = json.load(open(cfg)).get("tta_scales", []) if os.path.exists(cfg) else []
-tta = f" (predict averages in passes at {', '.join(str(round(int(size) * s)) for s in tta)}: the config's tta_scales)" if tta else ""
+settings = json.load(open(cfg)) if os.path.exists(cfg) else {}
+tta, mirror = settings.get("tta_scales", []), settings.get("tta_mirror", False)
+tta = (f" (predict averages in passes{' over the mirrored photo' if mirror else ''} at "
+       f"{', '.join(str(round(int(size) * s)) for s in tta)}: the config's tta_scales"
+       f"{' and tta_mirror' if mirror else ''})") if tta else ""
 out = [f"Model `{model}`, input long side {size}{tta}; depth median-aligned (scale-and-shift in brackets), "
        "normal angles in degrees. Lower AbsRel / angles and higher delta1 / %<11.25 are better.", ""]
 out.append("| data | predictor | AbsRel | delta1 | normal mean | normal median | % < 11.25 |")

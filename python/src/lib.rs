@@ -4,7 +4,7 @@
 //! is a `dens3r.Dens3rError` (or a `ValueError` / `TypeError` for arrays of the wrong shape or
 //! type) with the one-line message the CLI prints.
 
-use dens3r_backbone::predict::{merge_scales, predict_mono, predict_pair, Resolution, ViewMaps};
+use dens3r_backbone::predict::{merge_scales, predict_mono, predict_pair, Pass, Resolution, ViewMaps};
 use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
 use dens3r_fusion::extract::{extract_mesh, ExtractOptions};
 use dens3r_fusion::scene::{fuse_frames, FusionFrame, SceneFusion};
@@ -117,6 +117,8 @@ struct Model {
     /// Long sides of the extra passes a single image's prediction averages in (the config's
     /// `"tta_scales"` times `size`; dens3r-s: 0.75).
     tta_sizes: Vec<u32>,
+    /// Those passes see the image mirrored left-right (the config's `"tta_mirror"`).
+    tta_mirror: bool,
     /// The line shown when this is the bundled default model (how to use the official
     /// checkpoints instead); None for other weights.
     #[pyo3(get)]
@@ -129,11 +131,13 @@ struct Model {
 
 impl Model {
     fn prepare(&self, obj: &Bound<'_, PyAny>) -> PyResult<Prepared> {
-        self.prepare_at(obj, self.size)
+        self.prepare_at(obj, self.size, false)
     }
 
-    fn prepare_at(&self, obj: &Bound<'_, PyAny>, size: u32) -> PyResult<Prepared> {
+    /// The image at long side `size`, mirrored left-right if `mirrored`.
+    fn prepare_at(&self, obj: &Bound<'_, PyAny>, size: u32, mirrored: bool) -> PyResult<Prepared> {
         let img = image_arg(obj)?;
+        let img = if mirrored { img.fliph() } else { img };
         preprocess(&img, size, !self.keep_portrait).map_err(err)
     }
 }
@@ -210,6 +214,7 @@ impl Model {
             let tta_sizes = dens3r_recon::model::tta_sizes(&settings.tta_scales, size).map_err(err)?;
             Ok(Model {
                 tta_sizes,
+                tta_mirror: settings.tta_mirror,
                 net: Box::new(net),
                 weights: files.weights,
                 size,
@@ -246,8 +251,8 @@ impl Model {
     /// (the second view has no `depth` / `K`); normals each in their own camera frame. Maps are
     /// at the network size, or the photo's with `original_size=True`. `focal` (pixels of the
     /// photo as given) sets a single image's `K`, scaled to the maps, as `dens3r predict --focal`.
-    /// A single image averages in the model's extra passes (its config's `"tta_scales"`, as
-    /// `dens3r predict`) unless `tta=False`.
+    /// A single image averages in the model's extra passes (its config's `"tta_scales"` and
+    /// `"tta_mirror"`, as `dens3r predict`) unless `tta=False`.
     #[pyo3(signature = (image, image2=None, *, original_size=false, focal=None, tta=true))]
     fn predict<'py>(
         &self,
@@ -271,11 +276,14 @@ impl Model {
         match image2 {
             None => {
                 let extra = if tta { self.tta_sizes.clone() } else { Vec::new() };
-                let extra = extra.into_iter().map(|s| self.prepare_at(image, s)).collect::<PyResult<Vec<_>>>()?;
+                let mirrored = self.tta_mirror;
+                let extra =
+                    extra.into_iter().map(|s| self.prepare_at(image, s, mirrored)).collect::<PyResult<Vec<_>>>()?;
                 let pred = py.detach(|| {
                     let all = dens3r_backbone::HeadOutputs::ALL;
-                    let others: Vec<_> =
-                        extra.iter().map(|e| predict_mono(self.net.model(), e, Resolution::Network, all)).collect();
+                    let pass =
+                        |e| Pass { prediction: predict_mono(self.net.model(), e, Resolution::Network, all), mirrored };
+                    let others: Vec<_> = extra.iter().map(pass).collect();
                     merge_scales(predict_mono(self.net.model(), &first, res, all), res, &others)
                 });
                 // Pixels of the maps: the photo's at original size, else scaled by the resize.

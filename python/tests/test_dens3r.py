@@ -62,7 +62,8 @@ def test_predict_equals_cli(model, tmp_path):
     assert np.allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4)
     assert np.mean(np.sum(n * out["pts3d"], axis=-1) < 0) > 0.95
     assert out["desc"].shape == (h, w, 24)
-    # dens3r-s's config averages in a pass at 0.75 of the size; tta=False is --no-tta.
+    # dens3r-s's config averages in a pass over the mirrored photo at 0.75 of the size (the
+    # arrays above equal the CLI's, which does the same); tta=False is --no-tta.
     plain = model.predict(str(PHOTO), tta=False)
     cli("predict", "--no-tta", PHOTO, "-o", tmp_path / "p")
     np.testing.assert_array_equal(plain["depth"], np.load(tmp_path / "p" / "depth" / "coffee.npy"))

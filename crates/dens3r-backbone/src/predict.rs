@@ -201,14 +201,24 @@ pub fn pair_maps(pred: &Predictions, first: &Prepared, second: &Prepared, res: R
     [view_maps(&pred.views[0], first, 0, r, res), view_maps(&pred.views[1], second, 0, r, res)]
 }
 
-/// A single-image prediction averaged over several network input sizes (test-time
-/// augmentation): `primary` at its own resolution, each of `others` at
-/// [`Resolution::Network`] of the same photo at another size. Each other prediction is read
-/// at the primary's pixels through the photo's coordinates (bilinear), its depth scaled to
-/// the primary's median; the depth becomes the geometric mean of all, the points move along
-/// the primary's rays to it (so the focal they give stays the primary's), and the normals are
-/// the normalised sum. Confidence, descriptors and colours stay the primary's.
-pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others: &[MonoPrediction]) -> MonoPrediction {
+/// An extra network pass that [`merge_scales`] averages in (test-time augmentation).
+#[derive(Debug, Clone)]
+pub struct Pass {
+    /// Its single-image prediction, at [`Resolution::Network`].
+    pub prediction: MonoPrediction,
+    /// It saw the photo mirrored left-right (`DynamicImage::fliph`): its maps are read
+    /// mirrored back and its normals' x negated.
+    pub mirrored: bool,
+}
+
+/// A single-image prediction averaged over several network passes (test-time augmentation):
+/// `primary` at its own resolution, each of `others` a pass over the same photo at another
+/// size, or mirrored. Each other prediction is read at the primary's pixels through the
+/// photo's coordinates (bilinear), its depth scaled to the primary's median; the depth becomes
+/// the geometric mean of all, the points move along the primary's rays to it (so the focal
+/// they give stays the primary's), and the normals are the normalised sum. Confidence,
+/// descriptors and colours stay the primary's.
+pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others: &[Pass]) -> MonoPrediction {
     if others.is_empty() {
         return primary;
     }
@@ -224,12 +234,16 @@ pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others
         primary.depth.data().iter().map(|&z| if valid(z) { f64::from(z).ln() } else { 0.0 }).collect();
     let mut count: Vec<u32> = primary.depth.data().iter().map(|&z| u32::from(valid(z))).collect();
     let mut normal_sum: Option<Vec<Vec3>> = primary.normals.as_ref().map(|n| n.data().to_vec());
-    for o in others {
+    for pass in others {
+        let o = &pass.prediction;
         let Some(mo) = median(&o.depth) else { continue };
         let scale = m0 / mo;
+        // The photo's width: a mirrored pass's x is measured from the other side.
+        let photo_w = oriented_geometry(&o.info).2 .0;
         for y in 0..h {
             for x in 0..w {
                 let (xo, yo) = photo_coords(&primary.info, primary_res, (x as f64, y as f64));
+                let xo = if pass.mirrored { photo_w - 1.0 - xo } else { xo };
                 let (xn, yn) = network_coords(&o.info, (xo, yo));
                 let i = y * w + x;
                 if let Some(z) = bilinear(&o.depth, (xn, yn), |&z| valid(z).then_some(f64::from(z))) {
@@ -240,7 +254,7 @@ pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others
                 }
                 if let (Some(sum), Some(n)) = (normal_sum.as_mut(), &o.normals) {
                     if let Some(v) = bilinear3(n, (xn, yn)) {
-                        sum[i] += v;
+                        sum[i] += if pass.mirrored { Vec3::new(-v.x, v.y, v.z) } else { v };
                     }
                 }
             }
@@ -409,7 +423,9 @@ mod tests {
         let up = Vec3::new(0.0, 0.0, -1.0);
         let side = Vec3::new(1.0, 0.0, -1.0).normalize();
         let primary = maps(&a, surface(&a, 1.0), up);
-        let merged = merge_scales(primary.clone(), Resolution::Network, &[maps(&b, surface(&b, 2.0), side)]);
+        let pass = |prediction, mirrored| Pass { prediction, mirrored };
+        let merged =
+            merge_scales(primary.clone(), Resolution::Network, &[pass(maps(&b, surface(&b, 2.0), side), false)]);
         let worst =
             merged.depth.data().iter().zip(primary.depth.data()).map(|(m, p)| (m / p - 1.0).abs()).fold(0.0, f32::max);
         // The two maps' medians differ by their sampling of the surface, a fraction of a
@@ -420,9 +436,51 @@ mod tests {
         for (p, z) in merged.points.data().iter().zip(merged.depth.data()) {
             assert!((p.z - z).abs() < 1e-5 * z && (p.x - 0.1 * z).abs() < 1e-5 * z, "points leave their rays");
         }
-        let same = merge_scales(primary.clone(), Resolution::Network, std::slice::from_ref(&primary));
+        let same = merge_scales(primary.clone(), Resolution::Network, &[pass(primary.clone(), false)]);
         assert!(same.depth.data().iter().zip(primary.depth.data()).all(|(s, p)| (s - p).abs() <= 1e-6 * p));
         let alone = merge_scales(primary.clone(), Resolution::Network, &[]);
         assert_eq!(alone.depth.data(), primary.depth.data());
+    }
+
+    /// A pass over the mirrored photo: its maps are the surface seen mirrored (depth at the
+    /// mirrored column, normals with x negated); merged as mirrored, it lands on the primary's
+    /// pixels (depth unchanged, normals the sum of the two unmirrored ones); merged as if it
+    /// were not mirrored, it does not.
+    #[test]
+    fn merging_a_mirrored_pass_reads_it_mirrored_back() {
+        let img = image::DynamicImage::ImageRgb8(RgbImage::new(741, 500));
+        let (a, b) = (preprocess(&img, 512, true).unwrap().info, preprocess(&img.fliph(), 384, true).unwrap().info);
+        let plane = |px: f64, py: f64| 1.0 / (1.0 + 0.0004 * px as f32 + 0.0008 * py as f32);
+        // Maps whose depth is `depth` of the photo coordinates of each map pixel.
+        let seen = |info: &PrepInfo, depth: &dyn Fn(f64, f64) -> f32, normal| {
+            let i = info.clone();
+            maps(
+                info,
+                |x, y| {
+                    let (px, py) = photo_coords(&i, Resolution::Network, (x as f64, y as f64));
+                    depth(px, py)
+                },
+                normal,
+            )
+        };
+        let primary = seen(&a, &plane, Vec3::new(0.0, 0.0, -1.0));
+        // The mirrored photo's pixel (px, py) is the photo's (740 - px, py).
+        let mirrored = seen(&b, &|px, py| 2.0 * plane(740.0 - px, py), Vec3::new(-1.0, 0.0, -1.0).normalize());
+        let unmirrored_side = Vec3::new(1.0, 0.0, -1.0).normalize();
+        let merged = merge_scales(
+            primary.clone(),
+            Resolution::Network,
+            &[Pass { prediction: mirrored.clone(), mirrored: true }],
+        );
+        let moved = |m: &MonoPrediction| {
+            m.depth.data().iter().zip(primary.depth.data()).map(|(m, p)| (m / p - 1.0).abs()).fold(0.0, f32::max)
+        };
+        assert!(moved(&merged) < 3e-3, "depth moved by {}", moved(&merged));
+        let want = (Vec3::new(0.0, 0.0, -1.0) + unmirrored_side).normalize();
+        assert!(merged.normals.as_ref().unwrap().data().iter().all(|n| n.angle_between(want) < 1e-4));
+        // Read as an unmirrored pass, the tilt comes out the other way round.
+        let wrong =
+            merge_scales(primary.clone(), Resolution::Network, &[Pass { prediction: mirrored, mirrored: false }]);
+        assert!(moved(&wrong) > 0.05, "a mirrored pass read unmirrored moved the depth by only {}", moved(&wrong));
     }
 }

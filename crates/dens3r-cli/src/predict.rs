@@ -4,7 +4,7 @@
 use crate::model_args::{load_network, open_backbone, resolve_model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use dens3r_backbone::predict::{merge_scales, predict_mono, predict_mono_features, to_image_grid, Resolution};
+use dens3r_backbone::predict::{merge_scales, predict_mono, predict_mono_features, to_image_grid, Pass, Resolution};
 use dens3r_backbone::preprocess::{decode_oriented, preprocess, Prepared};
 use dens3r_geom::FALLBACK_HFOV_DEG;
 use dens3r_heads::data::resize_nearest;
@@ -42,6 +42,11 @@ pub struct PredictArgs {
     /// (`"tta_scales"`; dens3r-s: 0.75), else none.
     #[arg(long, value_delimiter = ',', conflicts_with = "no_tta")]
     tta_scales: Option<Vec<f64>>,
+    /// Whether those extra passes see the photo mirrored left-right (read back mirrored):
+    /// `--tta-mirror` or `--tta-mirror false`. Default: the model's config (`"tta_mirror"`;
+    /// dens3r-s: true), else false.
+    #[arg(long, num_args = 0..=1, default_missing_value = "true", conflicts_with = "no_tta")]
+    tta_mirror: Option<bool>,
     /// One network pass at --size only, whatever the model's config says.
     #[arg(long)]
     no_tta: bool,
@@ -115,6 +120,8 @@ struct Networks {
     keep_portrait: bool,
     /// Long sides of the extra network passes averaged in (`--tta-scales` or the config's).
     tta_sizes: Vec<u32>,
+    /// The extra passes see the photo mirrored (`--tta-mirror` or the config's).
+    tta_mirror: bool,
     heads: Vec<NamedHead>,
     other: Option<(Box<dyn Backbone>, u32)>,
 }
@@ -210,13 +217,14 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
     };
     let heads_on_net = !heads.is_empty() && other.is_none();
     let mut keep_portrait = a.keep_portrait;
-    let mut tta_sizes = Vec::new();
+    let (mut tta_sizes, mut tta_mirror) = (Vec::new(), false);
     let net = if run_net {
         let (weights, config) = resolve_model(a.weights.as_deref(), a.config.as_deref())?;
         let settings = dens3r_recon::model::model_settings(config.as_deref())?;
         keep_portrait |= settings.keep_portrait;
         let scales = if a.no_tta { Vec::new() } else { a.tta_scales.clone().unwrap_or(settings.tta_scales) };
         tta_sizes = dens3r_recon::model::tta_sizes(&scales, a.size).context("--tta-scales")?;
+        tta_mirror = a.tta_mirror.unwrap_or(settings.tta_mirror);
         let model = load_network(&weights, config.as_deref(), a.gpu, a.precision)?;
         let hash = if heads_on_net {
             file_hash(&weights).with_context(|| format!("{}: cannot read", weights.display()))?
@@ -227,7 +235,7 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
     } else {
         None
     };
-    let nets = Networks { net, keep_portrait, tta_sizes, heads, other };
+    let nets = Networks { net, keep_portrait, tta_sizes, tta_mirror, heads, other };
     let head_backbone: Option<&dyn Backbone> = match (&nets.other, &nets.net) {
         (Some((b, _)), _) => Some(b.as_ref()),
         (None, n) => n.as_ref().map(|n| n as &dyn Backbone),
@@ -255,8 +263,12 @@ fn load_inputs(a: &PredictArgs, nets: &Networks) -> Result<Vec<Input>> {
             let img = decode_oriented(p, &bytes)?;
             let prep = preprocess(&img, a.size, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
             // (Empty unless the network runs.)
+            let mirrored = (nets.tta_mirror && !nets.tta_sizes.is_empty()).then(|| img.fliph());
             let extra = (nets.tta_sizes.iter())
-                .map(|&s| preprocess(&img, s, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display())))
+                .map(|&s| {
+                    preprocess(mirrored.as_ref().unwrap_or(&img), s, !keep_portrait)
+                        .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))
+                })
                 .collect::<Result<Vec<_>>>()?;
             let name = dens3r_recon::input::unique_name(p, &mut names);
             let focal = match a.focal {
@@ -305,8 +317,11 @@ fn predict_one(
             (predict_mono(net.model(), prep, res, want), None)
         };
         if !extra.is_empty() {
-            let others: Vec<_> =
-                extra.iter().map(|e| predict_mono(net.model(), e, Resolution::Network, want)).collect();
+            let pass = |e| Pass {
+                prediction: predict_mono(net.model(), e, Resolution::Network, want),
+                mirrored: nets.tta_mirror,
+            };
+            let others: Vec<_> = extra.iter().map(pass).collect();
             pred = merge_scales(pred, res, &others);
         }
         if let Some(src) = source.as_ref().filter(|_| a.original_size) {

@@ -1224,63 +1224,92 @@ fn the_default_model_reads_portrait_photos_upright() {
     assert!(upright.0 < 0.8 * turned.0 && upright.1 < turned.1 - 10.0, "upright {upright:?} vs turned {turned:?}");
 }
 
-/// dens3r-s's config asks `predict` for a second pass at three quarters of the size, averaged
-/// in (test-time augmentation): the written depth is the geometric mean of the two passes
-/// (the smaller one's median matched to the larger's) and the normals their normalised sum,
-/// checked against the two passes run alone at the photos' size (`--no-tta`), which read the
-/// smaller map by nearest neighbour where the merge reads it bilinearly; the points follow the
-/// depth and the camera keeps the larger pass's focal.
+/// dens3r-s's config asks `predict` for a second pass at three quarters of the size over the
+/// mirrored photo, averaged in (test-time augmentation): the written depth is the geometric
+/// mean of the two passes (the smaller one's median matched to the larger's) and the normals
+/// their normalised sum, checked against the passes run alone at the photos' size
+/// (`--no-tta`; the smaller one on a mirrored copy of the photo, its maps mirrored back here
+/// and its normals' x negated), which read the smaller map by nearest neighbour where the
+/// merge reads it bilinearly; the points follow the depth and the camera keeps the larger
+/// pass's focal. `--tta-mirror false` averages in the unmirrored pass instead.
 #[test]
-fn predict_averages_the_models_smaller_pass_in() {
+fn predict_averages_the_models_smaller_mirrored_pass_in() {
     let Some(model) = default_model_ready() else { return };
     let cfg: serde_json::Value = serde_json::from_slice(&std::fs::read(model.join("config.json")).unwrap()).unwrap();
-    assert_eq!(cfg["tta_scales"], serde_json::json!([0.75]));
+    assert_eq!((&cfg["tta_scales"], &cfg["tta_mirror"]), (&serde_json::json!([0.75]), &serde_json::json!(true)));
     let dir = tempfile::tempdir().unwrap();
     let image = unseen_scenes(dir.path(), 424243, 1, 2).join("scene_00000/images/0000.png");
-    let run = |extra: &[&str], name: &str| -> std::path::PathBuf {
+    let mirrored_image = dir.path().join("mirrored/0000.png");
+    std::fs::create_dir_all(mirrored_image.parent().unwrap()).unwrap();
+    image::open(&image).unwrap().fliph().save(&mirrored_image).unwrap();
+    let run = |extra: &[&str], name: &str, photo: &std::path::Path| -> std::path::PathBuf {
         let out = dir.path().join(name);
         let mut args = vec!["predict", "--original-size", "-o", out.to_str().unwrap()];
         args.extend_from_slice(extra);
-        args.push(image.to_str().unwrap());
+        args.push(photo.to_str().unwrap());
         ok(&args);
         out
     };
-    let (tta, large, small) = (
-        run(&["--size", "320"], "tta"),
-        run(&["--size", "320", "--no-tta"], "large"),
-        run(&["--size", "240", "--no-tta"], "small"),
+    let (tta, unmirrored_tta, large, small, small_mirrored) = (
+        run(&["--size", "320"], "tta", &image),
+        run(&["--size", "320", "--tta-mirror", "false"], "tta_unmirrored", &image),
+        run(&["--size", "320", "--no-tta"], "large", &image),
+        run(&["--size", "240", "--no-tta"], "small", &image),
+        run(&["--size", "240", "--no-tta"], "small_mirrored", &mirrored_image),
     );
-    let read =
-        |d: &std::path::Path, layer: &str| dens3r_scene::npy::read_f32(&d.join(layer).join("0000.npy")).unwrap().1;
+    let read = |d: &std::path::Path, layer: &str| dens3r_scene::npy::read_f32(&d.join(layer).join("0000.npy")).unwrap();
+    // A map of the mirrored photo, mirrored back (normals: x negated).
+    let unmirror = |d: &std::path::Path, layer: &str| {
+        let (shape, v) = read(d, layer);
+        let (w, c) = (shape[1], if layer == "normals" { 3 } else { 1 });
+        let mut out = v.clone();
+        for (i, px) in out.chunks_exact_mut(c).enumerate() {
+            let (y, x) = (i / w, i % w);
+            let j = (y * w + (w - 1 - x)) * c;
+            px.copy_from_slice(&v[j..j + c]);
+            if c == 3 {
+                px[0] = -px[0];
+            }
+        }
+        out
+    };
     let median = |v: &[f32]| {
         let mut v: Vec<f32> = v.iter().copied().filter(|z| *z > 0.0).collect();
         v.sort_by(f32::total_cmp);
         v[v.len() / 2]
     };
-    let (zt, zl, zs) = (read(&tta, "depth"), read(&large, "depth"), read(&small, "depth"));
-    let k = median(&zl) / median(&zs);
-    let mut rel: Vec<f32> =
-        zt.iter().zip(zl.iter().zip(&zs)).map(|(t, (l, s))| (t / (l * s * k).sqrt() - 1.0).abs()).collect();
-    let mut off: Vec<f32> = zt.iter().zip(&zl).map(|(t, l)| (t / l - 1.0).abs()).collect();
-    rel.sort_by(f32::total_cmp);
-    off.sort_by(f32::total_cmp);
-    let (nt, nl, ns) = (read(&tta, "normals"), read(&large, "normals"), read(&small, "normals"));
-    let mut angle: Vec<f32> = (0..nt.len() / 3)
-        .map(|i| {
-            let v = |n: &[f32]| glam::Vec3::from_slice(&n[3 * i..3 * i + 3]);
-            v(&nt).angle_between((v(&nl) + v(&ns)).normalize()).to_degrees()
-        })
-        .collect();
-    angle.sort_by(f32::total_cmp);
-    let q = |v: &[f32], f: f64| v[((v.len() - 1) as f64 * f) as usize];
-    eprintln!(
-        "tta vs the mean of the passes: depth {:.4} median / {:.4} 90th, normals {:.2} / {:.2} deg; vs the large pass alone: depth {:.4} median",
-        q(&rel, 0.5), q(&rel, 0.9), q(&angle, 0.5), q(&angle, 0.9), q(&off, 0.5)
-    );
-    assert!(q(&rel, 0.5) < 0.005 && q(&angle, 0.5) < 1.0, "not the mean of the two passes");
-    assert!(q(&off, 0.5) > 4.0 * q(&rel, 0.5), "the smaller pass was not averaged in");
-    let cams = |d: &std::path::Path| dens3r_scene::Scene::open(d).unwrap().frames()[0].k[0][0];
-    assert!((cams(&tta) - cams(&large)).abs() < 1e-6 * cams(&large), "the focal is the larger pass's");
+    let q = |v: &mut Vec<f32>, f: f64| {
+        v.sort_by(f32::total_cmp);
+        v[((v.len() - 1) as f64 * f) as usize]
+    };
+    let zl = read(&large, "depth").1;
+    let nl = read(&large, "normals").1;
+    // The merged maps against the mean of the large pass and `(zs, ns)`.
+    let check = |merged: &std::path::Path, zs: &[f32], ns: &[f32], what: &str| {
+        let zt = read(merged, "depth").1;
+        let k = median(&zl) / median(zs);
+        let mut rel: Vec<f32> =
+            zt.iter().zip(zl.iter().zip(zs)).map(|(t, (l, s))| (t / (l * s * k).sqrt() - 1.0).abs()).collect();
+        let mut off: Vec<f32> = zt.iter().zip(&zl).map(|(t, l)| (t / l - 1.0).abs()).collect();
+        let nt = read(merged, "normals").1;
+        let mut angle: Vec<f32> = (0..nt.len() / 3)
+            .map(|i| {
+                let v = |n: &[f32]| glam::Vec3::from_slice(&n[3 * i..3 * i + 3]);
+                v(&nt).angle_between((v(&nl) + v(ns)).normalize()).to_degrees()
+            })
+            .collect();
+        let (r5, r9, a5, a9, o5) =
+            (q(&mut rel, 0.5), q(&mut rel, 0.9), q(&mut angle, 0.5), q(&mut angle, 0.9), q(&mut off, 0.5));
+        eprintln!(
+            "{what}: vs the mean of the passes: depth {r5:.4} median / {r9:.4} 90th, normals {a5:.2} / {a9:.2} deg; vs the large pass alone: depth {o5:.4} median"
+        );
+        assert!(r5 < 0.005 && a5 < 1.0, "{what}: not the mean of the two passes");
+        assert!(o5 > 4.0 * r5, "{what}: the smaller pass was not averaged in");
+        let cams = |d: &std::path::Path| dens3r_scene::Scene::open(d).unwrap().frames()[0].k[0][0];
+        assert!((cams(merged) - cams(&large)).abs() < 1e-6 * cams(&large), "{what}: the focal is the larger pass's");
+    };
+    check(&tta, &unmirror(&small_mirrored, "depth"), &unmirror(&small_mirrored, "normals"), "mirrored");
+    check(&unmirrored_tta, &read(&small, "depth").1, &read(&small, "normals").1, "--tta-mirror false");
 }
 
 /// `predict --precision bf16` (on the CPU: the linear layers' and attention's products in bf16,

@@ -112,12 +112,16 @@ pub struct ModelSettings {
     /// `"tta_scales"`: fractions of the input size at which `predict` also runs the network
     /// and averages the results in (test-time augmentation); else none.
     pub tta_scales: Vec<f64>,
+    /// `"tta_mirror": true`: those extra passes see the photo mirrored left-right (read back
+    /// mirrored, [`dens3r_backbone::predict::Pass`]); else as it is.
+    pub tta_mirror: bool,
 }
 
 /// The [`ModelSettings`] of a model's `config` (none: the official models' defaults). A config
 /// that cannot be read, or a value of the wrong type, is an error naming the file.
 pub fn model_settings(config: Option<&Path>) -> Result<ModelSettings, ReconError> {
-    let mut s = ModelSettings { min_conf: DEFAULT_MIN_CONF, keep_portrait: false, tta_scales: Vec::new() };
+    let mut s =
+        ModelSettings { min_conf: DEFAULT_MIN_CONF, keep_portrait: false, tta_scales: Vec::new(), tta_mirror: false };
     let Some(c) = config.filter(|c| c.is_file()) else {
         return Ok(s);
     };
@@ -143,6 +147,14 @@ pub fn model_settings(config: Option<&Path>) -> Result<ModelSettings, ReconError
             t.as_array().and_then(|a| a.iter().map(|x| x.as_f64().filter(|x| x.is_finite() && *x > 0.0)).collect());
         s.tta_scales = scales.ok_or_else(|| {
             ReconError::input(c, format!("\"tta_scales\" is {t}, not a list of positive numbers (e.g. [0.75])"))
+        })?;
+    }
+    if let Some(m) = v.get("tta_mirror") {
+        s.tta_mirror = m.as_bool().ok_or_else(|| {
+            ReconError::input(
+                c,
+                format!("\"tta_mirror\" is {m}, not true or false (whether the extra passes see the photo mirrored)"),
+            )
         })?;
     }
     Ok(s)
@@ -186,19 +198,23 @@ mod tests {
     fn a_config_sets_the_mesh_confidence_and_portrait_handling() {
         let dir = tempfile::tempdir().unwrap();
         let c = dir.path().join("config.json");
-        let official = ModelSettings { min_conf: 3.0, keep_portrait: false, tta_scales: Vec::new() };
+        let official = ModelSettings { min_conf: 3.0, keep_portrait: false, tta_scales: Vec::new(), tta_mirror: false };
         assert_eq!(model_settings(None).unwrap(), official);
         std::fs::write(&c, r#"{"enc_depth": 12}"#).unwrap();
         assert_eq!(model_settings(Some(&c)).unwrap(), official);
-        std::fs::write(&c, r#"{"enc_depth": 12, "min_conf": 1.0, "keep_portrait": true, "tta_scales": [0.75]}"#)
-            .unwrap();
-        let want = ModelSettings { min_conf: 1.0, keep_portrait: true, tta_scales: vec![0.75] };
+        std::fs::write(
+            &c,
+            r#"{"enc_depth": 12, "min_conf": 1.0, "keep_portrait": true, "tta_scales": [0.75], "tta_mirror": true}"#,
+        )
+        .unwrap();
+        let want = ModelSettings { min_conf: 1.0, keep_portrait: true, tta_scales: vec![0.75], tta_mirror: true };
         assert_eq!(model_settings(Some(&c)).unwrap(), want);
         for (bad, key) in [
             (r#"{"min_conf": "low"}"#, "min_conf"),
             (r#"{"keep_portrait": "yes"}"#, "keep_portrait"),
             (r#"{"tta_scales": 0.75}"#, "tta_scales"),
             (r#"{"tta_scales": [0.75, -1]}"#, "tta_scales"),
+            (r#"{"tta_mirror": 1}"#, "tta_mirror"),
         ] {
             std::fs::write(&c, bad).unwrap();
             let e = model_settings(Some(&c)).unwrap_err().to_string();
@@ -207,11 +223,11 @@ mod tests {
     }
 
     /// The bundled dens3r-s was trained on upright portrait frames: its config keeps them; and
-    /// `predict` averages in a pass at three quarters of the size.
+    /// `predict` averages in a pass over the mirrored photo at three quarters of the size.
     #[test]
     fn the_bundled_model_keeps_portrait_photos() {
         let c = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/models/dens3r-s/config.json");
         let s = model_settings(Some(&c)).unwrap();
-        assert!(s.keep_portrait && s.min_conf == 1.0 && s.tta_scales == [0.75], "{s:?}");
+        assert!(s.keep_portrait && s.min_conf == 1.0 && s.tta_scales == [0.75] && s.tta_mirror, "{s:?}");
     }
 }
