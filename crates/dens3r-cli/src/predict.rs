@@ -42,11 +42,13 @@ pub struct PredictArgs {
     /// (`"tta_scales"`; dens3r-s: 0.75), else none.
     #[arg(long, value_delimiter = ',', conflicts_with = "no_tta")]
     tta_scales: Option<Vec<f64>>,
-    /// Whether those extra passes see the photo mirrored left-right (read back mirrored):
-    /// `--tta-mirror` or `--tta-mirror false`. Default: the model's config (`"tta_mirror"`;
-    /// dens3r-s: true), else false.
-    #[arg(long, num_args = 0..=1, default_missing_value = "true", conflicts_with = "no_tta")]
-    tta_mirror: Option<bool>,
+    /// Those extra passes see the photo mirrored left-right (read back mirrored). Default: the
+    /// model's config (`"tta_mirror"`; dens3r-s: true), else not.
+    #[arg(long, conflicts_with_all = ["no_tta", "no_tta_mirror"])]
+    tta_mirror: bool,
+    /// Those extra passes see the photo as it is, whatever the model's config says.
+    #[arg(long, conflicts_with = "no_tta")]
+    no_tta_mirror: bool,
     /// One network pass at --size only, whatever the model's config says.
     #[arg(long)]
     no_tta: bool,
@@ -224,7 +226,10 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
         keep_portrait |= settings.keep_portrait;
         let scales = if a.no_tta { Vec::new() } else { a.tta_scales.clone().unwrap_or(settings.tta_scales) };
         tta_sizes = dens3r_recon::model::tta_sizes(&scales, a.size).context("--tta-scales")?;
-        tta_mirror = a.tta_mirror.unwrap_or(settings.tta_mirror);
+        tta_mirror = (a.tta_mirror || settings.tta_mirror) && !a.no_tta_mirror;
+        if a.tta_mirror && tta_sizes.is_empty() {
+            bail!("--tta-mirror: this model runs no extra pass to mirror; add --tta-scales (e.g. 0.75, or 1 for a mirrored pass at --size)");
+        }
         let model = load_network(&weights, config.as_deref(), a.gpu, a.precision)?;
         let hash = if heads_on_net {
             file_hash(&weights).with_context(|| format!("{}: cannot read", weights.display()))?

@@ -489,6 +489,19 @@ fn predict_writes_a_valid_scene_and_rejects_bad_input() {
     assert!(e.contains("junk.png"), "{e}");
     let e = fails(&["predict", "--weights", img.to_str().unwrap(), img.to_str().unwrap(), "-o", bad.to_str().unwrap()]);
     assert!(e.contains("0000.png") && e.contains("safetensors"), "{e}");
+    // A model with no extra passes has nothing to mirror.
+    let e = fails(&[
+        "predict",
+        "--weights",
+        w,
+        "--config",
+        c,
+        "--tta-mirror",
+        img.to_str().unwrap(),
+        "-o",
+        bad.to_str().unwrap(),
+    ]);
+    assert!(e.contains("--tta-mirror") && e.contains("--tta-scales"), "{e}");
     assert!(!bad.exists(), "failed runs leave no output folder");
 }
 
@@ -1231,7 +1244,7 @@ fn the_default_model_reads_portrait_photos_upright() {
 /// (`--no-tta`; the smaller one on a mirrored copy of the photo, its maps mirrored back here
 /// and its normals' x negated), which read the smaller map by nearest neighbour where the
 /// merge reads it bilinearly; the points follow the depth and the camera keeps the larger
-/// pass's focal. `--tta-mirror false` averages in the unmirrored pass instead.
+/// pass's focal. `--no-tta-mirror` averages in the unmirrored pass instead.
 #[test]
 fn predict_averages_the_models_smaller_mirrored_pass_in() {
     let Some(model) = default_model_ready() else { return };
@@ -1252,7 +1265,7 @@ fn predict_averages_the_models_smaller_mirrored_pass_in() {
     };
     let (tta, unmirrored_tta, large, small, small_mirrored) = (
         run(&["--size", "320"], "tta", &image),
-        run(&["--size", "320", "--tta-mirror", "false"], "tta_unmirrored", &image),
+        run(&["--size", "320", "--no-tta-mirror"], "tta_unmirrored", &image),
         run(&["--size", "320", "--no-tta"], "large", &image),
         run(&["--size", "240", "--no-tta"], "small", &image),
         run(&["--size", "240", "--no-tta"], "small_mirrored", &mirrored_image),
@@ -1309,7 +1322,7 @@ fn predict_averages_the_models_smaller_mirrored_pass_in() {
         assert!((cams(merged) - cams(&large)).abs() < 1e-6 * cams(&large), "{what}: the focal is the larger pass's");
     };
     check(&tta, &unmirror(&small_mirrored, "depth"), &unmirror(&small_mirrored, "normals"), "mirrored");
-    check(&unmirrored_tta, &read(&small, "depth").1, &read(&small, "normals").1, "--tta-mirror false");
+    check(&unmirrored_tta, &read(&small, "depth").1, &read(&small, "normals").1, "--no-tta-mirror");
 }
 
 /// `predict --precision bf16` (on the CPU: the linear layers' and attention's products in bf16,
