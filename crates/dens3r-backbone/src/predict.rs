@@ -445,42 +445,49 @@ mod tests {
     /// A pass over the mirrored photo: its maps are the surface seen mirrored (depth at the
     /// mirrored column, normals with x negated); merged as mirrored, it lands on the primary's
     /// pixels (depth unchanged, normals the sum of the two unmirrored ones); merged as if it
-    /// were not mirrored, it does not.
+    /// were not mirrored, it does not. Landscape, and portrait turned to landscape or kept.
     #[test]
     fn merging_a_mirrored_pass_reads_it_mirrored_back() {
-        let img = image::DynamicImage::ImageRgb8(RgbImage::new(741, 500));
-        let (a, b) = (preprocess(&img, 512, true).unwrap().info, preprocess(&img.fliph(), 384, true).unwrap().info);
-        let plane = |px: f64, py: f64| 1.0 / (1.0 + 0.0004 * px as f32 + 0.0008 * py as f32);
-        // Maps whose depth is `depth` of the photo coordinates of each map pixel.
-        let seen = |info: &PrepInfo, depth: &dyn Fn(f64, f64) -> f32, normal| {
-            let i = info.clone();
-            maps(
-                info,
-                |x, y| {
-                    let (px, py) = photo_coords(&i, Resolution::Network, (x as f64, y as f64));
-                    depth(px, py)
-                },
-                normal,
-            )
-        };
-        let primary = seen(&a, &plane, Vec3::new(0.0, 0.0, -1.0));
-        // The mirrored photo's pixel (px, py) is the photo's (740 - px, py).
-        let mirrored = seen(&b, &|px, py| 2.0 * plane(740.0 - px, py), Vec3::new(-1.0, 0.0, -1.0).normalize());
-        let unmirrored_side = Vec3::new(1.0, 0.0, -1.0).normalize();
-        let merged = merge_scales(
-            primary.clone(),
-            Resolution::Network,
-            &[Pass { prediction: mirrored.clone(), mirrored: true }],
-        );
-        let moved = |m: &MonoPrediction| {
-            m.depth.data().iter().zip(primary.depth.data()).map(|(m, p)| (m / p - 1.0).abs()).fold(0.0, f32::max)
-        };
-        assert!(moved(&merged) < 3e-3, "depth moved by {}", moved(&merged));
-        let want = (Vec3::new(0.0, 0.0, -1.0) + unmirrored_side).normalize();
-        assert!(merged.normals.as_ref().unwrap().data().iter().all(|n| n.angle_between(want) < 1e-4));
-        // Read as an unmirrored pass, the tilt comes out the other way round.
-        let wrong =
-            merge_scales(primary.clone(), Resolution::Network, &[Pass { prediction: mirrored, mirrored: false }]);
-        assert!(moved(&wrong) > 0.05, "a mirrored pass read unmirrored moved the depth by only {}", moved(&wrong));
+        for ((w, h), rotate) in [((741, 500), true), ((500, 741), true), ((500, 741), false)] {
+            let img = image::DynamicImage::ImageRgb8(RgbImage::new(w, h));
+            let a = preprocess(&img, 512, rotate).unwrap().info;
+            let b = preprocess(&img.fliph(), 384, rotate).unwrap().info;
+            let plane = |px: f64, py: f64| 1.0 / (1.0 + 0.0004 * px as f32 + 0.0008 * py as f32);
+            // Maps whose depth is `depth` of the photo coordinates of each map pixel.
+            let seen = |info: &PrepInfo, depth: &dyn Fn(f64, f64) -> f32, normal| {
+                let i = info.clone();
+                maps(
+                    info,
+                    |x, y| {
+                        let (px, py) = photo_coords(&i, Resolution::Network, (x as f64, y as f64));
+                        depth(px, py)
+                    },
+                    normal,
+                )
+            };
+            let primary = seen(&a, &plane, Vec3::new(0.0, 0.0, -1.0));
+            // The mirrored photo's pixel (px, py) is the photo's (w - 1 - px, py).
+            let last = f64::from(w - 1);
+            let mirrored = seen(&b, &|px, py| 2.0 * plane(last - px, py), Vec3::new(-1.0, 0.0, -1.0).normalize());
+            let merged = merge_scales(
+                primary.clone(),
+                Resolution::Network,
+                &[Pass { prediction: mirrored.clone(), mirrored: true }],
+            );
+            let moved = |m: &MonoPrediction| {
+                m.depth.data().iter().zip(primary.depth.data()).map(|(m, p)| (m / p - 1.0).abs()).fold(0.0, f32::max)
+            };
+            assert!(moved(&merged) < 3e-3, "{w}x{h}: depth moved by {}", moved(&merged));
+            let want = (Vec3::new(0.0, 0.0, -1.0) + Vec3::new(1.0, 0.0, -1.0).normalize()).normalize();
+            assert!(merged.normals.as_ref().unwrap().data().iter().all(|n| n.angle_between(want) < 1e-4));
+            // Read as an unmirrored pass, the tilt comes out the other way round.
+            let wrong =
+                merge_scales(primary.clone(), Resolution::Network, &[Pass { prediction: mirrored, mirrored: false }]);
+            assert!(
+                moved(&wrong) > 0.05,
+                "{w}x{h}: a mirrored pass read unmirrored moved the depth by only {}",
+                moved(&wrong)
+            );
+        }
     }
 }
