@@ -490,17 +490,8 @@ fn predict_writes_a_valid_scene_and_rejects_bad_input() {
     let e = fails(&["predict", "--weights", img.to_str().unwrap(), img.to_str().unwrap(), "-o", bad.to_str().unwrap()]);
     assert!(e.contains("0000.png") && e.contains("safetensors"), "{e}");
     // A model with no extra passes has nothing to mirror.
-    let e = fails(&[
-        "predict",
-        "--weights",
-        w,
-        "--config",
-        c,
-        "--tta-mirror",
-        img.to_str().unwrap(),
-        "-o",
-        bad.to_str().unwrap(),
-    ]);
+    let (img_s, bad_s) = (img.to_str().unwrap(), bad.to_str().unwrap());
+    let e = fails(&["predict", "--weights", w, "--config", c, "--tta-mirror", img_s, "-o", bad_s]);
     assert!(e.contains("--tta-mirror") && e.contains("--tta-scales"), "{e}");
     assert!(!bad.exists(), "failed runs leave no output folder");
 }
