@@ -4,7 +4,7 @@
 //! is a `dens3r.Dens3rError` (or a `ValueError` / `TypeError` for arrays of the wrong shape or
 //! type) with the one-line message the CLI prints.
 
-use dens3r_backbone::predict::{merge_scales, predict_mono, predict_pair, Pass, Resolution, ViewMaps};
+use dens3r_backbone::predict::{merge_passes, predict_mono, predict_pair, Pass, Resolution, ViewMaps};
 use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
 use dens3r_fusion::extract::{extract_mesh, ExtractOptions};
 use dens3r_fusion::scene::{fuse_frames, FusionFrame, SceneFusion};
@@ -284,7 +284,7 @@ impl Model {
                     let pass =
                         |e| Pass { prediction: predict_mono(self.net.model(), e, Resolution::Network, all), mirrored };
                     let others: Vec<_> = extra.iter().map(pass).collect();
-                    merge_scales(predict_mono(self.net.model(), &first, res, all), res, &others)
+                    merge_passes(predict_mono(self.net.model(), &first, res, all), res, &others)
                 });
                 // Pixels of the maps: the photo's at original size, else scaled by the resize.
                 let scale = if original_size { 1.0 } else { first.info.resize_factor() };

@@ -201,7 +201,7 @@ pub fn pair_maps(pred: &Predictions, first: &Prepared, second: &Prepared, res: R
     [view_maps(&pred.views[0], first, 0, r, res), view_maps(&pred.views[1], second, 0, r, res)]
 }
 
-/// An extra network pass that [`merge_scales`] averages in (test-time augmentation).
+/// An extra network pass that [`merge_passes`] averages in (test-time augmentation).
 #[derive(Debug, Clone)]
 pub struct Pass {
     /// Its single-image prediction, at [`Resolution::Network`].
@@ -218,7 +218,7 @@ pub struct Pass {
 /// the geometric mean of all, the points move along the primary's rays to it (so the focal
 /// they give stays the primary's), and the normals are the normalised sum. Confidence,
 /// descriptors and colours stay the primary's.
-pub fn merge_scales(mut primary: MonoPrediction, primary_res: Resolution, others: &[Pass]) -> MonoPrediction {
+pub fn merge_passes(mut primary: MonoPrediction, primary_res: Resolution, others: &[Pass]) -> MonoPrediction {
     if others.is_empty() {
         return primary;
     }
@@ -425,7 +425,7 @@ mod tests {
         let primary = maps(&a, surface(&a, 1.0), up);
         let pass = |prediction, mirrored| Pass { prediction, mirrored };
         let merged =
-            merge_scales(primary.clone(), Resolution::Network, &[pass(maps(&b, surface(&b, 2.0), side), false)]);
+            merge_passes(primary.clone(), Resolution::Network, &[pass(maps(&b, surface(&b, 2.0), side), false)]);
         let worst =
             merged.depth.data().iter().zip(primary.depth.data()).map(|(m, p)| (m / p - 1.0).abs()).fold(0.0, f32::max);
         // The two maps' medians differ by their sampling of the surface, a fraction of a
@@ -436,9 +436,9 @@ mod tests {
         for (p, z) in merged.points.data().iter().zip(merged.depth.data()) {
             assert!((p.z - z).abs() < 1e-5 * z && (p.x - 0.1 * z).abs() < 1e-5 * z, "points leave their rays");
         }
-        let same = merge_scales(primary.clone(), Resolution::Network, &[pass(primary.clone(), false)]);
+        let same = merge_passes(primary.clone(), Resolution::Network, &[pass(primary.clone(), false)]);
         assert!(same.depth.data().iter().zip(primary.depth.data()).all(|(s, p)| (s - p).abs() <= 1e-6 * p));
-        let alone = merge_scales(primary.clone(), Resolution::Network, &[]);
+        let alone = merge_passes(primary.clone(), Resolution::Network, &[]);
         assert_eq!(alone.depth.data(), primary.depth.data());
     }
 
@@ -469,7 +469,7 @@ mod tests {
             // The mirrored photo's pixel (px, py) is the photo's (w - 1 - px, py).
             let last = f64::from(w - 1);
             let mirrored = seen(&b, &|px, py| 2.0 * plane(last - px, py), Vec3::new(-1.0, 0.0, -1.0).normalize());
-            let merged = merge_scales(
+            let merged = merge_passes(
                 primary.clone(),
                 Resolution::Network,
                 &[Pass { prediction: mirrored.clone(), mirrored: true }],
@@ -482,7 +482,7 @@ mod tests {
             assert!(merged.normals.as_ref().unwrap().data().iter().all(|n| n.angle_between(want) < 1e-4));
             // Read as an unmirrored pass, the tilt comes out the other way round.
             let wrong =
-                merge_scales(primary.clone(), Resolution::Network, &[Pass { prediction: mirrored, mirrored: false }]);
+                merge_passes(primary.clone(), Resolution::Network, &[Pass { prediction: mirrored, mirrored: false }]);
             assert!(
                 moved(&wrong) > 0.05,
                 "{w}x{h}: a mirrored pass read unmirrored moved the depth by only {}",

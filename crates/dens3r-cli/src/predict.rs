@@ -4,7 +4,7 @@
 use crate::model_args::{load_network, open_backbone, resolve_model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use dens3r_backbone::predict::{merge_scales, predict_mono, predict_mono_features, to_image_grid, Pass, Resolution};
+use dens3r_backbone::predict::{merge_passes, predict_mono, predict_mono_features, to_image_grid, Pass, Resolution};
 use dens3r_backbone::preprocess::{decode_oriented, preprocess, Prepared};
 use dens3r_geom::FALLBACK_HFOV_DEG;
 use dens3r_heads::data::resize_nearest;
@@ -327,7 +327,7 @@ fn predict_one(
                 mirrored: nets.tta_mirror,
             };
             let others: Vec<_> = extra.iter().map(pass).collect();
-            pred = merge_scales(pred, res, &others);
+            pred = merge_passes(pred, res, &others);
         }
         if let Some(src) = source.as_ref().filter(|_| a.original_size) {
             pred.rgb = src.clone();
