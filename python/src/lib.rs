@@ -252,8 +252,10 @@ impl Model {
     /// at the network size, or the photo's with `original_size=True`. `focal` (pixels of the
     /// photo as given) sets a single image's `K`, scaled to the maps, as `dens3r predict --focal`.
     /// A single image averages in the model's extra passes (its config's `"tta_scales"` and
-    /// `"tta_mirror"`, as `dens3r predict`) unless `tta=False`.
-    #[pyo3(signature = (image, image2=None, *, original_size=false, focal=None, tta=true))]
+    /// `"tta_mirror"`, as `dens3r predict`) unless `tta=False`; `tta_mirror=True` / `False`
+    /// runs them over the mirrored photo or not, whatever the config says.
+    #[pyo3(signature = (image, image2=None, *, original_size=false, focal=None, tta=true, tta_mirror=None))]
+    #[allow(clippy::too_many_arguments)] // Python's keyword arguments, one parameter each
     fn predict<'py>(
         &self,
         py: Python<'py>,
@@ -262,6 +264,7 @@ impl Model {
         original_size: bool,
         focal: Option<f64>,
         tta: bool,
+        tta_mirror: Option<bool>,
     ) -> PyResult<Bound<'py, PyAny>> {
         if focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
             return Err(PyValueError::new_err("focal: must be a positive number of pixels of the photo"));
@@ -276,7 +279,7 @@ impl Model {
         match image2 {
             None => {
                 let extra = if tta { self.tta_sizes.clone() } else { Vec::new() };
-                let mirrored = self.tta_mirror;
+                let mirrored = tta_mirror.unwrap_or(self.tta_mirror);
                 let extra =
                     extra.into_iter().map(|s| self.prepare_at(image, s, mirrored)).collect::<PyResult<Vec<_>>>()?;
                 let pred = py.detach(|| {

@@ -69,6 +69,12 @@ def test_predict_equals_cli(model, tmp_path):
     np.testing.assert_array_equal(plain["depth"], np.load(tmp_path / "p" / "depth" / "coffee.npy"))
     np.testing.assert_array_equal(plain["normals"], np.load(tmp_path / "p" / "normals" / "coffee.npy"))
     assert np.median(np.abs(plain["depth"] / out["depth"] - 1)) > 1e-3
+    # tta_mirror=False is --no-tta-mirror: the extra pass over the photo as it is.
+    unmirrored = model.predict(str(PHOTO), tta_mirror=False)
+    cli("predict", "--no-tta-mirror", PHOTO, "-o", tmp_path / "u")
+    np.testing.assert_array_equal(unmirrored["depth"], np.load(tmp_path / "u" / "depth" / "coffee.npy"))
+    np.testing.assert_array_equal(unmirrored["normals"], np.load(tmp_path / "u" / "normals" / "coffee.npy"))
+    assert np.median(np.abs(unmirrored["depth"] / out["depth"] - 1)) > 1e-4
 
 
 def test_original_size_and_arrays(model):
