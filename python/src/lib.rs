@@ -4,7 +4,7 @@
 //! is a `dens3r.Dens3rError` (or a `ValueError` / `TypeError` for arrays of the wrong shape or
 //! type) with the one-line message the CLI prints.
 
-use dens3r_backbone::predict::{merge_passes, predict_mono, predict_pair, Pass, Resolution, ViewMaps};
+use dens3r_backbone::predict::{predict_mono, predict_pair, Resolution, TestTimePasses, ViewMaps};
 use dens3r_backbone::preprocess::{open_oriented, preprocess, Prepared};
 use dens3r_fusion::extract::{extract_mesh, ExtractOptions};
 use dens3r_fusion::scene::{fuse_frames, FusionFrame, SceneFusion};
@@ -114,11 +114,9 @@ struct Model {
     #[pyo3(get)]
     size: u32,
     keep_portrait: bool,
-    /// Long sides of the extra passes a single image's prediction averages in (the config's
-    /// `"tta_scales"` times `size`; dens3r-s: 0.75).
-    tta_sizes: Vec<u32>,
-    /// Those passes see the image mirrored left-right (the config's `"tta_mirror"`).
-    tta_mirror: bool,
+    /// The extra passes a single image's prediction averages in (the config's `"tta_scales"`
+    /// times `size`, dens3r-s: 0.75; mirrored by its `"tta_mirror"`, dens3r-s: true).
+    tta: TestTimePasses,
     /// The line shown when this is the bundled default model (how to use the official
     /// checkpoints instead); None for other weights.
     #[pyo3(get)]
@@ -131,14 +129,11 @@ struct Model {
 
 impl Model {
     fn prepare(&self, obj: &Bound<'_, PyAny>) -> PyResult<Prepared> {
-        self.prepare_at(obj, self.size, false)
+        self.prepare_image(&image_arg(obj)?)
     }
 
-    /// The image at long side `size`, mirrored left-right if `mirrored`.
-    fn prepare_at(&self, obj: &Bound<'_, PyAny>, size: u32, mirrored: bool) -> PyResult<Prepared> {
-        let img = image_arg(obj)?;
-        let img = if mirrored { img.fliph() } else { img };
-        preprocess(&img, size, !self.keep_portrait).map_err(err)
+    fn prepare_image(&self, img: &DynamicImage) -> PyResult<Prepared> {
+        preprocess(img, self.size, !self.keep_portrait).map_err(err)
     }
 }
 
@@ -211,10 +206,9 @@ impl Model {
             let hash = dens3r_heads::features::file_hash(&files.weights).map_err(err)?;
             let net = Dens3rBackbone::new(model, None, hash).map_err(err)?;
             let settings = dens3r_recon::model::model_settings(files.config.as_deref()).map_err(err)?;
-            let tta_sizes = dens3r_recon::model::tta_sizes(&settings.tta_scales, size).map_err(err)?;
+            let sizes = dens3r_recon::model::tta_sizes(&settings.tta_scales, size).map_err(err)?;
             Ok(Model {
-                tta_sizes,
-                tta_mirror: settings.tta_mirror,
+                tta: TestTimePasses { sizes, mirrored: settings.tta_mirror },
                 net: Box::new(net),
                 weights: files.weights,
                 size,
@@ -275,19 +269,20 @@ impl Model {
             ));
         }
         let res = if original_size { Resolution::Original } else { Resolution::Network };
-        let first = self.prepare(image)?;
+        // Decoded once for every pass.
+        let img = image_arg(image)?;
+        let first = self.prepare_image(&img)?;
         match image2 {
             None => {
-                let extra = if tta { self.tta_sizes.clone() } else { Vec::new() };
-                let mirrored = tta_mirror.unwrap_or(self.tta_mirror);
-                let extra =
-                    extra.into_iter().map(|s| self.prepare_at(image, s, mirrored)).collect::<PyResult<Vec<_>>>()?;
+                let passes = if tta {
+                    TestTimePasses { mirrored: tta_mirror.unwrap_or(self.tta.mirrored), ..self.tta.clone() }
+                } else {
+                    TestTimePasses::default()
+                };
+                let extra = passes.prepare(&img, !self.keep_portrait).map_err(err)?;
                 let pred = py.detach(|| {
-                    let all = dens3r_backbone::HeadOutputs::ALL;
-                    let pass =
-                        |e| Pass { prediction: predict_mono(self.net.model(), e, Resolution::Network, all), mirrored };
-                    let others: Vec<_> = extra.iter().map(pass).collect();
-                    merge_passes(predict_mono(self.net.model(), &first, res, all), res, &others)
+                    let (model, all) = (self.net.model(), dens3r_backbone::HeadOutputs::ALL);
+                    passes.merge(model, predict_mono(model, &first, res, all), res, &extra, all)
                 });
                 // Pixels of the maps: the photo's at original size, else scaled by the resize.
                 let scale = if original_size { 1.0 } else { first.info.resize_factor() };

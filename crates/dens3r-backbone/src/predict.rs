@@ -2,10 +2,11 @@
 //! the un-rotated image frame, optionally at the original resolution, in our conventions.
 
 use crate::model::{Dens3r, Features, HeadOutputs, Predictions, ViewFeatures, ViewPrediction};
-use crate::preprocess::{rescale_to_original, rotate_map_clockwise, unrotate_vector, PrepInfo, Prepared};
+use crate::preprocess::{preprocess, rescale_to_original, rotate_map_clockwise, unrotate_vector, PrepInfo, Prepared};
+use crate::BackboneError;
 use burn::tensor::Tensor;
 use dens3r_geom::{NormalConvention, Raster, Vec3};
-use image::RgbImage;
+use image::{DynamicImage, RgbImage};
 
 /// Resolution of the returned maps.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -199,6 +200,45 @@ pub fn predict_pair_features(
 pub fn pair_maps(pred: &Predictions, first: &Prepared, second: &Prepared, res: Resolution) -> [ViewMaps; 2] {
     let r = first.info.rotated;
     [view_maps(&pred.views[0], first, 0, r, res), view_maps(&pred.views[1], second, 0, r, res)]
+}
+
+/// The extra passes a single image's prediction averages in (test-time augmentation): what a
+/// model's config (`"tta_scales"`, `"tta_mirror"`) or `predict`'s options ask for.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct TestTimePasses {
+    /// Long sides of the network input of each extra pass.
+    pub sizes: Vec<u32>,
+    /// They see the photo mirrored left-right.
+    pub mirrored: bool,
+}
+
+impl TestTimePasses {
+    /// The photo prepared for each extra pass (mirrored once, when they are), as
+    /// [`preprocess`] with `rotate_portrait`.
+    pub fn prepare(&self, img: &DynamicImage, rotate_portrait: bool) -> Result<Vec<Prepared>, BackboneError> {
+        if self.sizes.is_empty() {
+            return Ok(Vec::new());
+        }
+        let flipped = self.mirrored.then(|| img.fliph());
+        let img = flipped.as_ref().unwrap_or(img);
+        self.sizes.iter().map(|&s| preprocess(img, s, rotate_portrait)).collect()
+    }
+
+    /// `primary` (at `res`) with the passes over `extra` ([`Self::prepare`]) run and averaged
+    /// in ([`merge_passes`]).
+    pub fn merge(
+        &self,
+        model: &Dens3r,
+        primary: MonoPrediction,
+        res: Resolution,
+        extra: &[Prepared],
+        want: HeadOutputs,
+    ) -> MonoPrediction {
+        let passes: Vec<Pass> = (extra.iter())
+            .map(|e| Pass { prediction: predict_mono(model, e, Resolution::Network, want), mirrored: self.mirrored })
+            .collect();
+        merge_passes(primary, res, &passes)
+    }
 }
 
 /// An extra network pass that [`merge_passes`] averages in (test-time augmentation).

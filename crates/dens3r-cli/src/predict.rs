@@ -4,7 +4,7 @@
 use crate::model_args::{load_network, open_backbone, resolve_model};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use dens3r_backbone::predict::{merge_passes, predict_mono, predict_mono_features, to_image_grid, Pass, Resolution};
+use dens3r_backbone::predict::{predict_mono, predict_mono_features, to_image_grid, Resolution, TestTimePasses};
 use dens3r_backbone::preprocess::{decode_oriented, preprocess, Prepared};
 use dens3r_geom::FALLBACK_HFOV_DEG;
 use dens3r_heads::data::resize_nearest;
@@ -120,10 +120,8 @@ struct Networks {
     net: Option<Dens3rBackbone>,
     /// Portrait images go in unrotated (`--keep-portrait`, or the network's config says so).
     keep_portrait: bool,
-    /// Long sides of the extra network passes averaged in (`--tta-scales` or the config's).
-    tta_sizes: Vec<u32>,
-    /// The extra passes see the photo mirrored (`--tta-mirror` or the config's).
-    tta_mirror: bool,
+    /// The extra network passes averaged in (`--tta-scales`, `--tta-mirror` or the config's).
+    tta: TestTimePasses,
     heads: Vec<NamedHead>,
     other: Option<(Box<dyn Backbone>, u32)>,
 }
@@ -219,15 +217,15 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
     };
     let heads_on_net = !heads.is_empty() && other.is_none();
     let mut keep_portrait = a.keep_portrait;
-    let (mut tta_sizes, mut tta_mirror) = (Vec::new(), false);
+    let mut tta = TestTimePasses::default();
     let net = if run_net {
         let (weights, config) = resolve_model(a.weights.as_deref(), a.config.as_deref())?;
         let settings = dens3r_recon::model::model_settings(config.as_deref())?;
         keep_portrait |= settings.keep_portrait;
         let scales = if a.no_tta { Vec::new() } else { a.tta_scales.clone().unwrap_or(settings.tta_scales) };
-        tta_sizes = dens3r_recon::model::tta_sizes(&scales, a.size).context("--tta-scales")?;
-        tta_mirror = (a.tta_mirror || settings.tta_mirror) && !a.no_tta_mirror;
-        if a.tta_mirror && tta_sizes.is_empty() {
+        tta.sizes = dens3r_recon::model::tta_sizes(&scales, a.size).context("--tta-scales")?;
+        tta.mirrored = (a.tta_mirror || settings.tta_mirror) && !a.no_tta_mirror;
+        if a.tta_mirror && tta.sizes.is_empty() {
             bail!("--tta-mirror: this model runs no extra pass to mirror; add --tta-scales (e.g. 0.75, or 1 for a mirrored pass at --size)");
         }
         let model = load_network(&weights, config.as_deref(), a.gpu, a.precision)?;
@@ -240,7 +238,7 @@ fn load_networks(a: &PredictArgs) -> Result<Networks> {
     } else {
         None
     };
-    let nets = Networks { net, keep_portrait, tta_sizes, tta_mirror, heads, other };
+    let nets = Networks { net, keep_portrait, tta, heads, other };
     let head_backbone: Option<&dyn Backbone> = match (&nets.other, &nets.net) {
         (Some((b, _)), _) => Some(b.as_ref()),
         (None, n) => n.as_ref().map(|n| n as &dyn Backbone),
@@ -268,13 +266,7 @@ fn load_inputs(a: &PredictArgs, nets: &Networks) -> Result<Vec<Input>> {
             let img = decode_oriented(p, &bytes)?;
             let prep = preprocess(&img, a.size, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
             // (Empty unless the network runs.)
-            let mirrored = (nets.tta_mirror && !nets.tta_sizes.is_empty()).then(|| img.fliph());
-            let extra = (nets.tta_sizes.iter())
-                .map(|&s| {
-                    preprocess(mirrored.as_ref().unwrap_or(&img), s, !keep_portrait)
-                        .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))
-                })
-                .collect::<Result<Vec<_>>>()?;
+            let extra = nets.tta.prepare(&img, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
             let name = dens3r_recon::input::unique_name(p, &mut names);
             let focal = match a.focal {
                 Some(f) => Some((f, FocalSource::Given)),
@@ -315,20 +307,13 @@ fn predict_one(
     if let (Some(net), Some(writer)) = (&nets.net, writer) {
         // Nothing written here reads the descriptors.
         let want = dens3r_backbone::HeadOutputs { normal: true, desc: false };
-        let (mut pred, features) = if nets.heads_on_net() {
+        let (pred, features) = if nets.heads_on_net() {
             let (p, v) = predict_mono_features(net.model(), prep, res, want);
             (p, Some(net.maps(&v)))
         } else {
             (predict_mono(net.model(), prep, res, want), None)
         };
-        if !extra.is_empty() {
-            let pass = |e| Pass {
-                prediction: predict_mono(net.model(), e, Resolution::Network, want),
-                mirrored: nets.tta_mirror,
-            };
-            let others: Vec<_> = extra.iter().map(pass).collect();
-            pred = merge_passes(pred, res, &others);
-        }
+        let mut pred = nets.tta.merge(net.model(), pred, res, extra, want);
         if let Some(src) = source.as_ref().filter(|_| a.original_size) {
             pred.rgb = src.clone();
         }

@@ -288,7 +288,12 @@ mod tests {
             assert!(moved > 1e-4, "({bh},{nq},{nk},{dh}) bf16 gave f32's output");
             // The AVX-512 BF16 kernel and the rounded values through the f32 one: the same
             // operands, sums in another order (an exponential may round to the next bf16).
-            assert!(apart < 1e-4, "({bh},{nq},{nk},{dh}) the two bf16 paths {apart} apart");
+            // Without AVX-512 BF16 both are the second, and there is nothing to compare.
+            if crate::cpu::bf16::native() {
+                assert!(apart < 1e-4, "({bh},{nq},{nk},{dh}) the two bf16 paths {apart} apart");
+            } else {
+                eprintln!("no AVX-512 BF16 here: one bf16 path only, the kernels not compared");
+            }
         }
     }
 
