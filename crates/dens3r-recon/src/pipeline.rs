@@ -290,6 +290,14 @@ pub fn reconstruct(
     let alignment = global_align(&sizes, &preds, &align, |it, _| progress(Stage::Align, it, iters))?;
     stats.align_seconds = t.elapsed().as_secs_f64();
     stats.warnings.extend(alignment.warnings.iter().cloned());
+    let estimated: Vec<Option<f64>> = align
+        .focals
+        .iter()
+        .zip(&alignment.views)
+        .map(|(known, v)| known.is_none().then_some(v.camera.intrinsics.fx))
+        .collect();
+    let tried = opts.keypoints.is_some() || opts.match_pose.is_some();
+    stats.warnings.extend(camera_warnings(&sizes, &estimated, tried && placed.is_empty()));
     drop(preds);
 
     let normals = normal_sum
@@ -314,6 +322,53 @@ pub fn reconstruct(
         masks: images.iter().map(|im| im.mask.clone()).collect(),
         stats,
     })
+}
+
+/// Same-size photos whose estimated focals differ by more than this factor get a warning.
+const FOCAL_SPREAD_WARNING: f64 = 2.0;
+
+/// What a run's cameras say about their own reliability: `unplaced` when placement by keypoints
+/// or matches was tried and placed no pair (every camera then comes from the network's
+/// cross-view pointmaps alone); `estimated` is each image's estimated focal (`None` where it
+/// was known), compared among photos of one size, which one camera at one zoom would share.
+fn camera_warnings(sizes: &[(usize, usize)], estimated: &[Option<f64>], unplaced: bool) -> Vec<String> {
+    let mut warnings = Vec::new();
+    if unplaced {
+        warnings.push(
+            "no pair was placed by SIFT keypoints or the network's matches (too little texture or overlap?): \
+             every camera comes from the network's pointmaps alone, which only a well-trained network \
+             places reliably (not the bundled dens3r-s); photos with more texture or an official \
+             checkpoint (--weights) do better"
+                .to_string(),
+        );
+    }
+    let mut by_size: HashMap<(usize, usize), Vec<f64>> = HashMap::new();
+    for (&size, f) in sizes.iter().zip(estimated) {
+        if let Some(f) = f {
+            by_size.entry(size).or_default().push(*f);
+        }
+    }
+    let mut groups: Vec<_> = by_size.into_iter().filter(|(_, f)| f.len() > 1).collect();
+    groups.sort_by_key(|g| g.0);
+    for ((w, h), f) in groups {
+        let valid: Vec<f64> = f.iter().copied().filter(|v| v.is_finite() && *v > 0.0).collect();
+        let lo = valid.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = valid.iter().copied().fold(0.0, f64::max);
+        if valid.len() < f.len() || hi > FOCAL_SPREAD_WARNING * lo {
+            warnings.push(format!(
+                "the estimated focals of the {} photos of {w}x{h} span {lo:.1} to {hi:.1} px{}: their \
+                 cameras are likely wrong; give the focal if it is known (--focal, or photos with EXIF), \
+                 or share one (--shared-focal)",
+                f.len(),
+                if valid.len() < f.len() {
+                    ", and some are no positive number".to_string()
+                } else {
+                    format!(", more than {FOCAL_SPREAD_WARNING}x apart")
+                }
+            ));
+        }
+    }
+    warnings
 }
 
 /// A pair's second view placed in its first view's frame: points, their confidence and the
@@ -652,5 +707,26 @@ mod tests {
             assert!((got - want).length() < 1e-5, "{k}: {got} vs {want}");
         }
         assert!(preds[1].pts_j.data().iter().all(|p| p.is_nan()), "a placed pair is left alone");
+    }
+
+    /// The noise-surface bunny's run (no pair placed; its ten 512x384 views' estimated focals
+    /// 47.8-700.1 px) warns twice; the gravel bunny's kind of run (pairs placed, focals known
+    /// from the cycles) and photos of another size, known focals and focals within 2x do not.
+    #[test]
+    fn cameras_that_cannot_be_trusted_are_named() {
+        let bunny = [616.4, 668.5, 700.1, 161.2, 664.0, 47.8, 627.3, 70.9, 641.0, 632.2].map(Some);
+        let w = camera_warnings(&[(512, 384); 10], &bunny, true);
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(w[0].contains("no pair was placed"), "{w:?}");
+        assert!(w[1].contains("10 photos of 512x384") && w[1].contains("47.8 to 700.1"), "{w:?}");
+        assert!(camera_warnings(&[(512, 384); 10], &[None; 10], false).is_empty());
+        // Within 2x of each other; the odd one out is of another size or known.
+        let sizes = [(512, 384), (512, 384), (512, 384), (384, 512)];
+        assert!(camera_warnings(&sizes, &[Some(400.0), Some(790.0), Some(500.0), Some(40.0)], false).is_empty());
+        assert!(camera_warnings(&sizes, &[Some(400.0), Some(500.0), None, Some(40.0)], false).is_empty());
+        let w = camera_warnings(&sizes, &[Some(400.0), Some(810.0), Some(500.0), Some(40.0)], false);
+        assert!(w.len() == 1 && w[0].contains("3 photos of 512x384"), "{w:?}");
+        // A NaN focal is no agreement either.
+        assert_eq!(camera_warnings(&sizes, &[Some(400.0), Some(f64::NAN), None, None], false).len(), 1);
     }
 }
