@@ -19,8 +19,9 @@ pub struct SynthArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// rooms, objects, mixed (rooms and objects), tabletop (clutter seen from above), bin (a
-    /// deep tote seen close from above, as a bin-picking camera does) or shelf (a shelf of
-    /// books against a wall, seen nearly head-on).
+    /// deep tote seen close from above, as a bin-picking camera does), packed-bin (the same
+    /// tote packed full, seen closer) or shelf (a shelf of books against a wall, seen nearly
+    /// head-on).
     #[arg(long, default_value = "mixed")]
     kind: String,
     /// Landscape image size WxH (portrait scenes swap it).

@@ -1073,7 +1073,7 @@ fn synth_writes_a_set_that_train_reads() {
     assert!(out.contains("from 2 scenes"), "{out}");
     assert!(run.join("model.safetensors").is_file());
     let e = fails(&["synth", "-o", &s(&dir.path().join("x")), "--kind", "caves"]);
-    assert!(e.contains("--kind") && e.contains("rooms, objects, mixed, tabletop, bin or shelf"), "{e}");
+    assert!(e.contains("--kind") && e.contains("rooms, objects, mixed, tabletop, bin, packed-bin or shelf"), "{e}");
     let other: Vec<&str> = args.iter().map(|a| if *a == "3" { "4" } else { a }).collect();
     let e = fails(&other);
     assert!(e.contains("synth.json") && e.contains("other options"), "{e}");

@@ -37,6 +37,10 @@ pub enum SynthKind {
     /// around it far), many small items and flat packages piled in it: a bin-picking camera's
     /// view.
     Bin,
+    /// The same tote packed full and seen closer: 20-45 items up to 0.6 of its half-size,
+    /// thick boxes among the packages, piled up to its rim, the camera 0.9-2 half-sizes above
+    /// the rim so the tote's walls often leave the frame (a picking cell's full bin).
+    PackedBin,
     /// A shelf unit of books and objects against a wall, seen nearly head-on from 0.7-3 m
     /// (furniture facing the camera, the wall behind it a little farther): a photo of a
     /// bookshelf, a cupboard or a desk against a wall.
@@ -44,7 +48,7 @@ pub enum SynthKind {
 }
 
 impl SynthKind {
-    /// `rooms`, `objects`, `mixed`, `tabletop`, `bin` or `shelf`.
+    /// `rooms`, `objects`, `mixed`, `tabletop`, `bin`, `packed-bin` or `shelf`.
     pub fn parse(s: &str) -> Option<Self> {
         match s {
             "rooms" => Some(Self::Rooms),
@@ -52,6 +56,7 @@ impl SynthKind {
             "mixed" => Some(Self::Mixed),
             "tabletop" => Some(Self::Tabletop),
             "bin" => Some(Self::Bin),
+            "packed-bin" => Some(Self::PackedBin),
             "shelf" => Some(Self::Shelf),
             _ => None,
         }
@@ -150,12 +155,14 @@ pub fn synth_scene(
         SynthKind::Mixed => "objects",
         SynthKind::Tabletop => "tabletop",
         SynthKind::Bin => "bin",
+        SynthKind::PackedBin => "packed-bin",
         SynthKind::Shelf => "shelf",
     };
     let (objects, poses) = match name {
         "room" => room_scene(&mut rng, views, assets),
         "objects" => object_scene(&mut rng, views, assets),
-        "bin" => bin_scene(&mut rng, views, assets),
+        "bin" => bin_scene(&mut rng, views, assets, &BinFill::SPARSE),
+        "packed-bin" => bin_scene(&mut rng, views, assets, &BinFill::PACKED),
         "shelf" => shelf_scene(&mut rng, views, assets),
         _ => tabletop_scene(&mut rng, views, assets),
     };
@@ -481,7 +488,7 @@ fn tabletop_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<O
 /// half-sizes above its rim,
 /// looking at points of its floor (up to 35 degrees off vertical), so the tote fills most of
 /// the frame and its rim is the nearest thing in view.
-fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object>, Vec<DMat4>) {
+fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets, fill: &BinFill) -> (Vec<Object>, Vec<DMat4>) {
     let mut objs = Vec::new();
     // A cell 5-11 across, walls 4 high: a camera tilted 35 degrees with a wide lens sees its
     // walls near the horizon, never the sky.
@@ -514,15 +521,17 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
     objs.push(object("tote", Shape::Mesh(Arc::new(tote(half, depth, flare, lip))), Quat::IDENTITY, at, 2, m));
     // The items: flat packages and small objects on its floor, some on top of others.
     let size = half.x.max(half.y);
-    for i in 0..rng.gen_range(6..=24) {
+    let first_item = objs.len();
+    for i in 0..rng.gen_range(fill.items.clone()) {
         let at = Vec3::new(
             rng.gen_range(-0.75..0.75) * half.x,
             rng.gen_range(-0.75..0.75) * half.y,
-            base + 0.003 + if rng.gen_bool(0.35) { rng.gen_range(0.0..0.5) * depth } else { 0.0 },
+            base + 0.003 + if rng.gen_bool(fill.piled) { rng.gen_range(0.0..fill.pile_height) * depth } else { 0.0 },
         );
-        let s = size * rng.gen_range(0.25..0.55);
-        objs.push(clutter_item(rng, assets, i, s, at, (0.65, 0.12, 0.3)));
+        let s = size * rng.gen_range(fill.item_size.clone());
+        objs.push(clutter_item(rng, assets, i, s, at, fill.packages));
     }
+    let items_top = objs[first_item..].iter().map(|o| crate::world::world_bounds(o).1.z as f64).fold(0.0, f64::max);
     // Around it: boxes standing beside it (a robot cell's machinery) and things on the floor.
     for i in 0..rng.gen_range(0..=3) {
         let a = rng.gen_range(0.0..std::f32::consts::TAU);
@@ -539,16 +548,19 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
     // a direction of the scene (one per scene, jittered).
     // 1.2-2.4 half-sizes above the rim: above the highest item (a sphere lifted by its size,
     // under 1.1 half-sizes over the rim).
-    let (rim, clearance) = ((base + depth) as f64, size as f64 * rng.gen_range(1.2..2.4));
+    let (rim, clearance) = ((base + depth) as f64, size as f64 * rng.gen_range(fill.clearance.clone()));
     let yaw = rng.gen_range(0.0..std::f64::consts::TAU);
     let h = half.as_dvec3();
     let poses = (0..views)
         .map(|_| {
-            let eye = DVec3::new(
+            let mut eye = DVec3::new(
                 rng.gen_range(-0.5..0.5) * h.x,
                 rng.gen_range(-0.5..0.5) * h.y,
                 rim + clearance * rng.gen_range(0.9..1.1),
             );
+            if let Some(gap) = fill.above_items {
+                eye.z = eye.z.max(items_top + gap * size as f64);
+            }
             let mut target = DVec3::new(rng.gen_range(-0.7..0.7) * h.x, rng.gen_range(-0.7..0.7) * h.y, base as f64);
             // At most 35 degrees off vertical.
             let off = target - eye;
@@ -562,6 +574,47 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets) -> (Vec<Object
         })
         .collect();
     (objs, poses)
+}
+
+/// How a bin scene's tote is filled and how near its cameras hover.
+struct BinFill {
+    /// How many items.
+    items: std::ops::RangeInclusive<i32>,
+    /// Item size as a fraction of the tote's larger half-size.
+    item_size: std::ops::Range<f32>,
+    /// Chance an item is lifted onto the others, and the highest lift as a fraction of the
+    /// tote's depth.
+    piled: f64,
+    pile_height: f32,
+    /// `clutter_item`'s (package chance, package thickness, tilt).
+    packages: (f64, f32, f32),
+    /// Camera height above the rim in tote half-sizes (above the highest item at the sparse
+    /// fill: a sphere lifted by its size stays under 1.1 half-sizes over the rim).
+    clearance: std::ops::Range<f64>,
+    /// If set, every camera at least this many half-sizes above the highest item (the packed
+    /// fill's piles may reach over its clearance).
+    above_items: Option<f64>,
+}
+
+impl BinFill {
+    const SPARSE: BinFill = BinFill {
+        items: 6..=24,
+        item_size: 0.25..0.55,
+        piled: 0.35,
+        pile_height: 0.5,
+        packages: (0.65, 0.12, 0.3),
+        clearance: 1.2..2.4,
+        above_items: None,
+    };
+    const PACKED: BinFill = BinFill {
+        items: 20..=45,
+        item_size: 0.25..0.6,
+        piled: 0.6,
+        pile_height: 0.8,
+        packages: (0.7, 0.4, 0.3),
+        clearance: 0.9..2.0,
+        above_items: Some(0.3),
+    };
 }
 
 /// A shelf unit (0.6-2 wide, 0.6-2.1 high, 0.22-0.45 deep, 2-5 boards, an upright in the

@@ -363,7 +363,8 @@ struct Sample {
     rgb: [u8; 3],
 }
 
-fn world_bounds(o: &Object) -> (Vec3, Vec3) {
+/// An object's axis-aligned bounds in the world.
+pub(crate) fn world_bounds(o: &Object) -> (Vec3, Vec3) {
     let corners: Vec<Vec3> = match &o.shape {
         Shape::Sphere { radius } => {
             return (o.translation - Vec3::splat(*radius), o.translation + Vec3::splat(*radius))

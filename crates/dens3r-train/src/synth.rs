@@ -26,7 +26,7 @@ pub struct SynthOptions {
     pub scenes: usize,
     /// Seed of the whole set (scene `k` is drawn from `scene_seed(seed, k)`).
     pub seed: u64,
-    /// `rooms`, `objects`, `mixed`, `tabletop`, `bin` or `shelf`.
+    /// `rooms`, `objects`, `mixed`, `tabletop`, `bin`, `packed-bin` or `shelf`.
     pub kind: String,
     /// Landscape image size `(W, H)` (portrait scenes swap it).
     pub size: (usize, usize),
@@ -49,7 +49,7 @@ impl SynthOptions {
     pub fn check(&self) -> Result<SynthKind, TrainError> {
         let kind = SynthKind::parse(&self.kind).ok_or_else(|| {
             TrainError::invalid(format!(
-                "--kind {:?}: expected rooms, objects, mixed, tabletop, bin or shelf",
+                "--kind {:?}: expected rooms, objects, mixed, tabletop, bin, packed-bin or shelf",
                 self.kind
             ))
         })?;
@@ -175,7 +175,7 @@ pub fn synthesise(
             match scene.kind {
                 "room" => summary.rooms += 1,
                 "objects" => summary.objects += 1,
-                "bin" => summary.bins += 1,
+                "bin" | "packed-bin" => summary.bins += 1,
                 "shelf" => summary.shelves += 1,
                 _ => summary.tabletops += 1,
             }
