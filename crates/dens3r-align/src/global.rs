@@ -122,8 +122,9 @@ impl Default for AlignOptions {
 }
 
 impl AlignOptions {
-    /// Image `k`'s known focal ([`Self::focals`]), when it is a usable one (finite, positive).
-    fn known_focal(&self, k: usize) -> Option<f64> {
+    /// Image `k`'s known focal ([`Self::focals`]), when it is a usable one (finite, positive):
+    /// the alignment keeps it; the others it estimates.
+    pub fn known_focal(&self, k: usize) -> Option<f64> {
         self.focals.get(k).copied().flatten().filter(|f| f.is_finite() && *f > 0.0)
     }
 

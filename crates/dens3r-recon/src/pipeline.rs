@@ -290,11 +290,8 @@ pub fn reconstruct(
     let alignment = global_align(&sizes, &preds, &align, |it, _| progress(Stage::Align, it, iters))?;
     stats.align_seconds = t.elapsed().as_secs_f64();
     stats.warnings.extend(alignment.warnings.iter().cloned());
-    let estimated: Vec<Option<f64>> = align
-        .focals
-        .iter()
-        .zip(&alignment.views)
-        .map(|(known, v)| known.is_none().then_some(v.camera.intrinsics.fx))
+    let estimated: Vec<Option<f64>> = (alignment.views.iter().enumerate())
+        .map(|(k, v)| align.known_focal(k).is_none().then_some(v.camera.intrinsics.fx))
         .collect();
     let tried = opts.keypoints.is_some() || opts.match_pose.is_some();
     stats.warnings.extend(camera_warnings(&sizes, &estimated, tried && placed.is_empty()));

@@ -546,8 +546,8 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets, fill: &BinFill
     }
     // Cameras hovering over the tote, each looking at a point of its floor; the image's up is
     // a direction of the scene (one per scene, jittered).
-    // 1.2-2.4 half-sizes above the rim: above the highest item (a sphere lifted by its size,
-    // under 1.1 half-sizes over the rim).
+    // The fill's clearance above the rim (1.2-2.4 half-sizes for bins), and at least its
+    // margin above the highest item.
     let (rim, clearance) = ((base + depth) as f64, size as f64 * rng.gen_range(fill.clearance.clone()));
     let yaw = rng.gen_range(0.0..std::f64::consts::TAU);
     let h = half.as_dvec3();
@@ -558,9 +558,7 @@ fn bin_scene(rng: &mut ChaCha8Rng, views: usize, assets: &Assets, fill: &BinFill
                 rng.gen_range(-0.5..0.5) * h.y,
                 rim + clearance * rng.gen_range(0.9..1.1),
             );
-            if let Some(gap) = fill.above_items {
-                eye.z = eye.z.max(items_top + gap * size as f64);
-            }
+            eye.z = eye.z.max(items_top + fill.above_items * size as f64);
             let mut target = DVec3::new(rng.gen_range(-0.7..0.7) * h.x, rng.gen_range(-0.7..0.7) * h.y, base as f64);
             // At most 35 degrees off vertical.
             let off = target - eye;
@@ -588,12 +586,12 @@ struct BinFill {
     pile_height: f32,
     /// `clutter_item`'s (package chance, package thickness, tilt).
     packages: (f64, f32, f32),
-    /// Camera height above the rim in tote half-sizes (above the highest item at the sparse
-    /// fill: a sphere lifted by its size stays under 1.1 half-sizes over the rim).
+    /// Camera height above the rim in tote half-sizes.
     clearance: std::ops::Range<f64>,
-    /// If set, every camera at least this many half-sizes above the highest item (the packed
-    /// fill's piles may reach over its clearance).
-    above_items: Option<f64>,
+    /// Every camera at least this many half-sizes above the highest item (the packed fill's
+    /// piles may reach over its clearance; the sparse fill's never do: a sphere lifted by its
+    /// size stays under 1.1 half-sizes over the rim, so its cameras stay where they were).
+    above_items: f64,
 }
 
 impl BinFill {
@@ -604,7 +602,7 @@ impl BinFill {
         pile_height: 0.5,
         packages: (0.65, 0.12, 0.3),
         clearance: 1.2..2.4,
-        above_items: None,
+        above_items: 0.0,
     };
     const PACKED: BinFill = BinFill {
         items: 20..=45,
@@ -613,7 +611,7 @@ impl BinFill {
         pile_height: 0.8,
         packages: (0.7, 0.4, 0.3),
         clearance: 0.9..2.0,
-        above_items: Some(0.3),
+        above_items: 0.3,
     };
 }
 
@@ -906,4 +904,38 @@ fn camera(rng: &mut ChaCha8Rng, eye: DVec3, target: DVec3, up: DVec3) -> DMat4 {
         .unwrap_or_else(|| look_at(eye, target + DVec3::X * 1e-3, up).unwrap_or(DMat4::from_translation(eye)));
     let roll = if rng.gen_bool(0.3) { rng.gen_range(-0.15..0.15f64) } else { 0.0 };
     pose * DMat4::from_rotation_z(roll)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::world::world_bounds;
+
+    /// A fill whose clearance leaves the cameras among the piles puts them above every item
+    /// instead: with 0.05-0.1 half-sizes over the rim (0.05 at most) cameras would sit inside
+    /// the piles of most scenes, and every camera ends up above the highest item (its bounds
+    /// taken from the scene's objects: those after the tote, before what stands beside it).
+    #[test]
+    fn bin_cameras_stay_above_the_piles() {
+        let low = BinFill { clearance: 0.05..0.1, ..BinFill::PACKED };
+        let mut lifted = 0;
+        for seed in 0..20 {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let (objs, poses) = bin_scene(&mut rng, 4, &Assets::default(), &low);
+            let tote = objs.iter().position(|o| o.name == "tote").unwrap();
+            let rim = world_bounds(&objs[tote]).1.z as f64;
+            let items =
+                objs[tote + 1..].iter().take_while(|o| !o.name.starts_with("beside_") && !o.name.starts_with("floor_"));
+            let top = items.map(|o| world_bounds(o).1.z as f64).fold(f64::MIN, f64::max);
+            assert!(top > rim - 0.4, "seed {seed}: no item found in the tote");
+            if top > rim + 0.05 {
+                lifted += 1;
+            }
+            for p in &poses {
+                let z = p.w_axis.z;
+                assert!(z > top, "seed {seed}: a camera at {z:.3}, the piles up to {top:.3}");
+            }
+        }
+        assert!(lifted > 10, "only {lifted} of 20 scenes' piles reach over the low clearance");
+    }
 }

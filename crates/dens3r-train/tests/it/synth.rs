@@ -536,9 +536,9 @@ fn bin_scenes_look_into_a_tote_that_fills_the_frame() {
 }
 
 /// Packed bins fill the same tote far fuller than bins do: items (every pixel neither floor
-/// nor wall, the tote's class) cover more of each view, and every camera
-/// stays above the piles (every pixel seen from above, nothing nearer than a tenth of the
-/// tote's rim distance).
+/// nor wall, the tote's class) cover more of each view, every view seen from above. (That the
+/// cameras stay above the piles is `dens3r-render`'s `bin_cameras_stay_above_the_piles`: in
+/// these scenes none comes near them.)
 #[test]
 fn packed_bins_fill_the_tote_with_piles_under_the_camera() {
     let share = |kind: &str| {
@@ -547,18 +547,8 @@ fn packed_bins_fill_the_tote_with_piles_under_the_camera() {
         let mut items = Vec::new();
         for (k, scene) in scenes.iter().enumerate() {
             for f in scene.frames() {
-                let depth = assert_seen_from_above(scene, k, f, 54.9);
+                assert_seen_from_above(scene, k, f, 54.9);
                 let labels = scene.labels(f).unwrap().unwrap();
-                let rim =
-                    labels.data().iter().zip(depth.data()).filter(|(&l, _)| l == 2).map(|(_, &z)| z).reduce(f32::min);
-                let near = depth.data().iter().copied().fold(f32::INFINITY, f32::min);
-                if let Some(rim) = rim {
-                    assert!(
-                        near > 0.1 * rim,
-                        "scene {k} {}: something {near:.3} from the camera (rim {rim:.3})",
-                        f.name
-                    );
-                }
                 let n = labels.data().iter().filter(|&&c| c != 1 && c != 2).count();
                 items.push(n as f64 / labels.data().len() as f64);
             }
