@@ -110,6 +110,8 @@ struct Model {
     /// The checkpoint file.
     #[pyo3(get)]
     weights: PathBuf,
+    /// The config beside the checkpoint, if any (keys the pair cache with the weights).
+    config: Option<PathBuf>,
     /// Long side of the network input.
     #[pyo3(get)]
     size: u32,
@@ -211,6 +213,7 @@ impl Model {
                 tta: TestTimePasses { sizes, mirrored: settings.tta_mirror },
                 net: Box::new(net),
                 weights: files.weights,
+                config: files.config,
                 size,
                 keep_portrait: keep_portrait || settings.keep_portrait,
                 notice: files.default_notice,
@@ -717,7 +720,7 @@ fn reconstruct<'py>(
         }
     };
     let (summary, rec_stats) = py.detach(|| {
-        use dens3r_recon::{list_images, load_images, write_outputs, NetworkPredictor, OutputOptions, PairCache};
+        use dens3r_recon::{list_images, load_images, write_outputs_into, NetworkPredictor, OutputOptions, PairCache};
         let paths = list_images(&photos).map_err(err)?;
         let mut images = load_images(&paths, model.size, model.keep_portrait).map_err(err)?;
         if focal.is_some() {
@@ -729,9 +732,19 @@ fn reconstruct<'py>(
         if let Some(dir) = &masks {
             dens3r_recon::attach_masks(&mut images, dir).map_err(err)?;
         }
-        let id = format!("{} size {}", dens3r_recon::predictor::weights_id(&model.weights), model.size);
-        let predictor = NetworkPredictor::new(model.net.model(), id);
+        // Locked and staged from here (the pair cache in it written as it goes).
+        let out_dir = dens3r_recon::begin_outputs(&output).map_err(err)?;
         let cache = PairCache::new(cache.then(|| output.join("cache")));
+        let id = match cache.dir() {
+            Some(dir) => dens3r_recon::predictor::weights_id(
+                &model.weights,
+                model.config.as_deref(),
+                Some(&dir.join(".file-hashes.json")),
+            )
+            .map_err(err)?,
+            None => "uncached".into(),
+        };
+        let predictor = NetworkPredictor::new(model.net.model(), format!("{id} size {}", model.size));
         let opts = dens3r_recon::ReconOptions {
             graph,
             align: dens3r_align::AlignOptions { iterations, optimize_focal: !fixed_focal, ..Default::default() },
@@ -748,8 +761,9 @@ fn reconstruct<'py>(
         .map_err(err)?;
         let min_conf = min_conf.unwrap_or(model.min_conf);
         let out_opts = OutputOptions { voxel, min_conf, gpu, mesh, match_pictures, ..Default::default() };
-        let summary =
-            write_outputs(&rec, &paths, &output, &out_opts, |done, total| report("fuse", done, total)).map_err(err)?;
+        let summary = write_outputs_into(&rec, &paths, &out_dir, &out_opts, |done, total| report("fuse", done, total))
+            .map_err(err)?;
+        out_dir.finish().map_err(err)?;
         let stats = serde_json::json!({
             "alignment_loss": [rec.alignment.loss.0, rec.alignment.loss.1],
             "pairs": rec.stats.pairs,

@@ -24,6 +24,11 @@ pub struct Hub {
     pub corrupt: AtomicBool,
     /// Every request as `METHOD PATH [RANGE]`.
     pub log: Mutex<Vec<String>>,
+    /// Answer every file address with 200 and an HTML error page, no checksum (a misconfigured
+    /// mirror or a captive portal).
+    pub html: AtomicBool,
+    /// Serve bodies with no Content-Length, closing the connection after half of them.
+    pub unsized_cut: AtomicBool,
 }
 
 /// SHA-256 in hex.
@@ -72,13 +77,23 @@ fn serve(mut stream: TcpStream, hub: &Hub) -> std::io::Result<()> {
         }
         hub.log.lock().unwrap().push(format!("{method} {path}{}", range.map(|r| format!(" {r}-")).unwrap_or_default()));
         let files = hub.files.lock().unwrap().clone();
+        if hub.html.load(Ordering::SeqCst) {
+            let page = b"<!DOCTYPE html><html><body>502 Bad Gateway</body></html>";
+            let headers = [("Content-Length".to_string(), page.len().to_string())];
+            let body: &[u8] = if method == "HEAD" { b"" } else { page };
+            respond(&mut stream, "200 OK", &headers, body)?;
+            continue;
+        }
         if let Some((_, file)) = path.split_once("/resolve/main/") {
             let Some(data) = files.get(file) else { return respond(&mut stream, "404 Not Found", &[], b"") };
-            let headers = [
+            let mut headers = vec![
                 ("Location".to_string(), format!("/cdn/{file}")),
                 ("X-Linked-Etag".to_string(), format!("\"{}\"", sha256_hex(data))),
                 ("X-Linked-Size".to_string(), data.len().to_string()),
             ];
+            if hub.unsized_cut.load(Ordering::SeqCst) {
+                headers.truncate(1);
+            }
             respond(&mut stream, "302 Found", &headers, b"")?;
             continue;
         }
@@ -103,6 +118,14 @@ fn serve(mut stream: TcpStream, hub: &Hub) -> std::io::Result<()> {
         if method == "HEAD" {
             respond(&mut stream, status, &headers, b"")?;
             continue;
+        }
+        if hub.unsized_cut.load(Ordering::SeqCst) {
+            stream.write_all(format!("HTTP/1.1 {status}\r\nConnection: close\r\n\r\n").as_bytes())?;
+            if method != "HEAD" {
+                stream.write_all(&slice[..slice.len() / 2])?;
+            }
+            stream.flush()?;
+            return stream.shutdown(std::net::Shutdown::Both);
         }
         let cut = hub.cut.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |c| c.checked_sub(1)).is_ok();
         if cut {

@@ -20,7 +20,7 @@ pub struct Converted {
 }
 
 /// Converts `input` into the folder `out` (created; its `model.safetensors` and `config.json`
-/// are replaced atomically). Integer tensors of a `.pth` (step counters and the like) are left
+/// staged and moved in together, replacing only what an earlier conversion wrote). Integer tensors of a `.pth` (step counters and the like) are left
 /// out, as a network reads none.
 pub fn to_folder(input: &Path, out: &Path) -> Result<Converted, WeightsError> {
     let (file, folder_config) = if input.is_dir() { model_folder_files(input)? } else { (input.to_path_buf(), None) };
@@ -29,10 +29,12 @@ pub fn to_folder(input: &Path, out: &Path) -> Result<Converted, WeightsError> {
     if std::fs::canonicalize(&file).ok() == std::fs::canonicalize(&model).ok() {
         return Err(WeightsError::new(out, "is the input's own folder: convert into another folder"));
     }
-    std::fs::create_dir_all(out).map_err(|e| WeightsError::new(out, format!("cannot create the folder: {e}")))?;
-    w.save_safetensors(&model)?;
+    // Staged and moved in at the end: a failure leaves the folder as it was, and a file there
+    // that dens3r did not write is refused, not replaced.
+    let dir = dens3r_io::output::OutputDir::begin(out)?;
+    w.save_safetensors(&dir.root().join("model.safetensors"))?;
     let args = w.args_model().map(str::to_string);
-    let config_path = out.join("config.json");
+    let config_path = dir.root().join("config.json");
     let config = match (&args, &folder_config) {
         (Some(a), _) => {
             dens3r_io::tensors::save_json(&config_path, &serde_json::json!({ "args": a }))?;
@@ -45,5 +47,6 @@ pub fn to_folder(input: &Path, out: &Path) -> Result<Converted, WeightsError> {
         }
         (None, None) => false,
     };
+    dir.finish()?;
     Ok(Converted { tensors: w.keys().count(), args, config })
 }

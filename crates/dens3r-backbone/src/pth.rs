@@ -110,11 +110,91 @@ fn usizes(v: &V) -> Option<Vec<usize>> {
     }
 }
 
+/// The deepest nesting of containers a checkpoint's pickle may build; deeper data is refused
+/// (it would overflow the stack when walked or dropped: a hostile file, not a checkpoint).
+pub const MAX_PICKLE_DEPTH: u32 = 1000;
+/// The most values a checkpoint's pickle may build, counting every copy a memo reference
+/// makes (a few per tensor in real checkpoints; shared references nested inside each other
+/// double at every level).
+pub const MAX_PICKLE_VALUES: u64 = 10_000_000;
+
+/// The unpickler's stack: each value with its nesting depth and how many values it holds.
+struct Stack {
+    v: Vec<V>,
+    meta: Vec<(u32, u64)>,
+}
+
+impl Stack {
+    fn push(&mut self, v: V) {
+        self.push_with(v, (0, 1));
+    }
+
+    fn push_with(&mut self, v: V, meta: (u32, u64)) {
+        self.v.push(v);
+        self.meta.push(meta);
+    }
+
+    fn pop(&mut self) -> Result<(V, (u32, u64)), String> {
+        let v = self.v.pop().ok_or_else(|| "the pickle pops an empty stack".to_string())?;
+        Ok((v, self.meta.pop().expect("meta follows the stack")))
+    }
+
+    fn pop_mark(&mut self) -> Result<(Vec<V>, (u32, u64)), String> {
+        let k = self.v.iter().rposition(|v| matches!(v, V::Mark)).ok_or("the pickle has no MARK")?;
+        let items = self.v.split_off(k + 1);
+        let meta = self.meta.split_off(k + 1);
+        self.v.pop();
+        self.meta.pop();
+        Ok((items, combined(&meta)?))
+    }
+
+    fn pop_n(&mut self, n: usize) -> Result<(Vec<V>, (u32, u64)), String> {
+        if self.v.len() < n {
+            return Err("the pickle pops an empty stack".into());
+        }
+        let items = self.v.split_off(self.v.len() - n);
+        let meta = self.meta.split_off(self.meta.len() - n);
+        Ok((items, combined(&meta)?))
+    }
+
+    fn last(&self) -> Option<(V, (u32, u64))> {
+        Some((self.v.last()?.clone(), *self.meta.last()?))
+    }
+
+    /// The top value to add items into (of these greatest depth and total size), its depth
+    /// and size updated.
+    fn last_mut_adding(&mut self, items: (u32, u64)) -> Result<Option<&mut V>, String> {
+        let Some(m) = self.meta.last_mut() else { return Ok(None) };
+        *m = bounded(m.0.max(items.0 + 1), m.1.saturating_add(items.1))?;
+        Ok(self.v.last_mut())
+    }
+}
+
+/// The depth and size of a container holding values of these depths and sizes; an error
+/// past [`MAX_PICKLE_DEPTH`] or [`MAX_PICKLE_VALUES`].
+fn combined(items: &[(u32, u64)]) -> Result<(u32, u64), String> {
+    let depth = items.iter().map(|m| m.0).max().unwrap_or(0) + 1;
+    let size = items.iter().fold(1u64, |a, m| a.saturating_add(m.1));
+    bounded(depth, size)
+}
+
+/// `(depth, size)`, or the refusal past [`MAX_PICKLE_DEPTH`] or [`MAX_PICKLE_VALUES`].
+fn bounded(depth: u32, size: u64) -> Result<(u32, u64), String> {
+    if depth > MAX_PICKLE_DEPTH {
+        return Err(format!("the pickle nests its data over {MAX_PICKLE_DEPTH} levels deep: not a checkpoint"));
+    }
+    if size > MAX_PICKLE_VALUES {
+        return Err(format!("the pickle builds over {MAX_PICKLE_VALUES} values: not a checkpoint"));
+    }
+    Ok((depth, size))
+}
+
 /// Runs the pickle program at the start of `data` into plain data; returns it and the bytes
-/// it took.
+/// it took. Data nested deeper than [`MAX_PICKLE_DEPTH`] or larger than
+/// [`MAX_PICKLE_VALUES`] is refused.
 fn unpickle(data: &[u8]) -> Result<(V, usize), String> {
-    let mut stack: Vec<V> = Vec::new();
-    let mut memo: BTreeMap<u64, V> = BTreeMap::new();
+    let mut stack = Stack { v: Vec::new(), meta: Vec::new() };
+    let mut memo: BTreeMap<u64, (V, (u32, u64))> = BTreeMap::new();
     let mut pos = 0usize;
     let take = |pos: &mut usize, n: usize| -> Result<&[u8], String> {
         let end = pos.checked_add(n).filter(|&e| e <= data.len()).ok_or("the pickle is truncated")?;
@@ -123,13 +203,6 @@ fn unpickle(data: &[u8]) -> Result<(V, usize), String> {
         Ok(s)
     };
     let u32le = |b: &[u8]| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize;
-    let pop = |stack: &mut Vec<V>| stack.pop().ok_or_else(|| "the pickle pops an empty stack".to_string());
-    let pop_mark = |stack: &mut Vec<V>| -> Result<Vec<V>, String> {
-        let k = stack.iter().rposition(|v| matches!(v, V::Mark)).ok_or("the pickle has no MARK")?;
-        let items = stack.split_off(k + 1);
-        stack.pop();
-        Ok(items)
-    };
     let text = |b: &[u8]| String::from_utf8(b.to_vec()).map_err(|_| "the pickle holds invalid UTF-8".to_string());
     loop {
         let op = *take(&mut pos, 1)?.first().ok_or("the pickle is truncated")?;
@@ -140,10 +213,10 @@ fn unpickle(data: &[u8]) -> Result<(V, usize), String> {
             0x95 => {
                 take(&mut pos, 8)?;
             }
-            b'.' => return Ok((pop(&mut stack)?, pos)),
-            b'}' => stack.push(V::Dict(Vec::new())),
-            b']' => stack.push(V::List(Vec::new())),
-            b')' => stack.push(V::Tuple(Vec::new())),
+            b'.' => return Ok((stack.pop()?.0, pos)),
+            b'}' => stack.push_with(V::Dict(Vec::new()), (1, 1)),
+            b']' => stack.push_with(V::List(Vec::new()), (1, 1)),
+            b')' => stack.push_with(V::Tuple(Vec::new()), (1, 1)),
             b'(' => stack.push(V::Mark),
             b'N' => stack.push(V::None),
             0x88 => stack.push(V::Bool(true)),
@@ -196,23 +269,25 @@ fn unpickle(data: &[u8]) -> Result<(V, usize), String> {
             }
             b'q' => {
                 let k = take(&mut pos, 1)?[0] as u64;
-                memo.insert(k, stack.last().cloned().ok_or("BINPUT on an empty stack")?);
+                memo.insert(k, stack.last().ok_or("BINPUT on an empty stack")?);
             }
             b'r' => {
                 let k = u32le(take(&mut pos, 4)?) as u64;
-                memo.insert(k, stack.last().cloned().ok_or("LONG_BINPUT on an empty stack")?);
+                memo.insert(k, stack.last().ok_or("LONG_BINPUT on an empty stack")?);
             }
             0x94 => {
                 let k = memo.len() as u64;
-                memo.insert(k, stack.last().cloned().ok_or("MEMOIZE on an empty stack")?);
+                memo.insert(k, stack.last().ok_or("MEMOIZE on an empty stack")?);
             }
             b'h' => {
                 let k = take(&mut pos, 1)?[0] as u64;
-                stack.push(memo.get(&k).cloned().ok_or("BINGET of an unknown memo entry")?);
+                let (v, m) = memo.get(&k).cloned().ok_or("BINGET of an unknown memo entry")?;
+                stack.push_with(v, m);
             }
             b'j' => {
                 let k = u32le(take(&mut pos, 4)?) as u64;
-                stack.push(memo.get(&k).cloned().ok_or("LONG_BINGET of an unknown memo entry")?);
+                let (v, m) = memo.get(&k).cloned().ok_or("LONG_BINGET of an unknown memo entry")?;
+                stack.push_with(v, m);
             }
             b'c' => {
                 let line = |pos: &mut usize| -> Result<String, String> {
@@ -226,77 +301,77 @@ fn unpickle(data: &[u8]) -> Result<(V, usize), String> {
                 stack.push(global(&module, &name)?);
             }
             0x93 => {
-                let name = pop(&mut stack)?;
-                let module = pop(&mut stack)?;
+                let (name, _) = stack.pop()?;
+                let (module, _) = stack.pop()?;
                 let (V::Str(m), V::Str(n)) = (module, name) else { return Err("STACK_GLOBAL without names".into()) };
                 stack.push(global(&m, &n)?);
             }
             b't' => {
-                let items = pop_mark(&mut stack)?;
-                stack.push(V::Tuple(items));
+                let (items, m) = stack.pop_mark()?;
+                stack.push_with(V::Tuple(items), m);
             }
             0x85..=0x87 => {
-                let n = (op - 0x84) as usize;
-                if stack.len() < n {
-                    return Err("the pickle pops an empty stack".into());
-                }
-                let items = stack.split_off(stack.len() - n);
-                stack.push(V::Tuple(items));
+                let (items, m) = stack.pop_n((op - 0x84) as usize)?;
+                stack.push_with(V::Tuple(items), m);
             }
             b'l' => {
-                let items = pop_mark(&mut stack)?;
-                stack.push(V::List(items));
+                let (items, m) = stack.pop_mark()?;
+                stack.push_with(V::List(items), m);
             }
             b'd' => {
-                let items = pop_mark(&mut stack)?;
-                stack.push(V::Dict(pairs(items)?));
+                let (items, m) = stack.pop_mark()?;
+                stack.push_with(V::Dict(pairs(items)?), m);
             }
             b'a' => {
-                let x = pop(&mut stack)?;
-                match stack.last_mut() {
+                let (x, m) = stack.pop()?;
+                match stack.last_mut_adding(m)? {
                     Some(V::List(l)) => l.push(x),
                     _ => return Err("APPEND to a non-list".into()),
                 }
             }
             b'e' => {
-                let items = pop_mark(&mut stack)?;
-                match stack.last_mut() {
+                let (items, m) = stack.pop_mark()?;
+                match stack.last_mut_adding(m)? {
                     Some(V::List(l)) => l.extend(items),
                     _ => return Err("APPENDS to a non-list".into()),
                 }
             }
             b's' => {
-                let v = pop(&mut stack)?;
-                let k = pop(&mut stack)?;
-                match stack.last_mut() {
+                let (v, mv) = stack.pop()?;
+                let (k, mk) = stack.pop()?;
+                match stack.last_mut_adding((mv.0.max(mk.0), mv.1.saturating_add(mk.1)))? {
                     Some(V::Dict(d)) => d.push((k, v)),
                     _ => return Err("SETITEM on a non-dict".into()),
                 }
             }
             b'u' => {
-                let items = pairs(pop_mark(&mut stack)?)?;
-                match stack.last_mut() {
+                let (items, m) = stack.pop_mark()?;
+                let items = pairs(items)?;
+                match stack.last_mut_adding(m)? {
                     Some(V::Dict(d)) => d.extend(items),
                     _ => return Err("SETITEMS on a non-dict".into()),
                 }
             }
             b'Q' => {
-                let pid = pop(&mut stack)?;
-                stack.push(persistent(pid)?);
+                let (pid, m) = stack.pop()?;
+                stack.push_with(persistent(pid)?, m);
             }
             b'R' | 0x81 => {
-                let args = pop(&mut stack)?;
-                let f = pop(&mut stack)?;
-                stack.push(call(f, args)?);
+                let (args, ma) = stack.pop()?;
+                let (f, mf) = stack.pop()?;
+                stack.push_with(call(f, args)?, combined(&[ma, mf])?);
             }
             b'b' => {
-                let state = pop(&mut stack)?;
-                let obj = pop(&mut stack)?;
-                stack.push(match obj {
-                    V::Object(c, _) => V::Object(c, Box::new(state)),
-                    // Parameters and tensors may carry (empty) state: the data is what counts.
-                    other => other,
-                });
+                let (state, ms) = stack.pop()?;
+                let (obj, mo) = stack.pop()?;
+                stack.push_with(
+                    match obj {
+                        V::Object(c, _) => V::Object(c, Box::new(state)),
+                        // Parameters and tensors may carry (empty) state: the data is what counts.
+                        other => other,
+                    },
+                    combined(&[ms, mo])?,
+                );
             }
             other => return Err(format!("the pickle uses opcode 0x{other:02x}, which checkpoints do not need")),
         }
@@ -441,7 +516,7 @@ fn read_legacy(mut file: std::fs::File) -> Result<PthIndex, String> {
         file.seek(SeekFrom::Start(off)).map_err(|e| e.to_string())?;
         file.read_exact(&mut n).map_err(|_| format!("legacy checkpoint: storage {k} is cut short"))?;
         let bytes = u64::from_le_bytes(n).checked_mul(*elsize.get(&k).unwrap_or(&1)).ok_or("a huge storage")?;
-        if off + 8 + bytes > len {
+        if (off + 8).checked_add(bytes).is_none_or(|end| end > len) {
             return Err(format!("legacy checkpoint: storage {k} runs past the end of the file"));
         }
         at.insert(k, (off + 8, bytes));
@@ -539,12 +614,83 @@ fn index_of(root: V, mut storage: impl FnMut(&str) -> Result<StorageAt, String>)
         }
         let (data_start, data_len) = storage(&key).map_err(|e| format!("tensor '{name}': {e}"))?;
         let numel = size.iter().try_fold(1u64, |a, &d| a.checked_mul(d as u64)).ok_or("a huge shape")?;
-        let start = data_start + offset as u64 * elsize;
-        let end = start + numel * elsize;
-        if end > data_start + data_len {
+        let span = (offset as u64)
+            .checked_mul(elsize)
+            .and_then(|o| data_start.checked_add(o))
+            .and_then(|start| Some((start, start.checked_add(numel.checked_mul(elsize)?)?)));
+        let storage_end = data_start.checked_add(data_len);
+        let Some(((start, end), storage_end)) = span.zip(storage_end) else {
+            return Err(format!("tensor '{name}': {size:?} at offset {offset} lies outside any file"));
+        };
+        if end > storage_end {
             return Err(format!("tensor '{name}': {size:?} at offset {offset} overruns its storage {key}"));
         }
         index.tensors.insert(name, PthTensor { shape: size, dtype, start, end });
     }
     Ok(index)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 66, 4: lists nested 10^6 deep and dicts 10^5 deep (a stack overflow, exit 134,
+    /// before) are refused in one line; data just under the bound still reads.
+    #[test]
+    fn deep_nesting_is_refused_not_a_crash() {
+        let lists = |n: usize| {
+            let mut p = vec![0x80, 2];
+            p.extend(std::iter::repeat_n(b']', n));
+            p.extend(std::iter::repeat_n(b'a', n - 1));
+            p.push(b'.');
+            p
+        };
+        let e = unpickle(&lists(1_000_000)).unwrap_err();
+        assert!(e.contains("levels deep") && !e.contains('\n'), "{e}");
+        let mut dicts = vec![0x80, 2, b'}'];
+        for _ in 0..100_000 {
+            dicts.extend([b'K', 1, b'}']);
+        }
+        dicts.extend(std::iter::repeat_n(b's', 100_000));
+        dicts.push(b'.');
+        let e = unpickle(&dicts).unwrap_err();
+        assert!(e.contains("levels deep"), "{e}");
+        let (v, _) = unpickle(&lists(MAX_PICKLE_DEPTH as usize)).unwrap();
+        assert!(matches!(v, V::List(_)));
+        // A long flat list appended item by item is shallow, however long.
+        let mut flat = vec![0x80, 2, b']'];
+        for _ in 0..5000 {
+            flat.extend([b'K', 7, b'a']);
+        }
+        flat.push(b'.');
+        let (v, _) = unpickle(&flat).unwrap();
+        assert!(matches!(v, V::List(l) if l.len() == 5000));
+        // Shared references nested in each other double at every level: refused, not built.
+        let mut bomb = vec![0x80, 2, b']', b'q', 0];
+        for _ in 0..60 {
+            bomb.extend([b'h', 0, b'h', 0, 0x86, b'q', 0]);
+        }
+        bomb.push(b'.');
+        let e = unpickle(&bomb).unwrap_err();
+        assert!(e.contains("values"), "{e}");
+    }
+
+    /// Issue 66, 6: a storage offset of 2^62 elements of 4 bytes (wrapping to 0 in u64) is
+    /// refused, as is one past the storage.
+    #[test]
+    fn wrapping_storage_offsets_are_refused() {
+        let tensor = |offset: usize| V::Tensor {
+            storage: ("FloatStorage".into(), "0".into()),
+            offset,
+            size: vec![4],
+            stride: vec![1],
+        };
+        let root = |offset| V::Dict(vec![(V::Str("w".into()), tensor(offset))]);
+        let at = |_: &str| Ok((100u64, 16u64));
+        let e = index_of(root(1 << 62), at).unwrap_err();
+        assert!(e.contains("'w'"), "{e}");
+        assert!(index_of(root(1), at).unwrap_err().contains("overruns"));
+        let ok = index_of(root(0), at).unwrap();
+        assert_eq!((ok.tensors["w"].start, ok.tensors["w"].end), (100, 116));
+    }
 }

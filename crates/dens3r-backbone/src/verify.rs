@@ -231,8 +231,18 @@ fn outputs(model: &Dens3r, img1: Tensor<4>, img2: Tensor<4>) -> BTreeMap<String,
 /// Loads the model in `dir`, runs it and compares every reference array present.
 pub fn verify_dir(dir: &Path, device: &Device) -> Result<Vec<Comparison>, BackboneError> {
     let config = dir.join("config.json");
-    let (model, _unexpected) =
-        load_model(&dir.join("weights.safetensors"), config.is_file().then_some(config.as_path()), device)?;
+    // The weights as converted, or an official checkpoint as published (no conversion needed).
+    let weights = ["weights.safetensors", "model.safetensors", "weights.pth", "checkpoint.pth"]
+        .iter()
+        .map(|n| dir.join(n))
+        .find(|p| p.is_file())
+        .ok_or_else(|| {
+            BackboneError::file(
+                dir,
+                "holds no weights.safetensors, model.safetensors, weights.pth or checkpoint.pth to verify",
+            )
+        })?;
+    let (model, _unexpected) = load_model(&weights, config.is_file().then_some(config.as_path()), device)?;
     let img1 = load_image(&dir.join("img1.npy"), device)?;
     let img2 = if dir.join("img2.npy").is_file() { load_image(&dir.join("img2.npy"), device)? } else { img1.clone() };
     let ours = outputs(&model, img1, img2);

@@ -43,6 +43,10 @@ pub struct Weights {
     generated: RefCell<Vec<(String, Stored)>>,
     /// `args.model` of an official `.pth` (the constructor call it was trained with).
     args_model: Option<String>,
+    /// Tensors in the file that are not read (integer, bool, non-contiguous), and why.
+    skipped: BTreeMap<String, String>,
+    /// Keys the model asked for that are among `skipped`.
+    unusable: RefCell<Vec<String>>,
 }
 
 impl Weights {
@@ -68,6 +72,9 @@ impl Weights {
         let header: BTreeMap<String, serde_json::Value> =
             serde_json::from_slice(&header).map_err(|e| corrupt(&format!("header is not JSON: {e}")))?;
         let mut tensors = BTreeMap::new();
+        let mut skipped = BTreeMap::new();
+        // Every tensor's bytes, to refuse two tensors sharing bytes.
+        let mut spans: Vec<(u64, u64, String)> = Vec::new();
         for (name, info) in header {
             if name == "__metadata__" {
                 continue;
@@ -77,25 +84,53 @@ impl Weights {
             let shape: Vec<usize> = serde_json::from_value(info["shape"].clone()).map_err(|_| bad("bad shape"))?;
             let offs: [u64; 2] =
                 serde_json::from_value(info["data_offsets"].clone()).map_err(|_| bad("bad offsets"))?;
-            let (dtype, size) = match dtype {
-                "F32" => (safetensors::Dtype::F32, 4),
-                "F16" => (safetensors::Dtype::F16, 2),
-                "BF16" => (safetensors::Dtype::BF16, 2),
-                "I64" | "I32" | "BOOL" | "U8" => continue,
+            let (float, size) = match dtype {
+                "F32" => (Some(safetensors::Dtype::F32), 4),
+                "F16" => (Some(safetensors::Dtype::F16), 2),
+                "BF16" => (Some(safetensors::Dtype::BF16), 2),
+                "I64" | "U64" | "F64" => (None, 8),
+                "I32" | "U32" => (None, 4),
+                "I16" | "U16" => (None, 2),
+                "BOOL" | "U8" | "I8" => (None, 1),
                 other => return Err(err(format!("tensor '{name}' has dtype {other}; store f32, f16 or bf16"))),
             };
             let count =
                 shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d as u64)).ok_or_else(|| bad("huge shape"))?;
-            let (start, end) = (8 + n + offs[0], 8 + n + offs[1]);
-            if offs[0] > offs[1] || end > file_len || end - start != count * size {
+            let at = |o: u64| (8 + n).checked_add(o);
+            let fits = match (at(offs[0]), at(offs[1]), count.checked_mul(size)) {
+                (Some(start), Some(end), Some(bytes))
+                    if offs[0] <= offs[1] && end <= file_len && end - start == bytes =>
+                {
+                    Some((start, end))
+                }
+                _ => None,
+            };
+            let Some((start, end)) = fits else {
                 return Err(bad(&format!(
-                    "bytes {}..{} do not hold {shape:?} {dtype:?} in a {file_len}-byte file",
+                    "bytes {}..{} do not hold {shape:?} {dtype} in a {file_len}-byte file",
                     offs[0], offs[1]
                 )));
+            };
+            spans.push((start, end, name.clone()));
+            match float {
+                Some(dtype) => {
+                    tensors.insert(name, (shape, Extent { dtype, start, end }));
+                }
+                // Integer and bool tensors are left out; a model that needs one names its dtype.
+                None => {
+                    skipped.insert(name, format!("stored as {dtype}"));
+                }
             }
-            tensors.insert(name, (shape, Extent { dtype, start, end }));
         }
-        Ok(Self::with(path.to_path_buf(), Some(file), tensors, None, None))
+        spans.sort();
+        for w in spans.windows(2) {
+            if w[1].0 < w[0].1 && w[1].0 < w[1].1 {
+                return Err(corrupt(&format!("tensors '{}' and '{}' share bytes", w[0].2, w[1].2)));
+            }
+        }
+        let mut w = Self::with(path.to_path_buf(), Some(file), tensors, None, None);
+        w.skipped = skipped;
+        Ok(w)
     }
 
     /// A store over `tensors` of `file` (none when synthetic), nothing used yet.
@@ -118,6 +153,8 @@ impl Weights {
             synthetic: synthetic.map(RefCell::new),
             generated: Default::default(),
             args_model,
+            skipped: Default::default(),
+            unusable: Default::default(),
         }
     }
 
@@ -134,8 +171,10 @@ impl Weights {
             .map(|(n, t)| (n, (t.shape, Extent { dtype: t.dtype, start: t.start, end: t.end })))
             .collect();
         // Integer tensors and views are left out, as integer safetensors entries are: a model
-        // that needs one reports it missing.
-        Ok(Self::with(path.to_path_buf(), Some(file), tensors, None, index.args_model))
+        // that needs one names why.
+        let mut w = Self::with(path.to_path_buf(), Some(file), tensors, None, index.args_model);
+        w.skipped = index.skipped.into_iter().collect();
+        Ok(w)
     }
 
     /// The constructor call an official `.pth` records under `args.model` (e.g.
@@ -254,7 +293,10 @@ impl Weights {
             }
         }
         match self.resolve(name) {
-            None => self.missing.borrow_mut().push(format!("{name} {expect:?}")),
+            None => match self.skipped.get(name) {
+                Some(why) => self.unusable.borrow_mut().push(format!("{name} ({why})")),
+                None => self.missing.borrow_mut().push(format!("{name} {expect:?}")),
+            },
             Some(key) => {
                 let (shape, extent) = &self.tensors[key];
                 self.mark_used(name, key);
@@ -296,6 +338,15 @@ impl Weights {
                 "{} tensors hold NaN or Inf values ({}): a damaged or diverged checkpoint; re-download or re-export it (a training run: resume from an earlier checkpoint with a lower --lr)",
                 nonfinite.len(),
                 preview(&nonfinite)
+            );
+            return Err(WeightsError { path: self.path.clone(), message: m });
+        }
+        let unusable = self.unusable.borrow();
+        if !unusable.is_empty() {
+            let m = format!(
+                "{} tensors the network needs are not stored as floating point ({}); store them as f32, f16 or bf16",
+                unusable.len(),
+                preview(&unusable)
             );
             return Err(WeightsError { path: self.path.clone(), message: m });
         }

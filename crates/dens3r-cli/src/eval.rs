@@ -180,11 +180,12 @@ pub fn depth_align(a: Align) -> DepthAlign {
 }
 
 fn cameras(a: CameraArgs) -> Result<()> {
-    let (views, m) = eval::camera_scores(&a.pred, &a.gt)?;
+    let (views, missing, m) = eval::camera_scores(&a.pred, &a.gt)?;
+    warn_missing(&missing, views + missing.len(), "cameras", &a.pred);
     let under = |t: f64| m.rotation_deg.iter().filter(|&&e| e < t).count() as f64 / m.rotation_deg.len() as f64;
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let j = json!({
-        "views": views, "pairs": m.rotation_deg.len(),
+        "views": views, "views_total": views + missing.len(), "missing": missing, "pairs": m.rotation_deg.len(),
         "rotation_median_deg": cam_median(&m.rotation_deg), "rotation_mean_deg": mean(&m.rotation_deg),
         "rotation_under_5": under(5.0), "rotation_under_15": under(15.0),
         "translation_median_deg": cam_median(&m.translation_deg),
@@ -195,8 +196,9 @@ fn cameras(a: CameraArgs) -> Result<()> {
         return Ok(());
     }
     println!(
-        "{} views, {} pairs: relative rotation error median {:.3} deg, mean {:.3} deg, {:.1}% under 5 deg, {:.1}% under 15 deg",
+        "{} views{}, {} pairs: relative rotation error median {:.3} deg, mean {:.3} deg, {:.1}% under 5 deg, {:.1}% under 15 deg",
         views,
+        if missing.is_empty() { String::new() } else { format!(" of {} (the others have no camera)", views + missing.len()) },
         m.rotation_deg.len(),
         cam_median(&m.rotation_deg),
         mean(&m.rotation_deg),
@@ -293,24 +295,51 @@ fn keep_scored<M, E: std::fmt::Display>(
     Ok(rows)
 }
 
+/// Warns, naming them, about ground-truth frames the prediction has nothing for: the scores
+/// are over the others (`total` frames in all).
+fn warn_missing(missing: &[String], total: usize, what: &str, pred: &std::path::Path) {
+    if missing.is_empty() {
+        return;
+    }
+    let names = missing.iter().take(8).cloned().collect::<Vec<_>>().join(", ");
+    let more = if missing.len() > 8 { format!(" and {} more", missing.len() - 8) } else { String::new() };
+    eprintln!(
+        "warning: {}: no {what} for {} of the ground truth's {total} frames ({names}{more}); scored over the other {}",
+        pred.display(),
+        missing.len(),
+        total - missing.len()
+    );
+}
+
 fn depth(a: DepthArgs) -> Result<()> {
     let align = depth_align(a.align);
     // A scene folder, or a folder of depth .npy files named by frame.
-    let (pred, gt) = if a.common.pred.join("cameras.json").is_file() {
+    let (pred, gt, missing) = if a.common.pred.join("cameras.json").is_file() {
         let p = eval::pair(&a.common.pred, &a.common.gt)?;
-        (eval::pred_depths(&p)?, p.gt)
+        (eval::pred_depths(&p)?, p.gt, p.missing)
     } else {
         let gt = Scene::open(&a.common.gt)?;
-        (eval::npy_depths(&a.common.pred, &gt)?, gt)
+        let (pred, missing) = eval::npy_depths(&a.common.pred, &gt)?;
+        (pred, gt, missing)
     };
+    let total = pred.len() + missing.len();
+    warn_missing(&missing, total, "depth", &a.common.pred);
     let scored = eval::depth_scores(&pred, &gt, align)?;
     let rows = keep_scored(scored, "depth", &a.common)?;
     let mean = |f: &dyn Fn(&DepthMetrics) -> f64| rows.iter().map(|r| f(&r.1)).sum::<f64>() / rows.len() as f64;
     let summary =
         [mean(&|m| m.abs_rel), mean(&|m| m.rmse), mean(&|m| m.delta[0]), mean(&|m| m.delta[1]), mean(&|m| m.delta[2])];
+    // The share of the ground truth's valid pixels scored, over every frame (unscored ones 0).
+    let coverage = rows.iter().map(|r| r.1.coverage).sum::<f64>() / total.max(1) as f64;
+    for (n, m) in rows.iter().filter(|r| r.1.coverage < 0.999) {
+        eprintln!(
+            "warning: frame '{n}': the prediction is invalid (NaN, infinite or zero) at {:.1}% of the ground truth's valid pixels; scored on the rest",
+            100.0 * (1.0 - m.coverage)
+        );
+    }
     if a.common.json {
-        let frames: Vec<_> = rows.iter().map(|(n, m)| json!({"name": n, "abs_rel": m.abs_rel, "rmse": m.rmse, "delta": m.delta, "scale": m.scale, "shift": m.shift, "pixels": m.count})).collect();
-        let s = json!({"frames": rows.len(), "abs_rel": summary[0], "rmse": summary[1], "delta1": summary[2], "delta2": summary[3], "delta3": summary[4], "per_frame": frames});
+        let frames: Vec<_> = rows.iter().map(|(n, m)| json!({"name": n, "abs_rel": m.abs_rel, "rmse": m.rmse, "delta": m.delta, "scale": m.scale, "shift": m.shift, "pixels": m.count, "coverage": m.coverage})).collect();
+        let s = json!({"frames": rows.len(), "frames_total": total, "missing": missing, "coverage": coverage, "abs_rel": summary[0], "rmse": summary[1], "delta1": summary[2], "delta2": summary[3], "delta3": summary[4], "per_frame": frames});
         println!("{}", serde_json::to_string_pretty(&s)?);
         return Ok(());
     }
@@ -323,11 +352,12 @@ fn depth(a: DepthArgs) -> Result<()> {
             );
         }
     }
-    let label = format!("mean of {}", rows.len());
+    let label = if rows.len() < total { format!("mean of {}/{total}", rows.len()) } else { format!("mean of {total}") };
     println!(
         "{:<12} {:>9.5} {:>9.5} {:>8.4} {:>8.4} {:>8.4}",
         label, summary[0], summary[1], summary[2], summary[3], summary[4]
     );
+    println!("(coverage: {:.1}% of the ground truth's valid pixels scored)", 100.0 * coverage);
     Ok(())
 }
 
@@ -362,7 +392,10 @@ fn normals(a: NormalArgs) -> Result<()> {
         (false, Convention::Dens3rSaved) => NormalSource::Layer(NormalConvention::Dens3rSaved),
         (false, Convention::Opengl) => NormalSource::Layer(NormalConvention::OpenGl),
     };
-    let rows = eval::normal_scores(&eval::pair(&a.common.pred, &a.common.gt)?, source)?;
+    let paired = eval::pair(&a.common.pred, &a.common.gt)?;
+    let total = paired.frames.len() + paired.missing.len();
+    warn_missing(&paired.missing, total, "normals", &a.common.pred);
+    let rows = eval::normal_scores(&paired, source)?;
     let rows = keep_scored(rows, "normals", &a.common)?;
     let mean = |f: &dyn Fn(&NormalMetrics) -> f64| rows.iter().map(|r| f(&r.1)).sum::<f64>() / rows.len() as f64;
     let s = [

@@ -57,6 +57,9 @@ pub struct FuseArgs {
     overwrite: bool,
 }
 
+/// The widest truncation band `--trunc` takes, in voxels.
+pub const MAX_TRUNC_VOXELS: f32 = 64.0;
+
 /// Whether `out` is an existing file inside the folder `scene` (one of its files).
 pub fn inside_existing(out: &std::path::Path, scene: &std::path::Path) -> bool {
     match (out.canonicalize(), scene.canonicalize()) {
@@ -89,6 +92,10 @@ fn checked_crop(a: &FuseArgs) -> Result<Option<(glam::Vec3, glam::Vec3)>> {
     }
     if a.trunc.is_nan() || a.trunc < 1.0 {
         bail!("--trunc {} must be at least 1 voxel", a.trunc);
+    }
+    // Each depth sample updates the voxels within the band: a wider one only costs time.
+    if a.trunc > MAX_TRUNC_VOXELS {
+        bail!("--trunc {}: at most {MAX_TRUNC_VOXELS} voxels (3 to 8 is usual; the band's voxels are visited for every pixel)", a.trunc);
     }
     if a.budget_mb.is_nan() || a.budget_mb <= 0.0 {
         bail!("--budget-mb must be positive");

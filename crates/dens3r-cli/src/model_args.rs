@@ -20,8 +20,9 @@ pub struct ModelArgs {
     /// default: a .pth's args.model or a folder's config.json, else head dim 64.
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Long side of the network input (512, or 1024 for more detail).
-    #[arg(long, default_value_t = 512)]
+    /// Long side of the network input (512, or 1024 for more detail; `512x384` is read as its
+    /// long side).
+    #[arg(long, default_value_t = 512, value_parser = parse_long_side)]
     pub size: u32,
     /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them to
     /// landscape as the official Dens3R does (a model whose config says `"keep_portrait": true`,
@@ -33,6 +34,18 @@ pub struct ModelArgs {
     /// BF16) and f16 is slower (`dens3r verify --precision` measures their error).
     #[arg(long, default_value_t = Precision::F32)]
     pub precision: Precision,
+}
+
+/// `--size` as a long side: `512`, or `WxH` (`512x384`: its longer side; the other follows
+/// each photo's aspect), so the form `train` takes works here too.
+pub fn parse_long_side(s: &str) -> Result<u32, String> {
+    let t = s.trim();
+    let num =
+        |x: &str| x.trim().parse::<u32>().map_err(|_| format!("{s:?}: expected a long side (512) or WxH (512x384)"));
+    match t.split_once(['x', 'X']) {
+        Some((w, h)) => Ok(num(w)?.max(num(h)?)),
+        None => num(t),
+    }
 }
 
 /// `--size` in the range the network takes (checked before any image is read, so the error

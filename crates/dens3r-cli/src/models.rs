@@ -17,8 +17,12 @@ pub fn run(a: ModelsArgs) -> Result<()> {
     if let Some(name) = &a.fetch {
         let k = dens3r_hub::find(name)
             .ok_or_else(|| anyhow!("{name}: not a known checkpoint; `dens3r models` lists them"))?;
+        let checked = reverify(k)?;
         let dir = fetch(k)?;
         println!("{name}: {}", dir.display());
+        for line in checked {
+            println!("  {line}");
+        }
         return Ok(());
     }
     println!("{:<19} {:<7} {:>7}  {:<10}  predicts", "name", "family", "size", "where");
@@ -64,4 +68,30 @@ pub fn fetch(k: &Known) -> Result<PathBuf> {
     });
     bar.finish_and_clear();
     Ok(dir?)
+}
+
+/// `--fetch` on a cached checkpoint checks every cached file in full (format, SHA-256 against
+/// its download record): a file of dens3r's that fails is removed to be fetched again, with a
+/// warning naming it; one placed by hand that fails is named and left alone (an error).
+fn reverify(k: &Known) -> Result<Vec<String>> {
+    let mut lines = Vec::new();
+    if !matches!(k.source, Source::Hub { .. }) {
+        return Ok(lines);
+    }
+    let dir = dens3r_hub::model_dir(k);
+    for file in dens3r_hub::catalogue::HUB_FILES {
+        let path = dir.join(file);
+        if !path.is_file() {
+            continue;
+        }
+        match dens3r_hub::verify_cached(k, file) {
+            Ok(msg) => lines.push(format!("{file}: verified, {msg}")),
+            Err(e) if dir.join(format!("{file}.sha256")).is_file() => {
+                eprintln!("warning: {e}; downloading it again");
+                std::fs::remove_file(&path).map_err(|x| anyhow!("{}: cannot remove ({x})", path.display()))?;
+            }
+            Err(e) => return Err(anyhow!("{e}; remove it (dens3r did not place it) and run again")),
+        }
+    }
+    Ok(lines)
 }

@@ -101,6 +101,31 @@ fn device(gpu: bool) -> Result<burn::tensor::Device> {
     bail!("this dens3r was built without GPU training: rebuild with `cargo build --release --features nsdf-wgpu`, or drop --gpu")
 }
 
+/// The most rays per iteration `--rays` takes.
+const MAX_RAYS: usize = 1 << 16;
+/// The most samples per ray `--samples` takes.
+const MAX_SAMPLES: usize = 1024;
+/// The most field points per iteration (rays x samples): 32 times the default's, about 2 GB
+/// of activations and gradients on the CPU.
+const MAX_POINTS: usize = 1 << 20;
+
+/// A mesh voxel that the scene's extent can mesh: between 1/4096 and 1/4 of its bounding
+/// cube (the default is 1/256); a larger one has no cell to mesh, a smaller one a grid that
+/// does not fit in memory.
+fn check_voxel(voxel: Option<f32>, data: &TrainData) -> Result<()> {
+    let Some(v) = voxel else { return Ok(()) };
+    let cube = data.default_voxel() * 256.0;
+    if v > cube / 4.0 || v < cube / 4096.0 {
+        bail!(
+            "--voxel {v}: the scene's bounding cube is {cube:.4} wide; give a voxel between {:.6} and {:.4} (default {:.5})",
+            cube / 4096.0,
+            cube / 4.0,
+            cube / 256.0
+        );
+    }
+    Ok(())
+}
+
 /// The checkpoint folder, after refusing options that cannot work and outputs that cannot be
 /// written (checked, not created: a run refused later leaves no folder behind).
 fn checked_checkpoint_dir(a: &NsdfArgs) -> Result<PathBuf> {
@@ -113,6 +138,27 @@ fn checked_checkpoint_dir(a: &NsdfArgs) -> Result<PathBuf> {
     }
     if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         bail!("--voxel must be a positive length");
+    }
+    // Every ray's samples live at once through the field and its gradients: bounded by memory.
+    if a.rays == 0 || a.rays > MAX_RAYS {
+        bail!("--rays {}: expected 1 to {MAX_RAYS} rays per iteration (default 1024)", a.rays);
+    }
+    if a.samples == 0 || a.samples > MAX_SAMPLES {
+        bail!("--samples {}: expected 1 to {MAX_SAMPLES} samples per ray (default 32)", a.samples);
+    }
+    if a.rays * a.samples > MAX_POINTS {
+        bail!(
+            "--rays {} x --samples {} = {} points per iteration, over the {MAX_POINTS} that fit in memory; lower one of them",
+            a.rays,
+            a.samples,
+            a.rays * a.samples
+        );
+    }
+    if a.levels == 0 || a.levels > 32 {
+        bail!("--levels {}: expected 1 to 32 hash-grid levels (default 12)", a.levels);
+    }
+    if !(2..=1 << 16).contains(&a.max_res) {
+        bail!("--max-res {}: expected 2 to 65536 (default 512)", a.max_res);
     }
     // Where the mesh and the checkpoints go must be writable before any training is spent.
     let mut ck_dir = a.checkpoint_dir.clone().unwrap_or_else(|| {
@@ -157,6 +203,7 @@ pub fn run(a: NsdfArgs) -> Result<()> {
     let t0 = Instant::now();
     let scene = dens3r_scene::Scene::open(&a.scene)?;
     let data = dens3r_nsdf::load_scene(&scene)?;
+    check_voxel(a.voxel, &data)?;
     if !data.unusable_normals.is_empty() && !a.no_normals {
         eprintln!(
             "warning: {}: normals/ of frame(s) {} hold no usable normal (NaN, infinite or zero): training without the normal loss",

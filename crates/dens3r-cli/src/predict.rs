@@ -11,6 +11,7 @@ use dens3r_heads::data::resize_nearest;
 use dens3r_heads::features::file_hash;
 use dens3r_heads::infer::{check_head, infer, write_head_output, HeadOutput};
 use dens3r_heads::{Backbone, Dens3rBackbone, Head, Task};
+use dens3r_io::output::OutputDir;
 use dens3r_recon::input::exif_focal_px;
 use dens3r_recon::mono::{write_mono_frame, FocalSource};
 use dens3r_scene::SceneWriter;
@@ -28,8 +29,9 @@ pub struct PredictArgs {
     /// default: head dim 64.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Long side of the network input (512, or 1024 for more detail).
-    #[arg(long, default_value_t = 512)]
+    /// Long side of the network input (512, or 1024 for more detail; `512x384` is read as its
+    /// long side).
+    #[arg(long, default_value_t = 512, value_parser = crate::model_args::parse_long_side)]
     size: u32,
     /// Keep portrait images as they are (upstream DUSt3R / MASt3R) instead of rotating them to
     /// landscape as the official Dens3R does (a model whose config says `"keep_portrait": true`,
@@ -82,8 +84,9 @@ pub struct PredictArgs {
     /// Output folder (a scene folder when the network runs).
     #[arg(short, long)]
     output: PathBuf,
-    /// Replace the scene folder OUTPUT already holds (the new one is written beside it and
-    /// swapped in at the end, so images read from it stay intact until then).
+    /// Replace the outputs of an earlier dens3r run in OUTPUT (the new ones are staged and
+    /// moved in at the end, so images read from it stay intact until then; files of yours
+    /// there are never touched).
     #[arg(long)]
     overwrite: bool,
     /// Run the network on the GPU (the default build's `gpu-network` feature, or `cuda`).
@@ -105,7 +108,22 @@ pub fn refuse_existing_scene(out: &Path, overwrite: bool) -> Result<()> {
             out.display()
         );
     }
+    if !overwrite && dens3r_io::output::holds_outputs(out) {
+        bail!(
+            "{}: already holds the outputs of an earlier dens3r run; write to a new folder, or pass --overwrite to replace them",
+            out.display()
+        );
+    }
     Ok(())
+}
+
+/// Starts the output folder of a command that writes a scene there (its lock taken, its
+/// outputs staged), counting the scene files of dens3r versions before the output manifest
+/// as dens3r's.
+pub fn begin_output(dir: &Path) -> Result<OutputDir> {
+    let mut out = OutputDir::begin(dir)?;
+    out.set_legacy(dens3r_scene::legacy_outputs(dir));
+    Ok(out)
 }
 
 /// A loaded head and where its outputs go.
@@ -143,6 +161,9 @@ pub fn run(a: PredictArgs) -> Result<()> {
         bail!("--focal must be a positive number of pixels (e.g. 1000 for a 4000-pixel-wide photo at 70 degrees)");
     }
     for p in &a.images {
+        if p.is_dir() {
+            bail!("{}: is a folder, not an image; give the photos in it (e.g. {}/*.jpg)", p.display(), p.display());
+        }
         if !p.is_file() {
             bail!("{}: image not found", p.display());
         }
@@ -150,19 +171,20 @@ pub fn run(a: PredictArgs) -> Result<()> {
     refuse_existing_scene(&a.output, a.overwrite)?;
     let nets = load_networks(&a)?;
     let inputs = load_inputs(&a, &nets)?;
+    let out = begin_output(&a.output)?;
+    // A photo (or other file of the user's) where a frame's outputs go is refused now, not
+    // after the network ran.
+    out.check_free(&planned_outputs(&inputs, &nets))?;
+    // Every file goes to the staging folder, moved into OUTPUT at the end.
+    let root = out.root().to_path_buf();
     let mut writer = match &nets.net {
         Some(_) => {
-            let mut w = SceneWriter::create(&a.output)?;
+            let mut w = SceneWriter::in_folder(&root)?;
             w.set_extra("generator", serde_json::json!("dens3r predict"));
             Some(w)
         }
-        None => {
-            std::fs::create_dir_all(&a.output).with_context(|| format!("{}: cannot create", a.output.display()))?;
-            None
-        }
+        None => None,
     };
-    // Every file goes where the writer writes (a staging folder while a scene is replaced).
-    let root = writer.as_ref().map_or_else(|| a.output.clone(), |w| w.root().to_path_buf());
     create_head_folders(&root, &nets.heads)?;
     let bar = indicatif::ProgressBar::new(inputs.len() as u64).with_style(
         indicatif::ProgressStyle::with_template("predict {bar:30} {pos}/{len} images [{elapsed} < {eta}]")
@@ -175,6 +197,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
     if let Some(w) = writer {
         w.finish()?;
     }
+    out.finish()?;
     bar.finish_and_clear();
     let what = match (&nets.net, nets.heads.len()) {
         (Some(_), 0) => "depth, normals, confidence, intrinsics and pointmaps".to_string(),
@@ -269,13 +292,35 @@ fn load_inputs(a: &PredictArgs, nets: &Networks) -> Result<Vec<Input>> {
             let extra = nets.tta.prepare(&img, !keep_portrait).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
             let name = dens3r_recon::input::unique_name(p, &mut names);
             let focal = match a.focal {
-                Some(f) => Some((f, FocalSource::Given)),
+                Some(f) => {
+                    dens3r_recon::input::check_focal(f, img.width() as f64, "--focal")
+                        .map_err(|e| anyhow::anyhow!("{e} ({})", p.display()))?;
+                    Some((f, FocalSource::Given))
+                }
                 None if a.no_exif_focal => None,
                 None => exif_focal_px(&bytes, (img.width(), img.height())).map(|f| (f, FocalSource::Exif)),
             };
             Ok((name, prep, keep_source.then(|| img.to_rgb8()), focal, extra))
         })
         .collect()
+}
+
+/// The files predict writes for its frames (relative to OUTPUT), checked free before it runs.
+fn planned_outputs(inputs: &[Input], nets: &Networks) -> Vec<String> {
+    let mut files = vec!["cameras.json".to_string()];
+    for (name, ..) in inputs {
+        if nets.net.is_some() {
+            for f in ["images/{}.png", "depth/{}.npy", "normals/{}.npy", "conf/{}.npy", "pointmaps/{}.ply"] {
+                files.push(f.replace("{}", name));
+            }
+            files.push(format!("viz/{name}_depth.png"));
+            files.push(format!("viz/{name}_normal.png"));
+        }
+        for h in &nets.heads {
+            files.push(format!("viz/{name}_{}.png", h.stem));
+        }
+    }
+    files
 }
 
 /// `heads/HEAD/` for every head, with its `classes.json` for segmentation heads.

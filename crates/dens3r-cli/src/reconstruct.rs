@@ -10,8 +10,8 @@ use dens3r_align::{AlignOptions, PairGraph};
 use dens3r_backbone::Precision;
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
-    list_images, load_images, reconstruct, write_outputs, KeypointOptions, NetworkPredictor, OutputOptions,
-    OutputSummary, PairCache, ReconOptions, Reconstruction, Stage, TrackOptions,
+    begin_outputs, list_images, load_images, reconstruct, write_outputs_into, KeypointOptions, NetworkPredictor,
+    OutputOptions, OutputSummary, PairCache, ReconOptions, Reconstruction, Stage, TrackOptions,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -162,7 +162,10 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let mut images = load_images(&paths, a.model.size, a.model.keep_portrait || settings.keep_portrait)?;
     for im in &mut images {
         match a.focal {
-            Some(f) => im.set_focal(Some(f)),
+            Some(f) => {
+                im.check_focal(f, "--focal").map_err(|e| anyhow::anyhow!("{e}"))?;
+                im.set_focal(Some(f))
+            }
             None if a.no_exif_focal => im.set_focal(None),
             None => {}
         }
@@ -180,8 +183,15 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         Precision::F32 => String::new(),
         p => format!(" {p}"),
     };
-    let predictor = NetworkPredictor::new(&model, format!("{} size {}{precision}", weights_id(&weights), a.model.size));
+    // The output folder is locked (a second run into it is refused) and staged from here;
+    // the pair cache in it is written as it goes, so a rerun after a failure resumes.
+    let out_dir = begin_outputs(&a.output)?;
     let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
+    let id = match cache.dir() {
+        Some(dir) => weights_id(&weights, config.as_deref(), Some(&dir.join(".file-hashes.json")))?,
+        None => "uncached".into(),
+    };
+    let predictor = NetworkPredictor::new(&model, format!("{id} size {}{precision}", a.model.size));
     let opts = ReconOptions {
         graph,
         align: AlignOptions {
@@ -221,10 +231,11 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         ..Default::default()
     };
     let fbar = bar("fuse", images.len(), "frames");
-    let summary = write_outputs(&rec, &paths, &a.output, &out_opts, |done, total| {
+    let summary = write_outputs_into(&rec, &paths, &out_dir, &out_opts, |done, total| {
         fbar.set_length(total as u64);
         fbar.set_position(done as u64);
     })?;
+    out_dir.finish()?;
     fbar.finish_and_clear();
     report(&a, &rec, &summary, min_conf, predictor.encoded_images(), t0);
     Ok(())

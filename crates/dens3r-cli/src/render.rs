@@ -68,7 +68,8 @@ pub struct RenderArgs {
     /// Output scene folder.
     #[arg(short, long)]
     output: PathBuf,
-    /// Replace the scene OUTPUT already holds (the new one is swapped in whole at the end).
+    /// Replace the scene an earlier dens3r run wrote in OUTPUT (staged, moved in at the end;
+    /// files of yours there are never touched).
     #[arg(long)]
     overwrite: bool,
 }

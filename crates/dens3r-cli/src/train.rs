@@ -158,8 +158,14 @@ fn parse_fine(s: &str) -> Result<((usize, usize), usize)> {
     Ok((parse_size(size)?, steps))
 }
 
+/// `WxH`, or a long side alone (`512`: landscape 4:3, the short side rounded down to a
+/// multiple of 16, `512x384`), as predict and reconstruct take it.
 pub fn parse_size(s: &str) -> Result<(usize, usize)> {
-    let (w, h) = s.split_once('x').ok_or_else(|| anyhow!("--size {s:?}: expected WxH, e.g. 224x160"))?;
+    let Some((w, h)) = s.split_once(['x', 'X']) else {
+        let n: usize =
+            s.trim().parse().map_err(|_| anyhow!("--size {s:?}: expected WxH (224x160) or a long side (224)"))?;
+        return Ok((n, (n * 3 / 4) / 16 * 16));
+    };
     Ok((
         w.trim().parse().map_err(|_| anyhow!("--size {s:?}: bad width"))?,
         h.trim().parse().map_err(|_| anyhow!("--size {s:?}: bad height"))?,

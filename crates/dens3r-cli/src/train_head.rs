@@ -71,8 +71,9 @@ pub struct TrainHeadArgs {
     /// 1 = the reverse. Run both for 2-fold cross-validation: together they score every pixel.
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=1))]
     fold: u8,
-    /// Long side of the network input in pixels (rounded to whole patches).
-    #[arg(long, default_value_t = 224)]
+    /// Long side of the network input in pixels (rounded to whole patches; `224x160` is read
+    /// as its long side).
+    #[arg(long, default_value_t = 224, value_parser = crate::model_args::parse_long_side)]
     size: u32,
     /// Epochs.
     #[arg(long, default_value_t = 20)]

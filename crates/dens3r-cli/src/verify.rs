@@ -8,7 +8,8 @@ use std::path::PathBuf;
 
 #[derive(Args)]
 pub struct VerifyArgs {
-    /// Folder with weights.safetensors, config.json, img1.npy [img2.npy] and reference arrays.
+    /// Folder with the weights (weights.safetensors, or an official weights.pth as published),
+    /// config.json, img1.npy [img2.npy] and reference arrays.
     dir: PathBuf,
     /// Run the network on the GPU (the default build's `gpu-network` feature, or `cuda`).
     #[arg(long)]

@@ -260,6 +260,8 @@ fuzz_tests! {
     safetensors => "safetensors",
     model_json => "model-json",
     pth => "pth",
+    pth_nesting => "pth-nesting",
+    safetensors_offsets => "safetensors-offsets",
     onnx => "onnx",
     png => "png",
     jpeg => "jpeg",

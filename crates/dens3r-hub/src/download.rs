@@ -140,7 +140,52 @@ pub fn download(
     expected_sha256: Option<&str>,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<Fetched, HubError> {
+    download_checked(url, dest, &Expect { sha256: expected_sha256, ..Expect::default() }, progress)
+}
+
+/// What a download must be beyond its checksum.
+#[derive(Default)]
+pub struct Expect<'a> {
+    /// SHA-256 from the catalogue (else the server's, if it publishes one).
+    pub sha256: Option<&'a str>,
+    /// The most bytes the file may have: a larger announced size is refused before anything is
+    /// fetched, a body that runs past it is cut off and refused.
+    pub max_bytes: Option<u64>,
+    /// A check of the finished bytes (their format); a failure removes them.
+    pub check: Option<&'a dyn Fn(&Path) -> Result<(), String>>,
+}
+
+/// [`download`] with limits and a format check: a size beyond `max_bytes` or the free disk is
+/// refused before anything is fetched, and bytes that fail `check` are removed, never renamed
+/// into place (an error page served as the file, a body cut short with no length announced).
+pub fn download_checked(
+    url: &str,
+    dest: &Path,
+    expect: &Expect,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<Fetched, HubError> {
+    let expected_sha256 = expect.sha256;
     let head = head(url)?;
+    if let (Some(size), Some(max)) = (head.size, expect.max_bytes) {
+        if size > max {
+            return Err(HubError::invalid(format!(
+                "{url}: the server announces {size} bytes, more than the {max} this file can have; \
+                 check $DENS3R_HUB_ENDPOINT (a mirror serving something else?)"
+            )));
+        }
+    }
+    if let (Some(size), Some(free)) = (head.size, free_bytes(dest.parent().unwrap_or(Path::new(".")))) {
+        let have = std::fs::metadata(part_path(dest)).map(|m| m.len()).unwrap_or(0);
+        if size.saturating_sub(have) > free {
+            return Err(HubError::file(
+                dest,
+                format!(
+                    "needs {size} bytes, and its disk has {free} free; free some space or set ${}",
+                    crate::HOME_ENV
+                ),
+            ));
+        }
+    }
     let (expected, checked_against) = match (expected_sha256, &head.sha256) {
         (Some(s), _) => (Some(s.to_ascii_lowercase()), "catalogue"),
         (None, Some(s)) => (Some(s.clone()), "server"),
@@ -154,7 +199,7 @@ pub fn download(
     let resumed_from = have;
     // The hash follows the bytes as they are written; only a part already whole is read back.
     let (fetched, hashed) = if head.size != Some(have) || have == 0 {
-        fetch_into(&head.location, &part, &mut have, head.size, progress)?
+        fetch_into(&head.location, &part, &mut have, head.size, expect.max_bytes, progress)?
     } else {
         (0, None)
     };
@@ -174,6 +219,17 @@ pub fn download(
             ));
         }
     }
+    if let Some(check) = expect.check {
+        if let Err(why) = check(&part) {
+            let _ = std::fs::remove_file(&part);
+            return Err(HubError::file(
+                dest,
+                format!(
+                    "the server sent {why}, not the file; nothing was kept. Check $DENS3R_HUB_ENDPOINT and run again"
+                ),
+            ));
+        }
+    }
     std::fs::rename(&part, dest).map_err(|e| HubError::file(dest, format!("cannot finish the download ({e})")))?;
     Ok(Fetched { path: dest.to_path_buf(), sha256: got, checked_against, fetched, resumed_from })
 }
@@ -186,6 +242,7 @@ fn fetch_into(
     part: &Path,
     have: &mut u64,
     total: Option<u64>,
+    max_bytes: Option<u64>,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<(u64, Option<Sha256>), HubError> {
     let net = |e: ureq::Error| {
@@ -246,6 +303,14 @@ fn fetch_into(
                 )));
             }
         };
+        if max_bytes.is_some_and(|m| *have + n as u64 > m) {
+            drop(file);
+            let _ = std::fs::remove_file(part);
+            return Err(HubError::invalid(format!(
+                "{location}: the body runs past the {} bytes this file can have; nothing was kept. Check $DENS3R_HUB_ENDPOINT",
+                max_bytes.unwrap_or(0)
+            )));
+        }
         file.write_all(&buf[..n])
             .map_err(|e| HubError::file(part, format!("cannot write ({e}); check the cache folder's space")))?;
         hash.update(&buf[..n]);
@@ -263,4 +328,86 @@ fn fetch_into(
         }
     }
     Ok((fetched, Some(hash)))
+}
+
+/// Free bytes on the disk holding `dir` (`None` where it cannot be told).
+fn free_bytes(dir: &Path) -> Option<u64> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::ffi::OsStrExt;
+        let c = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+        let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+        // SAFETY: `c` is a valid NUL-terminated path and `st` a writable statvfs.
+        let r = unsafe { libc::statvfs(c.as_ptr(), &mut st) };
+        (r == 0).then(|| st.f_bavail as u64 * st.f_frsize as u64)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = dir;
+        None
+    }
+}
+
+/// Whether a hub model file's bytes are what its name says: `model.safetensors` a complete
+/// safetensors file (a header of JSON whose tensors' byte ranges lie in the file and fill it),
+/// `config.json` a JSON object. Returns what was found instead.
+pub fn check_hub_file(name: &str, path: &Path) -> Result<(), String> {
+    let len = std::fs::metadata(path).map_err(|e| format!("an unreadable file ({e})"))?.len();
+    let mut f = std::fs::File::open(path).map_err(|e| format!("an unreadable file ({e})"))?;
+    let mut start = [0u8; 16];
+    let got = f.read(&mut start).unwrap_or(0);
+    let looks = || {
+        let t = String::from_utf8_lossy(&start[..got]).to_ascii_lowercase();
+        if t.trim_start().starts_with('<') {
+            "an HTML or XML page".to_string()
+        } else if start[..got].iter().all(|&b| b == 0) {
+            format!("{len} bytes of zeros")
+        } else {
+            format!("{len} bytes that are not one")
+        }
+    };
+    match name {
+        "model.safetensors" => {
+            if len < 10 {
+                return Err(format!("{len} bytes (too short for a safetensors file)"));
+            }
+            let n = u64::from_le_bytes(start[..8].try_into().expect("8 bytes"));
+            if n < 2 || n > (len - 8).min(100 << 20) {
+                return Err(format!("{} (no safetensors header)", looks()));
+            }
+            let mut header = vec![0u8; n as usize];
+            use std::io::Seek;
+            f.seek(std::io::SeekFrom::Start(8)).map_err(|e| format!("an unreadable file ({e})"))?;
+            f.read_exact(&mut header).map_err(|e| format!("an unreadable file ({e})"))?;
+            let json: serde_json::Value = serde_json::from_slice(&header)
+                .map_err(|_| format!("{} (its safetensors header is not JSON)", looks()))?;
+            let obj = json.as_object().ok_or("a safetensors file whose header is not a JSON object")?;
+            let body = len - 8 - n;
+            let mut end = 0u64;
+            for (k, v) in obj.iter().filter(|(k, _)| k.as_str() != "__metadata__") {
+                let off = v.get("data_offsets").and_then(|o| o.as_array()).filter(|o| o.len() == 2);
+                let pair = off.and_then(|o| Some((o[0].as_u64()?, o[1].as_u64()?)));
+                match pair {
+                    Some((a, b)) if a <= b && b <= body => end = end.max(b),
+                    _ => {
+                        return Err(format!(
+                            "a safetensors file cut short or damaged (tensor {k} lies outside its {body} data bytes)"
+                        ))
+                    }
+                }
+            }
+            if end != body {
+                return Err(format!("a safetensors file whose tensors fill {end} of its {body} data bytes (damaged)"));
+            }
+            Ok(())
+        }
+        "config.json" => {
+            let text = std::fs::read(path).map_err(|e| format!("an unreadable file ({e})"))?;
+            match serde_json::from_slice::<serde_json::Value>(&text) {
+                Ok(v) if v.is_object() => Ok(()),
+                _ => Err(format!("{} (config.json is not a JSON object)", looks())),
+            }
+        }
+        _ => Ok(()),
+    }
 }

@@ -56,9 +56,38 @@ pub fn model_dir(k: &Known) -> PathBuf {
     home().join("models").join(k.name)
 }
 
-/// Whether every file of a hub checkpoint is in the cache.
+/// Whether every file of a hub checkpoint is in the cache and has its format (a damaged or
+/// wrong file is not "cached").
 pub fn is_cached(k: &Known) -> bool {
-    matches!(k.source, Source::Hub { .. }) && catalogue::HUB_FILES.iter().all(|f| model_dir(k).join(f).is_file())
+    matches!(k.source, Source::Hub { .. })
+        && catalogue::HUB_FILES.iter().all(|f| download::check_hub_file(f, &model_dir(k).join(f)).is_ok())
+}
+
+/// The most bytes a hub file of `k` may have: its catalogue size with a quarter and 64 MB
+/// to spare for the weights, 1 MB for the config.
+pub fn max_bytes(k: &Known, file: &str) -> u64 {
+    match file {
+        "model.safetensors" => (k.size_mb as u64 * 5 / 4 + 64) << 20,
+        _ => 1 << 20,
+    }
+}
+
+/// The state of a cached checkpoint file, checked in full: its format, and its SHA-256
+/// against the record its download left beside it.
+pub fn verify_cached(k: &Known, file: &str) -> Result<String, HubError> {
+    let path = model_dir(k).join(file);
+    download::check_hub_file(file, &path).map_err(|why| HubError::file(&path, format!("the cached file is {why}")))?;
+    let side = model_dir(k).join(format!("{file}.sha256"));
+    let record = std::fs::read_to_string(&side).ok();
+    let sha = download::sha256_file(&path)?;
+    match record.as_deref().and_then(|r| r.split_whitespace().next()) {
+        Some(want) if want == sha => Ok(format!("SHA-256 {sha} matches its download record")),
+        Some(want) => Err(HubError::file(
+            &path,
+            format!("the cached file's SHA-256 is {sha}, its download record says {want}: changed since"),
+        )),
+        None => Ok(format!("SHA-256 {sha} (no download record: not placed by dens3r)")),
+    }
 }
 
 /// The cache folder of the hub checkpoint `k`, its missing files downloaded first (each
@@ -79,10 +108,29 @@ pub fn fetch_model(k: &Known, progress: &mut dyn FnMut(&str, Progress)) -> Resul
     for file in catalogue::HUB_FILES {
         let dest = dir.join(file);
         if dest.is_file() {
-            continue;
+            match download::check_hub_file(file, &dest) {
+                Ok(()) => continue,
+                // A file an earlier download of dens3r's placed (its record beside it) is
+                // fetched again; one placed by hand is the user's: named, not touched.
+                Err(why) if dir.join(format!("{file}.sha256")).is_file() => {
+                    let _ = why;
+                    std::fs::remove_file(&dest)
+                        .map_err(|e| HubError::file(&dest, format!("damaged, and cannot be removed ({e})")))?;
+                }
+                Err(why) => {
+                    return Err(HubError::file(
+                        &dest,
+                        format!(
+                        "the cached file is {why}; remove it (dens3r did not place it) and run again to download it"
+                    ),
+                    ))
+                }
+            }
         }
         let url = format!("{base}/{repo}/resolve/main/{file}");
-        let got = download::download(&url, &dest, None, &mut |p| progress(file, p))?;
+        let check = |p: &std::path::Path| download::check_hub_file(file, p);
+        let expect = download::Expect { sha256: None, max_bytes: Some(max_bytes(k, file)), check: Some(&check) };
+        let got = download::download_checked(&url, &dest, &expect, &mut |p| progress(file, p))?;
         let record = format!("{}  {}  {}\n", got.sha256, got.checked_against, url);
         let side = dir.join(format!("{file}.sha256"));
         dens3r_io::write_atomic(&side, |w| std::io::Write::write_all(w, record.as_bytes()))?;

@@ -82,4 +82,46 @@ fn cut_downloads_resume_damaged_ones_are_refused_and_names_resolve() {
     std::env::set_var(dens3r_hub::ENDPOINT_ENV, "http://127.0.0.1:9");
     let e = dens3r_hub::fetch_model(dens3r_hub::find("mast3r-512-metric").unwrap(), &mut |_, _| {}).unwrap_err();
     assert!(e.to_string().contains("DENS3R_HUB_ENDPOINT"), "{e}");
+
+    // Issue 66, 3: poisoned downloads. A hub answering an HTML page (200, no checksum) for
+    // every file: refused, nothing cached, and a later good hub downloads the real files.
+    std::env::set_var(dens3r_hub::ENDPOINT_ENV, &addr);
+    let k = dens3r_hub::find("dust3r-512-linear").unwrap();
+    let folder = dens3r_hub::model_dir(k);
+    hub.html.store(true, Ordering::SeqCst);
+    let e = dens3r_hub::fetch_model(k, &mut |_, _| {}).unwrap_err().to_string();
+    assert!(e.contains("model.safetensors") && e.contains("HTML") && !e.contains('\n'), "{e}");
+    assert!(!folder.join("model.safetensors").exists() && !part_path(&folder.join("model.safetensors")).exists());
+    assert!(!dens3r_hub::is_cached(k));
+    // A body with no length announced that stops halfway: refused, not installed.
+    hub.html.store(false, Ordering::SeqCst);
+    hub.unsized_cut.store(true, Ordering::SeqCst);
+    let e = dens3r_hub::fetch_model(k, &mut |_, _| {}).unwrap_err().to_string();
+    assert!(e.contains("cut short") && e.contains("model.safetensors"), "{e}");
+    assert!(!folder.join("model.safetensors").exists() && !dens3r_hub::is_cached(k));
+    hub.unsized_cut.store(false, Ordering::SeqCst);
+    // A size announced beyond the catalogue's: refused before a byte is fetched.
+    let big = dir.path().join("big.safetensors");
+    let expect = dens3r_hub::download::Expect { max_bytes: Some(1000), ..Default::default() };
+    hub.log.lock().unwrap().clear();
+    let e = dens3r_hub::download::download_checked(&url, &big, &expect, &mut |_| {}).unwrap_err().to_string();
+    assert!(e.contains("more than the 1000"), "{e}");
+    assert!(!hub.log.lock().unwrap().iter().any(|l| l.starts_with("GET")), "fetched anyway");
+    // An older dens3r's poisoned cache entry (an HTML page with its download record) is not
+    // "cached" and is fetched again; a damaged file placed by hand is named and left alone.
+    std::fs::write(folder.join("model.safetensors"), b"<!DOCTYPE html><html>502</html>").unwrap();
+    std::fs::write(folder.join("model.safetensors.sha256"), "00  none  x\n").unwrap();
+    std::fs::write(folder.join("config.json"), br#"{"enc_num_heads": 2, "dec_num_heads": 2}"#).unwrap();
+    assert!(!dens3r_hub::is_cached(k));
+    let e = dens3r_hub::verify_cached(k, "model.safetensors").unwrap_err().to_string();
+    assert!(e.contains("HTML"), "{e}");
+    dens3r_hub::fetch_model(k, &mut |_, _| {}).unwrap();
+    assert_eq!(std::fs::read(folder.join("model.safetensors")).unwrap(), weights);
+    assert!(dens3r_hub::is_cached(k));
+    assert!(dens3r_hub::verify_cached(k, "model.safetensors").unwrap().contains("matches"));
+    std::fs::write(folder.join("model.safetensors"), [0u8; 64]).unwrap();
+    std::fs::remove_file(folder.join("model.safetensors.sha256")).unwrap();
+    let e = dens3r_hub::fetch_model(k, &mut |_, _| {}).unwrap_err().to_string();
+    assert!(e.contains("zeros") && e.contains("remove it"), "{e}");
+    assert_eq!(std::fs::read(folder.join("model.safetensors")).unwrap(), [0u8; 64]);
 }

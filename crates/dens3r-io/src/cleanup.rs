@@ -11,7 +11,8 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-static STAGED: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+/// Registered paths, with whether a folder is removed only when empty.
+static STAGED: Mutex<Vec<(PathBuf, bool)>> = Mutex::new(Vec::new());
 static STOPPING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 static SWEPT: Mutex<Option<HashSet<PathBuf>>> = Mutex::new(None);
 
@@ -27,7 +28,7 @@ impl Drop for Staged {
             return;
         }
         let mut s = STAGED.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(i) = s.iter().rposition(|p| *p == self.0) {
+        if let Some(i) = s.iter().rposition(|p| p.0 == self.0) {
             s.swap_remove(i);
         }
     }
@@ -36,8 +37,15 @@ impl Drop for Staged {
 /// Registers `path` (a file or folder) to be removed if the process is stopped while the
 /// returned guard lives.
 pub fn stage(path: &Path) -> Staged {
-    STAGED.lock().unwrap_or_else(|e| e.into_inner()).push(path.to_path_buf());
+    STAGED.lock().unwrap_or_else(|e| e.into_inner()).push((path.to_path_buf(), false));
     Staged(path.to_path_buf())
+}
+
+/// Registers a folder this process created, removed if the process is stopped while the guard
+/// lives and the folder is then empty (after the paths registered later are removed).
+pub fn stage_if_empty(dir: &Path) -> Staged {
+    STAGED.lock().unwrap_or_else(|e| e.into_inner()).push((dir.to_path_buf(), true));
+    Staged(dir.to_path_buf())
 }
 
 /// Whether the process is stopping ([`stop`]): writers start nothing new.
@@ -58,8 +66,12 @@ pub fn stop() -> usize {
 pub fn remove_all() -> usize {
     let paths = std::mem::take(&mut *STAGED.lock().unwrap_or_else(|e| e.into_inner()));
     let mut n = 0;
-    for p in paths.iter().rev() {
-        let r = if p.is_dir() { std::fs::remove_dir_all(p) } else { std::fs::remove_file(p) };
+    for (p, if_empty) in paths.iter().rev() {
+        let r = match (p.is_dir(), if_empty) {
+            (true, true) => std::fs::remove_dir(p),
+            (true, false) => std::fs::remove_dir_all(p),
+            (false, _) => std::fs::remove_file(p),
+        };
         n += r.is_ok() as usize;
     }
     n
@@ -72,7 +84,7 @@ pub fn temp_prefix() -> String {
 
 /// Whether process `pid` still runs (Linux: `/proc/PID`; elsewhere assumed to, so nothing of
 /// a live writer is ever removed).
-fn alive(pid: u32) -> bool {
+pub(crate) fn alive(pid: u32) -> bool {
     if cfg!(target_os = "linux") {
         Path::new(&format!("/proc/{pid}")).exists()
     } else {

@@ -5,6 +5,9 @@
 //!   failure or a stop never leaves it half-written;
 //! * [`cleanup`]: the registry of unfinished outputs that a SIGINT / SIGTERM handler removes,
 //!   and the sweep of what killed runs left;
+//! * [`output`]: an output folder written as one transaction: staged, moved into place at
+//!   the end, a manifest of what dens3r wrote (only that is ever replaced), one writer at a
+//!   time;
 //! * [`hash`]: FNV-1a, a content hash stable across Rust versions, for cache keys;
 //! * [`panics`]: a third-party parser's panic on damaged input turned into a refusal;
 //! * [`file_error!`] and [`file_or_setting_error!`]: the error types of failures that name a
@@ -16,6 +19,7 @@ mod atomic;
 pub mod cleanup;
 mod error_type;
 pub mod hash;
+pub mod output;
 pub mod panics;
 pub mod tensors;
 

@@ -49,6 +49,12 @@ impl InputImage {
         self.focal = photo_px.filter(|f| f.is_finite() && *f > 0.0).map(|f| f * self.photo_to_map());
     }
 
+    /// Refuses a focal (pixels of the photo as read) that gives the photo a horizontal field
+    /// of view outside 1 to 170 degrees: a focal in other units, a typo; `flag` names it.
+    pub fn check_focal(&self, photo_px: f64, flag: &str) -> Result<(), String> {
+        check_focal(photo_px, self.prep.info.original.0 as f64, flag)
+    }
+
     /// Pixels of the maps per pixel of the photo (the resize factor; cropping keeps the focal).
     pub fn photo_to_map(&self) -> f64 {
         self.prep.info.resize_factor()
@@ -232,4 +238,18 @@ mod tests {
         let b = unique_name(Path::new("y/a.jpg"), &mut t);
         assert_eq!((a.as_str(), b.as_str()), ("a", "a_1"));
     }
+}
+
+/// Refuses a focal of `width`-pixel-wide photos (pixels) outside horizontal fields of view of
+/// 1 to 170 degrees, naming `flag` and the range that fits.
+pub fn check_focal(focal: f64, width: f64, flag: &str) -> Result<(), String> {
+    let at = |deg: f64| width / (2.0 * (deg.to_radians() / 2.0).tan());
+    let (lo, hi) = (at(170.0), at(1.0));
+    if !(focal.is_finite() && focal >= lo && focal <= hi) {
+        return Err(format!(
+            "{flag} {focal}: for a {width:.0}-pixel-wide photo give a focal in its pixels between {lo:.0} and {hi:.0} \
+             (fields of view of 170 to 1 degrees)"
+        ));
+    }
+    Ok(())
 }

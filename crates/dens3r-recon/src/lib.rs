@@ -24,7 +24,7 @@ pub mod viz;
 pub use cache::PairCache;
 pub use input::{list_images, load_images, InputImage};
 pub use masks::attach_masks;
-pub use output::{write_outputs, OutputOptions, OutputSummary};
+pub use output::{begin_outputs, write_outputs, write_outputs_into, OutputOptions, OutputSummary};
 pub use pipeline::{reconstruct, KeypointOptions, ReconOptions, Reconstruction, Stage};
 pub use predictor::{NetworkPredictor, PairPredictor, ViewOutput, Wanted};
 pub use tracks::TrackOptions;
@@ -61,6 +61,12 @@ pub enum ReconError {
     /// Anything else, described.
     #[error("{0}")]
     Other(String),
+}
+
+impl From<dens3r_io::IoError> for ReconError {
+    fn from(e: dens3r_io::IoError) -> Self {
+        Self::Input { path: e.path.display().to_string(), msg: e.message }
+    }
 }
 
 impl From<dens3r_backbone::BackboneError> for ReconError {

@@ -14,6 +14,7 @@ use crate::viz::match_picture;
 use crate::ReconError;
 use dens3r_fusion::scene::{fuse_frames, FusionFrame, SceneFusion, SceneFusionError};
 use dens3r_fusion::{extract_mesh, ExtractOptions, FusionError, TsdfParams};
+use dens3r_io::output::OutputDir;
 use dens3r_scene::export::{write_colmap_text, write_transforms_json};
 use dens3r_scene::{Frame, Layer, Scene, SceneWriter};
 use std::borrow::Cow;
@@ -83,16 +84,43 @@ pub struct OutputSummary {
     pub warnings: Vec<String>,
 }
 
-/// Writes everything under `out`; `fuse_progress(done, total)` follows fusion.
+/// Starts the output folder `out` of a reconstruction: its lock taken (a second run into it is
+/// refused), its outputs staged; the outputs of dens3r versions before the output manifest
+/// count as dens3r's (replaced, not refused).
+pub fn begin_outputs(out: &Path) -> Result<OutputDir, ReconError> {
+    let mut dir = OutputDir::begin(out)?;
+    dir.set_legacy(dens3r_scene::legacy_outputs(out));
+    Ok(dir)
+}
+
+/// Writes everything under `out` as one transaction (staged, then moved into place; nothing
+/// there but dens3r's own earlier outputs is replaced); `fuse_progress(done, total)` follows
+/// fusion.
 pub fn write_outputs(
     rec: &Reconstruction,
     sources: &[PathBuf],
     out: &Path,
     opts: &OutputOptions,
+    fuse_progress: impl FnMut(usize, usize),
+) -> Result<OutputSummary, ReconError> {
+    let dir = begin_outputs(out)?;
+    let summary = write_outputs_into(rec, sources, &dir, opts, fuse_progress)?;
+    dir.finish()?;
+    Ok(summary)
+}
+
+/// Writes everything into the staging folder of `dir` (begun by [`begin_outputs`]); the
+/// summary names the files where `dir.finish()` puts them.
+pub fn write_outputs_into(
+    rec: &Reconstruction,
+    sources: &[PathBuf],
+    dir: &OutputDir,
+    opts: &OutputOptions,
     mut fuse_progress: impl FnMut(usize, usize),
 ) -> Result<OutputSummary, ReconError> {
+    let out = dir.root();
     let scene_dir = out.join("scene");
-    let mut w = SceneWriter::create(&scene_dir)?;
+    let mut w = SceneWriter::in_folder(&scene_dir)?;
     w.set_extra("generator", serde_json::json!(opts.generator));
     w.set_extra("units", serde_json::json!("arbitrary (up to scale)"));
     w.set_extra("alignment_loss", serde_json::json!([rec.alignment.loss.0, rec.alignment.loss.1]));
@@ -126,9 +154,12 @@ pub fn write_outputs(
         dens3r_scene::write_rgb_png(&path, &img)?;
     }
 
-    let mut summary = OutputSummary { scene: scene_dir, colmap, ..Default::default() };
+    let dest = dir.dest();
+    let mut summary = OutputSummary { scene: dest.join("scene"), colmap: dest.join("colmap"), ..Default::default() };
+    let _ = colmap;
     if opts.mesh {
         fuse(rec, out, opts, &mut summary, &mut fuse_progress)?;
+        summary.mesh = summary.mesh.map(|_| dest.join("mesh.glb"));
     }
     Ok(summary)
 }

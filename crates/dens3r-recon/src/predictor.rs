@@ -181,15 +181,49 @@ fn image_key(im: &InputImage) -> ImageKey {
     (im.hash, im.prep.info.crop, im.prep.info.rotated)
 }
 
-/// A weights file's identity for the cache: canonical path, length and modification time
-/// (hashing 2.4 GB per run would cost seconds).
-pub fn weights_id(path: &std::path::Path) -> String {
-    let canon = path.canonicalize().unwrap_or_else(|_| path.to_path_buf());
-    let meta = std::fs::metadata(path).ok();
-    let len = meta.as_ref().map_or(0, |m| m.len());
-    let mtime = meta
-        .and_then(|m| m.modified().ok())
-        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-        .map_or(0, |d| d.as_nanos());
-    format!("{} {len} {mtime}", canon.display())
+/// Identifies a network in the pair cache by content: hashes of the weights, the config that
+/// sets its head counts and the encoder `.onnx` a DINOv2-encoder network reads beside them,
+/// so weights edited in place (whatever their modification time) or another config never
+/// reuse a pair. Each file is read once: its hash is remembered in `memo` (see
+/// [`dens3r_io::hash::file_hash`]).
+pub fn weights_id(
+    weights: &std::path::Path,
+    config: Option<&std::path::Path>,
+    memo: Option<&std::path::Path>,
+) -> Result<String, dens3r_io::IoError> {
+    let (file, folder_config) = if weights.is_dir() {
+        dens3r_backbone::verify::model_folder_files(weights).map_err(|e| dens3r_io::IoError::new(&e.path, e.message))?
+    } else {
+        (weights.to_path_buf(), None)
+    };
+    let config = config.map(std::path::Path::to_path_buf).or(folder_config);
+    let encoder = dens3r_backbone::verify::find_dinov2(&file, config.as_deref()).ok();
+    let mut id = String::from("content");
+    for f in [Some(file), config, encoder].into_iter().flatten() {
+        let h = dens3r_io::hash::file_hash(&f, memo)
+            .map_err(|e| dens3r_io::IoError::new(&f, format!("cannot read it to key the pair cache: {e}")))?;
+        id.push_str(&format!(" {h:016x}"));
+    }
+    Ok(id)
+}
+
+#[cfg(test)]
+mod tests {
+    /// Issue 66, 2: the network's cache id follows its config (other head counts) and its
+    /// weights' content, and is stable for unchanged files.
+    #[test]
+    fn weights_id_follows_content_and_config() {
+        let dir = tempfile::tempdir().unwrap();
+        let [w, c1, c2, memo] = ["w.safetensors", "a.json", "b.json", "memo.json"].map(|n| dir.path().join(n));
+        std::fs::write(&w, b"weights").unwrap();
+        std::fs::write(&c1, br#"{"enc_num_heads": 16, "dec_num_heads": 12}"#).unwrap();
+        std::fs::write(&c2, br#"{"enc_num_heads": 8, "dec_num_heads": 12}"#).unwrap();
+        let id = |c: &std::path::Path| super::weights_id(&w, Some(c), Some(&memo)).unwrap();
+        let first = id(&c1);
+        assert_eq!(first, id(&c1));
+        assert_ne!(first, id(&c2));
+        assert_ne!(first, super::weights_id(&w, None, Some(&memo)).unwrap());
+        std::fs::write(&w, b"weighty").unwrap();
+        assert_ne!(first, id(&c1));
+    }
 }

@@ -21,6 +21,8 @@ pub struct Paired {
     pub gt: Scene,
     /// `(predicted frame, ground-truth frame)`, in the ground truth's order.
     pub frames: Vec<(Frame, Frame)>,
+    /// The ground truth's frames the prediction does not hold (scored nowhere).
+    pub missing: Vec<String>,
 }
 
 /// Opens both scenes and pairs their frames by name; an error when a shared frame differs in
@@ -28,7 +30,11 @@ pub struct Paired {
 pub fn pair(pred: &Path, gt: &Path) -> Result<Paired, SceneError> {
     let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
     let mut frames = Vec::new();
+    let mut missing = Vec::new();
     for gf in g.frames() {
+        if p.frame(&gf.name).is_none() {
+            missing.push(gf.name.clone());
+        }
         if let Some(pf) = p.frame(&gf.name) {
             if (pf.width, pf.height) != (gf.width, gf.height) {
                 return Err(SceneError::new(
@@ -53,7 +59,7 @@ pub fn pair(pred: &Path, gt: &Path) -> Result<Paired, SceneError> {
             format!("this scene and {} share no frame names: nothing to compare", gt.display()),
         ));
     }
-    Ok(Paired { pred: p, gt: g, frames })
+    Ok(Paired { pred: p, gt: g, frames, missing })
 }
 
 /// Per frame: its name and metrics, or why it could not be scored (no pixel valid in both maps:
@@ -72,13 +78,15 @@ pub fn pred_depths(p: &Paired) -> Result<Vec<(Raster<f32>, Frame)>, SceneError> 
     p.frames.iter().map(|(pf, gf)| Ok((need(p.pred.depth(pf)?, &p.pred, pf, "depth")?, gf.clone()))).collect()
 }
 
-/// Depth maps of a folder of `NAME.npy` files (`predict --head` output) for `gt`'s frames; an
-/// error for a map of another size or when none is there.
-pub fn npy_depths(dir: &Path, gt: &Scene) -> Result<Vec<(Raster<f32>, Frame)>, SceneError> {
+/// Depth maps of a folder of `NAME.npy` files (`predict --head` output) for `gt`'s frames, and
+/// the frames with none; an error for a map of another size or when none is there.
+pub fn npy_depths(dir: &Path, gt: &Scene) -> Result<(Vec<(Raster<f32>, Frame)>, Vec<String>), SceneError> {
     let mut out = Vec::new();
+    let mut missing = Vec::new();
     for gf in gt.frames() {
         let path = dir.join(format!("{}.npy", gf.name));
         if !path.is_file() {
+            missing.push(gf.name.clone());
             continue;
         }
         let (shape, data) = crate::npy::read_f32(&path)?;
@@ -97,7 +105,7 @@ pub fn npy_depths(dir: &Path, gt: &Scene) -> Result<Vec<(Raster<f32>, Frame)>, S
     if out.is_empty() {
         return Err(SceneError::new(dir, format!("no NAME.npy depth map for any frame of {}", gt.root().display())));
     }
-    Ok(out)
+    Ok((out, missing))
 }
 
 /// Depth metrics of each predicted map against `gt`'s depth (within its masks).
@@ -150,9 +158,13 @@ fn shared_cameras(pred: &Path, gt: &Path) -> Result<(Vec<PinholeCamera>, Vec<Pin
 }
 
 /// Relative camera errors over every pair of the frames both scenes hold; with the number of
-/// those frames. An error when fewer than 2 are shared.
-pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, CameraMetrics), SceneError> {
+/// those frames and the ground truth's frames the prediction lacks. An error when fewer than
+/// 2 are shared.
+pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, Vec<String>, CameraMetrics), SceneError> {
     let (est, truth) = shared_cameras(pred, gt)?;
+    let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
+    let missing: Vec<String> =
+        g.frames().iter().filter(|gf| p.frame(&gf.name).is_none()).map(|gf| gf.name.clone()).collect();
     if truth.len() < 2 {
         return Err(SceneError::new(
             pred,
@@ -163,7 +175,7 @@ pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, CameraMetrics), S
             ),
         ));
     }
-    Ok((truth.len(), camera_metrics(&est, &truth)))
+    Ok((truth.len(), missing, camera_metrics(&est, &truth)))
 }
 
 /// The similarity (scale, rotation, translation) taking scene `pred`'s frame to scene `gt`'s:

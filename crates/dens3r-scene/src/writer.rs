@@ -5,6 +5,7 @@ use crate::error::SceneError;
 use crate::npy;
 use crate::reader::Layer;
 use dens3r_geom::{Raster, Vec3};
+use dens3r_io::output::OutputDir;
 use dens3r_io::write_atomic;
 use dens3r_mesh::TriMesh;
 use image::{ImageEncoder, RgbImage};
@@ -14,18 +15,17 @@ use std::path::{Path, PathBuf};
 /// Writes a scene folder file by file (each atomically); [`SceneWriter::finish`] writes
 /// `cameras.json` last.
 ///
-/// A folder that already holds a scene is never written into: the new scene is staged in a
-/// hidden sibling folder and replaces the old one whole when `finish` succeeds, so the old
-/// scene (which may hold this run's inputs) stays intact and readable until then, and no stale
-/// frame of it survives. A staging folder left by a killed run is removed by the next one.
+/// [`SceneWriter::create`] writes the scene as one transaction ([`dens3r_io::output`]): every
+/// file is staged and moved into the folder only by `finish`, so a failure or a stop leaves the
+/// folder as it was; an earlier scene there (which may hold this run's inputs) stays intact and
+/// readable until then, its files that the new scene does not write are removed, and files of
+/// the user's beside it are never touched. [`SceneWriter::in_folder`] writes a scene inside an
+/// output the caller stages itself.
 #[derive(Debug)]
 pub struct SceneWriter {
     root: PathBuf,
-    /// The folder the staged scene replaces on `finish` (`None`: writing in place).
-    dest: Option<PathBuf>,
-    /// The staging folder, or a folder this writer created, removed if the process is stopped
-    /// before `finish`.
-    staged: Option<dens3r_io::cleanup::Staged>,
+    /// The transaction this writer owns (`create`), finished by `finish`.
+    out: Option<OutputDir>,
     frames: Vec<Frame>,
     extra: serde_json::Map<String, serde_json::Value>,
 }
@@ -35,34 +35,74 @@ pub fn holds_scene(dir: &Path) -> bool {
     dir.join("cameras.json").is_file()
 }
 
-/// The hidden siblings a replacement of `dir` stages in (`.NAME.dens3r-stage-PID`) and moves
-/// the old scene to (`.NAME.dens3r-old-PID`).
-fn siblings(dir: &Path, kind: &str) -> PathBuf {
-    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into());
-    dir.with_file_name(format!(".{name}.dens3r-{kind}-{}", std::process::id()))
+/// The files of scene folders in `dir` and its immediate subfolders that dens3r versions
+/// before the output manifest wrote (relative paths): each scene's `cameras.json`,
+/// `classes.json`, `gt_mesh.ply`, `transforms.json`, its frames' images and layers, their
+/// pictures under `viz/` and pointmaps under `pointmaps/`; beside them a reconstruction's COLMAP
+/// model, match pictures and mesh. What a later run may replace there.
+pub fn legacy_outputs(dir: &Path) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut prefixes = vec![String::new()];
+    if let Ok(entries) = std::fs::read_dir(dir) {
+        for e in entries.flatten() {
+            if e.path().join("cameras.json").is_file() {
+                prefixes.push(format!("{}/", e.file_name().to_string_lossy()));
+            }
+        }
+    }
+    for p in prefixes {
+        let root = dir.join(&p);
+        let Ok(text) = std::fs::read_to_string(root.join("cameras.json")) else { continue };
+        let Ok(cams) = serde_json::from_str::<CamerasFile>(&text) else { continue };
+        for f in ["cameras.json", "classes.json", "gt_mesh.ply", "transforms.json"] {
+            out.push(format!("{p}{f}"));
+        }
+        for fr in &cams.frames {
+            out.push(format!("{p}{}", fr.image));
+            for l in Layer::ALL {
+                let (d, ext) = l.location();
+                out.push(format!("{p}{d}/{}.{ext}", fr.name));
+            }
+            out.push(format!("{p}viz/{}_depth.png", fr.name));
+            out.push(format!("{p}viz/{}_normal.png", fr.name));
+            out.push(format!("{p}pointmaps/{}.ply", fr.name));
+        }
+    }
+    for f in ["colmap/cameras.txt", "colmap/images.txt", "colmap/points3D.txt", "mesh.glb"] {
+        out.push(f.to_string());
+    }
+    if let Ok(entries) = std::fs::read_dir(dir.join("matches")) {
+        for e in entries.flatten() {
+            let n = e.file_name().to_string_lossy().into_owned();
+            if n.ends_with(".png") && n.contains('-') {
+                out.push(format!("matches/{n}"));
+            }
+        }
+    }
+    out.retain(|f| dir.join(f).is_file());
+    out
 }
 
 impl SceneWriter {
-    /// Starts a scene in `dir` (created if missing). When `dir` already holds a scene, the new
-    /// one is staged beside it and replaces it whole only when `finish` succeeds.
+    /// Starts a scene in `dir` (created if missing), staged until `finish`; fails, naming
+    /// `dir`, when another run is writing it.
     pub fn create(dir: &Path) -> Result<Self, SceneError> {
-        if let Some(parent) = dir.parent() {
-            dens3r_io::cleanup::sweep_stale(if parent.as_os_str().is_empty() { Path::new(".") } else { parent });
-        }
-        let (root, dest) = if holds_scene(dir) {
-            (siblings(dir, "stage"), Some(dir.to_path_buf()))
-        } else {
-            (dir.to_path_buf(), None)
-        };
-        let fresh = !root.exists();
-        std::fs::create_dir_all(&root)
-            .map_err(|e| SceneError::new(dir, format!("cannot create the scene folder: {e}")))?;
-        let staged = fresh.then(|| dens3r_io::cleanup::stage(&root));
-        Ok(Self { root, dest, staged, frames: Vec::new(), extra: Default::default() })
+        let mut out = OutputDir::begin(dir)?;
+        out.set_legacy(legacy_outputs(dir));
+        let root = out.root().to_path_buf();
+        Ok(Self { root, out: Some(out), frames: Vec::new(), extra: Default::default() })
     }
 
-    /// The folder being written: the scene folder itself, or while an existing scene is being
-    /// replaced, its staging folder (write every other file of the scene here too).
+    /// Starts a scene in `dir` inside an output the caller stages (the caller's staging
+    /// folder or a subfolder of it); `finish` only writes `cameras.json`.
+    pub fn in_folder(dir: &Path) -> Result<Self, SceneError> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| SceneError::new(dir, format!("cannot create the scene folder: {e}")))?;
+        Ok(Self { root: dir.to_path_buf(), out: None, frames: Vec::new(), extra: Default::default() })
+    }
+
+    /// The folder being written: the staging folder of `create`, the folder of `in_folder`
+    /// (write every other file of the scene here too).
     pub fn root(&self) -> &Path {
         &self.root
     }
@@ -145,21 +185,10 @@ impl SceneWriter {
         };
         let text = serde_json::to_string_pretty(&file).expect("cameras serialise");
         write_atomic(&path, |w| std::io::Write::write_all(w, text.as_bytes()))?;
-        let Some(dest) = self.dest.take() else {
-            self.staged = None;
-            return Ok(path);
-        };
-        // Swap: the old scene aside, the staged one in, the old one removed.
-        let old = siblings(&dest, "old");
-        std::fs::rename(&dest, &old)
-            .map_err(|e| SceneError::new(&dest, format!("cannot move the old scene aside to replace it: {e}")))?;
-        if let Err(e) = std::fs::rename(&self.root, &dest) {
-            let _ = std::fs::rename(&old, &dest);
-            return Err(SceneError::new(&dest, format!("cannot move the new scene into place: {e}")));
+        match self.out.take() {
+            Some(out) => Ok(out.finish()?.join("cameras.json")),
+            None => Ok(path),
         }
-        self.staged = None;
-        let _ = std::fs::remove_dir_all(&old);
-        Ok(dest.join("cameras.json"))
     }
 
     fn target(&self, name: &str, layer: Layer) -> Result<(PathBuf, &Frame), SceneError> {
@@ -190,16 +219,6 @@ impl SceneWriter {
         let (path, f) = self.target(name, layer)?;
         self.check_size(&path, f, ids.width(), ids.height())?;
         write_id_png(&path, ids.data(), f.width as u32, f.height as u32)
-    }
-}
-
-/// A writer dropped before `finish` (an error) removes its staging folder: the scene it was
-/// to replace stays as it was.
-impl Drop for SceneWriter {
-    fn drop(&mut self) {
-        if self.dest.is_some() {
-            let _ = std::fs::remove_dir_all(&self.root);
-        }
     }
 }
 

@@ -157,10 +157,13 @@ pub fn synthesise(
         } else {
             // Render beside the final folder, then rename: a killed run leaves no half scene.
             let tmp = out.join(format!(".scene_{k:05}.tmp"));
-            for d in [&tmp, &dir] {
-                if d.exists() {
-                    std::fs::remove_dir_all(d).map_err(|e| TrainError::file(d, format!("cannot remove ({e})")))?;
-                }
+            // A scene that lost its pairs.json is rendered again, if everything in it is
+            // dens3r's own output; anything else by the scene's name is left alone.
+            if dir.exists() {
+                dens3r_io::output::remove_own(&dir).map_err(|e| TrainError::file(&e.path, e.message))?;
+            }
+            if tmp.exists() {
+                std::fs::remove_dir_all(&tmp).map_err(|e| TrainError::file(&tmp, format!("cannot remove ({e})")))?;
             }
             let _staged = dens3r_io::cleanup::stage(&tmp);
             let mut scene = synth_scene(kind, scene_seed(opts.seed, k), opts.size, opts.views, assets)?;

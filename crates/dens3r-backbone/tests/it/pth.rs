@@ -134,3 +134,48 @@ fn convert_writes_a_folder_every_command_reads() {
     let e = to_folder(&tmp.path().join("none.pth"), &tmp.path().join("x")).unwrap_err();
     assert!(e.to_string().contains("none.pth"), "{e}");
 }
+
+/// The safetensors file of `header` (JSON) over `body`.
+fn safetensors_bytes(header: &serde_json::Value, body: &[u8]) -> Vec<u8> {
+    let h = serde_json::to_vec(header).unwrap();
+    let mut out = (h.len() as u64).to_le_bytes().to_vec();
+    out.extend(h);
+    out.extend(body);
+    out
+}
+
+/// Issue 66, 6: tensors sharing bytes are refused by name; an offset past 2^64 does not wrap
+/// into the file; a tensor the network needs stored as an integer is reported with its dtype,
+/// not as a missing key.
+#[test]
+fn overlapping_wrapping_and_integer_tensors_are_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let f = tmp.path().join("overlap.safetensors");
+    let header = serde_json::json!({
+        "a": {"dtype": "F32", "shape": [2], "data_offsets": [0, 8]},
+        "b": {"dtype": "F32", "shape": [2], "data_offsets": [4, 12]},
+    });
+    std::fs::write(&f, safetensors_bytes(&header, &[0u8; 12])).unwrap();
+    let e = Weights::from_safetensors(&f).err().unwrap().to_string();
+    assert!(e.contains("'a'") && e.contains("'b'") && e.contains("share bytes"), "{e}");
+    let header = serde_json::json!({
+        "a": {"dtype": "U8", "shape": [7], "data_offsets": [u64::MAX - 7, u64::MAX]},
+    });
+    std::fs::write(&f, safetensors_bytes(&header, &[0u8; 8])).unwrap();
+    let e = Weights::from_safetensors(&f).err().unwrap().to_string();
+    assert!(e.contains("tensor 'a'"), "{e}");
+
+    // Fixture A with one decoder weight's dtype relabelled I32 (the same 4 bytes a value).
+    let a = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/parity/A_shared_dec_48x64");
+    let bytes = std::fs::read(a.join("weights.safetensors")).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let mut header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    let key = "dec_blocks.1.mlp.fc1.weight";
+    header[key]["dtype"] = serde_json::json!("I32");
+    let ints = tmp.path().join("ints.safetensors");
+    std::fs::write(&ints, safetensors_bytes(&header, &bytes[8 + n..])).unwrap();
+    let device = dens3r_backbone::Device::flex();
+    let e = dens3r_backbone::verify::load_model(&ints, Some(&a.join("config.json")), &device).err().unwrap();
+    let e = e.to_string();
+    assert!(e.contains(key) && e.contains("I32") && !e.contains("missing"), "{e}");
+}

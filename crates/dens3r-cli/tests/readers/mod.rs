@@ -284,6 +284,18 @@ pub fn targets() -> Vec<Target> {
             },
         },
         Target {
+            name: "pth-nesting",
+            file: "deep.pth",
+            seed: |_| deep_pickle(),
+            read: |d| ok(dens3r_backbone::Weights::from_pth(&d.join("deep.pth"))),
+        },
+        Target {
+            name: "safetensors-offsets",
+            file: "spans.safetensors",
+            seed: |_| spans_safetensors(),
+            read: |d| ok(dens3r_backbone::Weights::from_safetensors(&d.join("spans.safetensors"))),
+        },
+        Target {
             name: "onnx",
             file: "model.onnx",
             seed: |_| onnx_seed(),
@@ -448,4 +460,30 @@ pub fn prepare(t: &Target, dir: &Path) -> Vec<u8> {
 pub fn run(t: &Target, dir: &Path, bytes: &[u8]) -> Result<(), String> {
     std::fs::write(dir.join(t.file), bytes).map_err(|e| e.to_string())?;
     (t.read)(dir)
+}
+
+/// The legacy-format fixture checkpoint with its system-info pickle replaced by lists nested
+/// just under the depth bound, holding a memo reference nested in itself: mutants move the
+/// depth and the sharing across the bounds.
+fn deep_pickle() -> Vec<u8> {
+    let legacy = fixture("tests/fixtures/pth/legacy.pth");
+    // Pickles 1 and 2 (magic number, protocol) end at byte 0x15, the system info at 0x89.
+    let mut p = legacy[..0x15].to_vec();
+    p.extend([0x80, 2]);
+    p.extend(std::iter::repeat_n(b']', 990));
+    p.extend([b'q', 0, b'h', 0, b'h', 0, 0x86, b'a']);
+    p.extend(std::iter::repeat_n(b'a', 989));
+    p.push(b'.');
+    p.extend_from_slice(&legacy[0x89..]);
+    p
+}
+
+/// A safetensors file of three adjacent tensors (f32, i64, f16): mutants of its offsets make
+/// overlapping, wrapping and out-of-file ranges.
+fn spans_safetensors() -> Vec<u8> {
+    let header = br#"{"a":{"dtype":"F32","shape":[2],"data_offsets":[0,8]},"b":{"dtype":"I64","shape":[1],"data_offsets":[8,16]},"c":{"dtype":"F16","shape":[4],"data_offsets":[16,24]}}"#;
+    let mut out = (header.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(header);
+    out.extend((0..24u8).collect::<Vec<_>>());
+    out
 }

@@ -30,6 +30,10 @@ pub struct DepthMetrics {
     pub shift: f64,
     /// Number of pixels scored.
     pub count: usize,
+    /// The share of the ground truth's valid pixels (within the mask) that were scored: where
+    /// the prediction is invalid (NaN, infinite, zero) a pixel is not, so a map valid on half
+    /// of them scores 0.5 here whatever its errors.
+    pub coverage: f64,
 }
 
 /// Scores `pred` against `gt`. A pixel counts when both are finite and > 0 and `mask`
@@ -50,6 +54,8 @@ pub fn depth_metrics(
     if pairs.is_empty() {
         return Err(MetricError::NoValidPixels);
     }
+    let gt_valid =
+        (0..gt.data().len()).filter(|&i| mask.is_none_or(|m| m.data()[i]) && depth_valid(gt.data()[i])).count();
     let (scale, shift) = match align {
         DepthAlign::None => (1.0, 0.0),
         DepthAlign::MedianScale => {
@@ -82,6 +88,7 @@ pub fn depth_metrics(
         scale,
         shift,
         count: pairs.len(),
+        coverage: pairs.len() as f64 / gt_valid.max(1) as f64,
     })
 }
 

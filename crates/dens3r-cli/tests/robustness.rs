@@ -1,0 +1,492 @@
+//! Issue 66, the second reliability round: every case found by the probe of hostile inputs,
+//! run as a user runs the binary. Each test failed on main 535a603.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+#[path = "../../../tests/support/fixtures.rs"]
+mod fixtures;
+use fixtures::{parity, A};
+
+fn dens3r(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_dens3r")).args(args).output().expect("binary runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = dens3r(args);
+    assert!(out.status.success(), "{args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap() + &String::from_utf8_lossy(&out.stderr)
+}
+
+/// A command that must fail: exit 2, one stderr line starting `error:`, no panic.
+fn fails(args: &[&str]) -> String {
+    let out = dens3r(args);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "{args:?}: one line expected, got {err}");
+    assert!(lines[0].starts_with("error:"), "{err}");
+    lines[0].to_string()
+}
+
+fn samples() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples")
+}
+
+/// Every file under `dir` (relative paths, sorted) with its bytes.
+fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    fn walk(root: &Path, d: &Path, out: &mut Vec<(String, Vec<u8>)>) {
+        for e in std::fs::read_dir(d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                out.push((p.strip_prefix(root).unwrap().display().to_string(), std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}
+
+/// predict with fixture A's small network at 64 px.
+fn predict_args<'a>(w: &'a str, c: &'a str, images: &[&'a str], out: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec!["predict", "--weights", w, "--config", c, "--size", "64"];
+    args.extend_from_slice(images);
+    args.extend(["-o", out]);
+    args.extend_from_slice(extra);
+    args
+}
+
+/// Issue 66, 1: `--overwrite` replaces only what dens3r wrote. Photos and notes in the output
+/// folder survive predict and render, with and without --overwrite; a user's file where an
+/// output goes is refused before the network runs, and left as it was.
+#[test]
+fn overwrite_never_touches_the_users_files() {
+    let a = parity(A);
+    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
+    let (w, c) = (w.to_str().unwrap(), c.to_str().unwrap());
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("photos");
+    std::fs::create_dir_all(&out).unwrap();
+    for (src, dst) in [("chelsea.png", "a.png"), ("coffee.png", "b.png")] {
+        std::fs::copy(samples().join("photos").join(src), out.join(dst)).unwrap();
+    }
+    std::fs::write(out.join("notes.txt"), "my notes").unwrap();
+    let users = snapshot(&out);
+    let (pa, pb) = (out.join("a.png"), out.join("b.png"));
+    let (pa, pb, o) = (pa.to_str().unwrap(), pb.to_str().unwrap(), out.to_str().unwrap());
+    ok(&predict_args(w, c, &[pa, pb], o, &[]));
+    let e = fails(&predict_args(w, c, &[pa, pb], o, &[]));
+    assert!(e.contains("already holds a scene") && e.contains("--overwrite"), "{e}");
+    ok(&predict_args(w, c, &[pa], o, &["--overwrite"]));
+    // The photos and notes are byte for byte what the user had; the scene is the new one.
+    let now = snapshot(&out);
+    for f in &users {
+        assert!(now.contains(f), "{} changed or went", f.0);
+    }
+    let scene = dens3r_scene::Scene::open(&out).unwrap();
+    assert_eq!(scene.frames().len(), 1);
+    assert!(!out.join("depth/b.npy").exists(), "the earlier run's frame b survives");
+    assert!(out.join(".dens3r-outputs.json").is_file());
+    let hidden: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with('.') && n != ".dens3r-outputs.json")
+        .collect();
+    assert!(hidden.is_empty(), "left behind: {hidden:?}");
+
+    // A photo of the user's where a frame's picture goes: refused, untouched, nothing run.
+    let clash = dir.path().join("clash");
+    std::fs::create_dir_all(clash.join("images")).unwrap();
+    std::fs::copy(samples().join("photos/chelsea.png"), clash.join("images/a.png")).unwrap();
+    let before = snapshot(&clash);
+    let img = clash.join("images/a.png");
+    let e = fails(&predict_args(w, c, &[img.to_str().unwrap()], clash.to_str().unwrap(), &["--overwrite"]));
+    assert!(e.contains("images/a.png") && e.contains("not written by dens3r"), "{e}");
+    assert_eq!(snapshot(&clash), before);
+
+    // render --overwrite keeps notes beside the scene and drops its own stale frames.
+    let room = dir.path().join("room");
+    std::fs::create_dir_all(&room).unwrap();
+    std::fs::write(room.join("notes.txt"), "keep me").unwrap();
+    let r = room.to_str().unwrap();
+    let render = |views: &'static str, extra: &[&'static str]| {
+        let mut args = vec!["render", "--procedural", "room", "--views", views, "--width", "32", "--height", "24"];
+        args.extend_from_slice(extra);
+        args.extend(["-o", r]);
+        ok(&args);
+    };
+    render("3", &[]);
+    render("2", &["--overwrite"]);
+    assert_eq!(std::fs::read_to_string(room.join("notes.txt")).unwrap(), "keep me");
+    assert!(room.join("depth/0001.npy").is_file() && !room.join("depth/0002.npy").exists());
+}
+
+/// Issue 66, 5: a run that fails after writing leaves nothing (not even the folders it
+/// created); one killed with SIGKILL leaves no scene, only a hidden staging folder that the
+/// next run sweeps.
+#[test]
+fn failures_and_kills_leave_no_half_output() {
+    let a = parity(A);
+    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("new/deep/rec");
+    let photos = samples().join("photos");
+    // Fusion fails at the end (a voxel far too fine for the budget), after the scene and the
+    // exports were written.
+    let e = fails(&[
+        "reconstruct",
+        photos.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--weights",
+        w.to_str().unwrap(),
+        "--config",
+        c.to_str().unwrap(),
+        "--size",
+        "64",
+        "--iterations",
+        "5",
+        "--no-cache",
+        "--voxel",
+        "0.00001",
+        "--budget-mb",
+        "1",
+    ]);
+    assert!(!e.is_empty());
+    assert!(!dir.path().join("new").exists(), "a failed reconstruct left {:?}", snapshot(dir.path()));
+
+    // SIGKILL halfway through a render into a new folder.
+    let o = dir.path().join("killed");
+    let os = o.to_str().unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_dens3r"))
+        .args(["render", "--procedural", "room", "--views", "3000", "--width", "160", "--height", "120", "-o", os])
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(!dens3r_scene::holds_scene(&o), "a killed run left a scene");
+    let visible: Vec<_> = snapshot(&o).into_iter().filter(|(n, _)| !n.starts_with('.')).collect();
+    assert!(visible.is_empty(), "a killed run left {:?}", visible.iter().map(|f| &f.0).collect::<Vec<_>>());
+    ok(&["render", "--procedural", "room", "--views", "2", "--width", "32", "--height", "24", "-o", os]);
+    let names: Vec<_> =
+        std::fs::read_dir(&o).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    assert!(!names.iter().any(|n| n.contains("dens3r-stage") || n.contains("dens3r-lock")), "{names:?}");
+}
+
+/// Issue 66, 9: a second run into a folder another run is writing is refused in one line.
+#[test]
+fn two_runs_into_one_folder_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = dir.path().join("busy");
+    let os = o.to_str().unwrap();
+    let mut first = Command::new(env!("CARGO_BIN_EXE_dens3r"))
+        .args(["render", "--procedural", "room", "--views", "3000", "--width", "160", "--height", "120", "-o", os])
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let lock = o.join(".dens3r-lock");
+    for _ in 0..100 {
+        if lock.is_file() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let e = fails(&["render", "--procedural", "room", "--views", "2", "--width", "32", "--height", "24", "-o", os]);
+    first.kill().unwrap();
+    first.wait().unwrap();
+    assert!(e.contains("another dens3r run") && e.contains(&first.id().to_string()), "{e}");
+}
+
+/// Issue 66, 2: the pair cache is keyed by the weights' content and config: weights edited in
+/// place with their size and modification time kept (`cp -p`, `rsync -t`) reuse no pair.
+#[test]
+fn edited_weights_reuse_no_cached_pair() {
+    let a = parity(A);
+    let dir = tempfile::tempdir().unwrap();
+    let w = dir.path().join("w.safetensors");
+    std::fs::copy(a.join("weights.safetensors"), &w).unwrap();
+    let out = dir.path().join("rec");
+    let photos = samples().join("photos");
+    let c = a.join("config.json");
+    let run = || {
+        ok(&[
+            "reconstruct",
+            photos.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--weights",
+            w.to_str().unwrap(),
+            "--config",
+            c.to_str().unwrap(),
+            "--size",
+            "64",
+            "--iterations",
+            "5",
+            "--no-mesh",
+        ])
+    };
+    let first = run();
+    assert!(first.contains("(0 from the cache"), "{first}");
+    let again = run();
+    assert!(again.contains("(2 from the cache"), "{again}");
+    // One weight byte changed in place, size and modification time restored.
+    let mtime = std::fs::metadata(&w).unwrap().modified().unwrap();
+    let mut bytes = std::fs::read(&w).unwrap();
+    let last = bytes.len() - 3;
+    bytes[last] ^= 0x01;
+    std::fs::write(&w, &bytes).unwrap();
+    std::fs::File::options().write(true).open(&w).unwrap().set_modified(mtime).unwrap();
+    let edited = run();
+    assert!(edited.contains("(0 from the cache"), "stale pairs reused: {edited}");
+}
+
+/// Issue 66, 4: pickles nested 10^6 deep (a stack overflow, exit 134, before) are refused in
+/// one line by every command that reads a checkpoint.
+#[test]
+fn deeply_nested_pickles_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let deep = dir.path().join("deep.pth");
+    let mut p = vec![0x80, 2];
+    p.extend(std::iter::repeat_n(b']', 1_000_000));
+    p.extend(std::iter::repeat_n(b'a', 999_999));
+    p.push(b'.');
+    std::fs::write(&deep, &p).unwrap();
+    let d = deep.to_str().unwrap();
+    let out = dir.path().join("out");
+    let e = fails(&["convert", d, "-o", out.to_str().unwrap()]);
+    assert!(e.contains("deep.pth") && e.contains("levels deep"), "{e}");
+    let img = samples().join("photos/chelsea.png");
+    let e = fails(&["predict", "--weights", d, img.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+    assert!(e.contains("levels deep"), "{e}");
+    assert!(!out.exists());
+}
+
+/// Issue 66, 7: numeric flags that hung, aborted or meant nothing are refused up front,
+/// naming the flag.
+#[test]
+fn numeric_flags_are_bounded() {
+    let dir = tempfile::tempdir().unwrap();
+    let room = samples().join("room");
+    let r = room.to_str().unwrap();
+    let m = dir.path().join("m.ply");
+    let m = m.to_str().unwrap();
+    let e = fails(&["fuse", r, "-o", m, "--trunc", "1e15"]);
+    assert!(e.contains("--trunc"), "{e}");
+    for (flag, v) in [("--rays", "100000000"), ("--samples", "100000")] {
+        let e = fails(&["nsdf", r, "-o", m, flag, v]);
+        assert!(e.contains(flag), "{e}");
+    }
+    let e = fails(&["nsdf", r, "-o", m, "--voxel", "1e30", "--iters", "1"]);
+    assert!(e.contains("--voxel") && e.contains("bounding cube"), "{e}");
+    let img = samples().join("photos/chelsea.png");
+    let a = parity(A);
+    let out = dir.path().join("p");
+    let e = fails(&[
+        "predict",
+        "--weights",
+        a.join("weights.safetensors").to_str().unwrap(),
+        "--config",
+        a.join("config.json").to_str().unwrap(),
+        "--size",
+        "64",
+        "--focal",
+        "1e30",
+        img.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(e.contains("--focal") && e.contains("degrees"), "{e}");
+    assert!(!out.exists());
+}
+
+/// Issue 66, 8: evaluation reports what it scored: a prediction missing a frame is named and
+/// counted ("mean of 2/3"), a map invalid on half its pixels reports 50% coverage.
+#[test]
+fn evaluation_reports_its_coverage() {
+    let dir = tempfile::tempdir().unwrap();
+    let gt = dir.path().join("gt");
+    let g = gt.to_str().unwrap();
+    ok(&["render", "--procedural", "room", "--views", "3", "--width", "32", "--height", "24", "-o", g]);
+    // The prediction: the ground truth less frame 0002, frame 0001 infinite on its top half.
+    let pred = dir.path().join("pred");
+    let sc = dens3r_scene::Scene::open(&gt).unwrap();
+    let mut wr = dens3r_scene::SceneWriter::create(&pred).unwrap();
+    for f in sc.frames().iter().take(2) {
+        wr.add_frame(f.clone(), &sc.image(f).unwrap()).unwrap();
+        let mut d = sc.depth(f).unwrap().unwrap();
+        if f.name == "0001" {
+            let (w, h) = (d.width(), d.height());
+            for i in 0..w * h / 2 {
+                d.data_mut()[i] = f32::INFINITY;
+            }
+        }
+        wr.write_depth(&f.name, &d).unwrap();
+    }
+    wr.finish().unwrap();
+    let p = pred.to_str().unwrap();
+    let out = dens3r(&["eval", "depth", p, g]);
+    assert!(out.status.success());
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("mean of 2/3"), "{stdout}");
+    assert!(stderr.contains("0002") && stderr.contains("1 of the ground truth's 3 frames"), "{stderr}");
+    assert!(stderr.contains("'0001'") && stderr.contains("50.0%"), "{stderr}");
+    let j: serde_json::Value = serde_json::from_slice(&dens3r(&["eval", "depth", p, g, "--json"]).stdout).unwrap();
+    assert_eq!(j["frames_total"], 3);
+    assert_eq!(j["missing"][0], "0002");
+    let cov = j["coverage"].as_f64().unwrap();
+    assert!((cov - 0.5).abs() < 0.02, "{cov}"); // (1 + 0.5 + 0) / 3
+    let cams = dens3r(&["eval", "cameras", p, g]);
+    assert!(String::from_utf8_lossy(&cams.stdout).contains("2 views of 3"));
+}
+
+/// Issue 66, 10: `verify DIR` reads an official checkpoint's own file name; `--size` takes
+/// `WxH` in predict as train does (and train a long side); a folder named like an image is
+/// called a folder.
+#[test]
+fn interface_takes_the_forms_users_try() {
+    let a = parity(A);
+    let dir = tempfile::tempdir().unwrap();
+    let v = dir.path().join("v");
+    std::fs::create_dir_all(&v).unwrap();
+    for e in std::fs::read_dir(&a).unwrap() {
+        let e = e.unwrap();
+        let name = e.file_name().to_string_lossy().replace("weights.safetensors", "model.safetensors");
+        std::fs::copy(e.path(), v.join(name)).unwrap();
+    }
+    let report = ok(&["verify", v.to_str().unwrap()]);
+    assert!(report.contains(", 0 over tolerance"), "{report}");
+
+    let img = samples().join("photos/chelsea.png");
+    let out = dir.path().join("p");
+    let w = a.join("weights.safetensors");
+    let c = a.join("config.json");
+    let args = |size: &'static str, image: &Path, out: &Path| {
+        dens3r(&[
+            "predict",
+            "--weights",
+            w.to_str().unwrap(),
+            "--config",
+            c.to_str().unwrap(),
+            "--size",
+            size,
+            image.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ])
+    };
+    let o = args("64x48", &img, &out);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let sc = dens3r_scene::Scene::open(&out).unwrap();
+    let f = &sc.frames()[0];
+    assert_eq!(f.width.max(f.height), 64);
+    let folder = dir.path().join("IMG_0001.jpg");
+    std::fs::create_dir_all(&folder).unwrap();
+    let e = fails(&["predict", folder.to_str().unwrap(), "-o", dir.path().join("q").to_str().unwrap()]);
+    assert!(e.contains("is a folder"), "{e}");
+}
+
+/// Issue 66, done-when 2: no command changes or removes a file it did not create, under any
+/// flag or failure. Every command that writes a folder or a file is pointed at folders holding
+/// the user's files (photos, notes, a file in `images/`, a model config), succeeding and
+/// failing, with and without --overwrite and reruns; every one of those files is then byte
+/// for byte what it was, and no staging folder or lock is left.
+#[test]
+fn no_command_touches_files_it_did_not_create() {
+    let a = parity(A);
+    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
+    let (w, c) = (w.to_str().unwrap(), c.to_str().unwrap());
+    let dir = tempfile::tempdir().unwrap();
+    let photos = samples().join("photos");
+    let canary = |name: &str| {
+        let d = dir.path().join(name);
+        std::fs::create_dir_all(d.join("images")).unwrap();
+        std::fs::write(d.join("notes.txt"), format!("notes of {name}")).unwrap();
+        std::fs::copy(photos.join("chelsea.png"), d.join("photo.png")).unwrap();
+        std::fs::copy(photos.join("coffee.png"), d.join("images/mine.png")).unwrap();
+        let files = snapshot(&d);
+        (d, files)
+    };
+    let mut checked = Vec::new();
+    let run = |args: &[&str], must: Option<bool>| {
+        let out = dens3r(args);
+        if let Some(m) = must {
+            assert_eq!(out.status.success(), m, "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+        }
+        assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"), "{args:?}");
+    };
+    let room = samples().join("room");
+    let r = room.to_str().unwrap();
+    let p = photos.to_str().unwrap();
+
+    let (d, files) = canary("render");
+    let o = d.to_str().unwrap();
+    run(&["render", "--procedural", "room", "--views", "3", "--width", "32", "--height", "24", "-o", o], Some(true));
+    run(&["render", "--procedural", "room", "--views", "2", "--width", "32", "--height", "24", "-o", o], Some(false));
+    run(
+        &["render", "--procedural", "room", "--views", "2", "--width", "32", "--height", "24", "-o", o, "--overwrite"],
+        Some(true),
+    );
+    run(&["render", "--mesh", "/no/such.ply", "-o", o, "--overwrite"], Some(false));
+    checked.push((d, files));
+
+    let (d, files) = canary("predict");
+    let (o, img) = (d.to_str().unwrap().to_string(), d.join("photo.png"));
+    let img = img.to_str().unwrap();
+    run(&predict_args(w, c, &[img], &o, &[]), Some(true));
+    run(&predict_args(w, c, &[img], &o, &["--overwrite"]), Some(true));
+    run(&predict_args(w, c, &[img, "/no/such.png"], &o, &["--overwrite"]), Some(false));
+    run(&predict_args(w, c, &[img], &o, &["--overwrite", "--focal", "0"]), Some(false));
+    checked.push((d, files));
+
+    let (d, files) = canary("reconstruct");
+    let o = d.to_str().unwrap();
+    let rec = |extra: &[&'static str]| {
+        let mut args = vec!["reconstruct", p, "-o", o, "--weights", w, "--config", c, "--size", "64"];
+        args.extend(["--iterations", "5"]);
+        args.extend_from_slice(extra);
+        args
+    };
+    run(&rec(&["--no-mesh"]), Some(true));
+    run(&rec(&[]), None);
+    run(&rec(&["--voxel", "0.00001", "--budget-mb", "1"]), Some(false));
+    checked.push((d, files));
+
+    let (d, files) = canary("convert");
+    let o = d.to_str().unwrap();
+    run(&["convert", w, "-o", o], Some(true));
+    run(&["convert", w, "-o", o, "--overwrite"], Some(true));
+    std::fs::write(d.join("config.json"), "{\"mine\": true}").unwrap();
+    let files: Vec<_> = snapshot(&d).into_iter().filter(|f| f.0 == "config.json").chain(files).collect();
+    run(&["convert", w, "-o", o, "--overwrite"], Some(true));
+    run(&["convert", "/no/such.pth", "-o", o, "--overwrite"], Some(false));
+    checked.push((d, files));
+
+    let (d, files) = canary("meshes");
+    let m = d.join("m.ply");
+    let m = m.to_str().unwrap();
+    run(&["fuse", r, "-o", m, "--voxel", "0.05"], Some(true));
+    run(&["fuse", r, "-o", m, "--voxel", "0.05", "--trunc", "1e15"], Some(false));
+    run(
+        &["nsdf", r, "-o", m, "--iters", "2", "--rays", "64", "--samples", "8", "--levels", "4", "--max-res", "32"],
+        None,
+    );
+    run(&["nsdf", r, "-o", m, "--rays", "100000000"], Some(false));
+    checked.push((d, files));
+
+    for (d, files) in &checked {
+        let now = snapshot(d);
+        for f in files {
+            assert!(now.contains(f), "{}: {} changed or went", d.display(), f.0);
+        }
+        for (name, _) in &now {
+            assert!(!name.contains("dens3r-stage") && !name.contains(".dens3r-lock"), "{}: {name} left", d.display());
+        }
+    }
+}
