@@ -107,3 +107,19 @@ pub fn open_backbone(spec: &str, config: Option<&Path>) -> Result<Box<dyn Backbo
         ),
     })
 }
+
+#[cfg(test)]
+mod tests {
+    /// Issue 66, 10: `--size` takes a long side or `WxH` in every command: predict and
+    /// reconstruct read `WxH` as its long side, train reads a long side as landscape 4:3.
+    #[test]
+    fn size_takes_both_forms() {
+        assert_eq!(super::parse_long_side("512"), Ok(512));
+        assert_eq!(super::parse_long_side("512x384"), Ok(512));
+        assert_eq!(super::parse_long_side("288x512"), Ok(512));
+        assert!(super::parse_long_side("big").is_err());
+        assert_eq!(crate::train::parse_size("224").unwrap(), (224, 160));
+        assert_eq!(crate::train::parse_size("512").unwrap(), (512, 384));
+        assert_eq!(crate::train::parse_size("448x320").unwrap(), (448, 320));
+    }
+}

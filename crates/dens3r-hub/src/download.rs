@@ -143,6 +143,9 @@ pub fn download(
     download_checked(url, dest, &Expect { sha256: expected_sha256, ..Expect::default() }, progress)
 }
 
+/// A check of a finished file's format: `Err` says what the bytes are instead.
+pub type FormatCheck = dyn Fn(&Path) -> Result<(), String>;
+
 /// What a download must be beyond its checksum.
 #[derive(Default)]
 pub struct Expect<'a> {
@@ -152,7 +155,7 @@ pub struct Expect<'a> {
     /// fetched, a body that runs past it is cut off and refused.
     pub max_bytes: Option<u64>,
     /// A check of the finished bytes (their format); a failure removes them.
-    pub check: Option<&'a dyn Fn(&Path) -> Result<(), String>>,
+    pub check: Option<&'a FormatCheck>,
 }
 
 /// [`download`] with limits and a format check: a size beyond `max_bytes` or the free disk is

@@ -155,6 +155,20 @@ pub fn unique_name(p: &Path, taken: &mut HashSet<String>) -> String {
     name
 }
 
+/// Refuses a focal of `width`-pixel-wide photos (pixels) outside horizontal fields of view of
+/// 1 to 170 degrees, naming `flag` and the range that fits.
+pub fn check_focal(focal: f64, width: f64, flag: &str) -> Result<(), String> {
+    let at = |deg: f64| width / (2.0 * (deg.to_radians() / 2.0).tan());
+    let (lo, hi) = (at(170.0), at(1.0));
+    if !(focal.is_finite() && focal >= lo && focal <= hi) {
+        return Err(format!(
+            "{flag} {focal}: for a {width:.0}-pixel-wide photo give a focal in its pixels between {lo:.0} and {hi:.0} \
+             (fields of view of 170 to 1 degrees)"
+        ));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -238,18 +252,4 @@ mod tests {
         let b = unique_name(Path::new("y/a.jpg"), &mut t);
         assert_eq!((a.as_str(), b.as_str()), ("a", "a_1"));
     }
-}
-
-/// Refuses a focal of `width`-pixel-wide photos (pixels) outside horizontal fields of view of
-/// 1 to 170 degrees, naming `flag` and the range that fits.
-pub fn check_focal(focal: f64, width: f64, flag: &str) -> Result<(), String> {
-    let at = |deg: f64| width / (2.0 * (deg.to_radians() / 2.0).tan());
-    let (lo, hi) = (at(170.0), at(1.0));
-    if !(focal.is_finite() && focal >= lo && focal <= hi) {
-        return Err(format!(
-            "{flag} {focal}: for a {width:.0}-pixel-wide photo give a focal in its pixels between {lo:.0} and {hi:.0} \
-             (fields of view of 170 to 1 degrees)"
-        ));
-    }
-    Ok(())
 }

@@ -78,9 +78,12 @@ pub fn pred_depths(p: &Paired) -> Result<Vec<(Raster<f32>, Frame)>, SceneError> 
     p.frames.iter().map(|(pf, gf)| Ok((need(p.pred.depth(pf)?, &p.pred, pf, "depth")?, gf.clone()))).collect()
 }
 
+/// Depth maps, each with its ground-truth frame.
+pub type FrameDepths = Vec<(Raster<f32>, Frame)>;
+
 /// Depth maps of a folder of `NAME.npy` files (`predict --head` output) for `gt`'s frames, and
 /// the frames with none; an error for a map of another size or when none is there.
-pub fn npy_depths(dir: &Path, gt: &Scene) -> Result<(Vec<(Raster<f32>, Frame)>, Vec<String>), SceneError> {
+pub fn npy_depths(dir: &Path, gt: &Scene) -> Result<(FrameDepths, Vec<String>), SceneError> {
     let mut out = Vec::new();
     let mut missing = Vec::new();
     for gf in gt.frames() {

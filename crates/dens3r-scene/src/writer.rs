@@ -38,8 +38,8 @@ pub fn holds_scene(dir: &Path) -> bool {
 /// The files of scene folders in `dir` and its immediate subfolders that dens3r versions
 /// before the output manifest wrote (relative paths): each scene's `cameras.json`,
 /// `classes.json`, `gt_mesh.ply`, `transforms.json`, its frames' images and layers, their
-/// pictures under `viz/` and pointmaps under `pointmaps/`; beside them a reconstruction's COLMAP
-/// model, match pictures and mesh. What a later run may replace there.
+/// pictures under `viz/` and pointmaps under `pointmaps/`; beside a reconstruction's `scene/`,
+/// its COLMAP model, match pictures and mesh. What a later run may replace there.
 pub fn legacy_outputs(dir: &Path) -> Vec<String> {
     let mut out = Vec::new();
     let mut prefixes = vec![String::new()];
@@ -67,6 +67,11 @@ pub fn legacy_outputs(dir: &Path) -> Vec<String> {
             out.push(format!("{p}viz/{}_normal.png", fr.name));
             out.push(format!("{p}pointmaps/{}.ply", fr.name));
         }
+    }
+    // A reconstruction's other outputs, only beside its scene folder.
+    if !holds_scene(&dir.join("scene")) {
+        out.retain(|f| dir.join(f).is_file());
+        return out;
     }
     for f in ["colmap/cameras.txt", "colmap/images.txt", "colmap/points3D.txt", "mesh.glb"] {
         out.push(f.to_string());

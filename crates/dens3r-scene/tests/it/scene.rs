@@ -269,3 +269,35 @@ fn camera_similarity_places_a_scene_on_its_truth() {
     let e = dens3r_scene::eval::camera_similarity(&pred, &gt).unwrap_err().to_string();
     assert!(e.contains("at least 3 not on one line"), "{e}");
 }
+
+/// Issue 66, 1: a scene written before the output manifest (none beside it) is replaced by its
+/// own files only: the frames its cameras.json names go, a note beside it and a mesh of the
+/// user's stay; a user's file where the new scene writes is refused and nothing moves.
+#[test]
+fn scenes_from_before_the_manifest_are_replaced_by_their_own_files() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("old");
+    write_scene(&dir);
+    std::fs::remove_file(dir.join(dens3r_io::output::MANIFEST)).unwrap();
+    std::fs::write(dir.join("notes.txt"), "mine").unwrap();
+    std::fs::write(dir.join("mesh.glb"), "my mesh").unwrap();
+    let rgb = image::RgbImage::from_pixel(W as u32, H as u32, image::Rgb([1, 2, 3]));
+    let mut w = SceneWriter::create(&dir).unwrap();
+    w.add_frame(Frame::new("c", &cam()), &rgb).unwrap();
+    w.finish().unwrap();
+    let mut files: Vec<String> =
+        walk(&dir).iter().map(|f| Path::new(f).strip_prefix(&dir).unwrap().display().to_string()).collect();
+    files.sort();
+    assert_eq!(files, [".dens3r-outputs.json", "cameras.json", "images/c.png", "mesh.glb", "notes.txt"]);
+    assert_eq!(std::fs::read_to_string(dir.join("mesh.glb")).unwrap(), "my mesh");
+
+    // A user's picture where the next scene's frame goes: refused at finish, nothing moved.
+    std::fs::write(dir.join("images/d.png"), "my picture").unwrap();
+    let before: Vec<_> = walk(&dir).iter().map(|f| (f.clone(), std::fs::read(f).unwrap())).collect();
+    let mut w = SceneWriter::create(&dir).unwrap();
+    w.add_frame(Frame::new("d", &cam()), &rgb).unwrap();
+    let e = w.finish().unwrap_err().to_string();
+    assert!(e.contains("images/d.png") && e.contains("not written by dens3r"), "{e}");
+    let after: Vec<_> = walk(&dir).iter().map(|f| (f.clone(), std::fs::read(f).unwrap())).collect();
+    assert_eq!(after, before);
+}
