@@ -8,18 +8,18 @@ use std::process::{Command, Output};
 mod fixtures;
 use fixtures::{parity, A};
 
-fn dens3r(args: &[&str]) -> Output {
+fn dens3r<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_dens3r")).args(args).output().expect("binary runs")
 }
 
-fn ok(args: &[&str]) -> String {
+fn ok<S: AsRef<std::ffi::OsStr> + std::fmt::Debug>(args: &[S]) -> String {
     let out = dens3r(args);
     assert!(out.status.success(), "{args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
     String::from_utf8(out.stdout).unwrap() + &String::from_utf8_lossy(&out.stderr)
 }
 
 /// A command that must fail: exit 2, one stderr line starting `error:`, no panic.
-fn fails(args: &[&str]) -> String {
+fn fails<S: AsRef<std::ffi::OsStr> + std::fmt::Debug>(args: &[S]) -> String {
     let out = dens3r(args);
     let err = String::from_utf8_lossy(&out.stderr).to_string();
     assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
@@ -50,6 +50,29 @@ fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
     walk(dir, dir, &mut out);
     out.sort();
     out
+}
+
+/// Runs a command; `must`: whether it must succeed (`None`: either). Never a panic.
+fn run<S: AsRef<std::ffi::OsStr> + std::fmt::Debug>(args: &[S], must: Option<bool>) {
+    let out = dens3r(args);
+    if let Some(m) = must {
+        assert_eq!(out.status.success(), m, "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    }
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"), "{args:?}");
+}
+
+/// `reconstruct PHOTOS -o OUT` with fixture A's small network at 64 px, 5 alignment
+/// iterations, then `extra`.
+fn reconstruct_args(photos: &Path, out: &Path, extra: &[&str]) -> Vec<String> {
+    let a = parity(A);
+    let mut args: Vec<String> = vec!["reconstruct".into(), photos.display().to_string(), "-o".into()];
+    args.push(out.display().to_string());
+    for (flag, path) in [("--weights", a.join("weights.safetensors")), ("--config", a.join("config.json"))] {
+        args.extend([flag.to_string(), path.display().to_string()]);
+    }
+    args.extend(["--size", "64", "--iterations", "5"].map(String::from));
+    args.extend(extra.iter().map(|e| e.to_string()));
+    args
 }
 
 /// predict with fixture A's small network at 64 px.
@@ -131,34 +154,15 @@ fn overwrite_never_touches_the_users_files() {
 /// next run sweeps.
 #[test]
 fn failures_and_kills_leave_no_half_output() {
-    let a = parity(A);
-    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("new/deep/rec");
     let photos = samples().join("photos");
     // Fusion fails at the end (a voxel far too fine for the budget), after the scene and the
     // exports were written.
-    let e = fails(&[
-        "reconstruct",
-        photos.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--weights",
-        w.to_str().unwrap(),
-        "--config",
-        c.to_str().unwrap(),
-        "--size",
-        "64",
-        "--iterations",
-        "5",
-        "--no-cache",
-        "--voxel",
-        "0.00001",
-        "--budget-mb",
-        "1",
-    ]);
+    let e = fails(&reconstruct_args(&photos, &out, &["--no-cache", "--voxel", "0.00001", "--budget-mb", "1"]));
     assert!(!e.is_empty());
-    assert!(!dir.path().join("new").exists(), "a failed reconstruct left {:?}", snapshot(dir.path()));
+    let left: Vec<String> = snapshot(dir.path()).into_iter().map(|f| f.0).collect();
+    assert!(!dir.path().join("new").exists(), "a failed reconstruct left {left:?}");
 
     // SIGKILL halfway through a render into a new folder.
     let o = dir.path().join("killed");
@@ -214,23 +218,10 @@ fn edited_weights_reuse_no_cached_pair() {
     std::fs::copy(a.join("weights.safetensors"), &w).unwrap();
     let out = dir.path().join("rec");
     let photos = samples().join("photos");
-    let c = a.join("config.json");
     let run = || {
-        ok(&[
-            "reconstruct",
-            photos.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-            "--weights",
-            w.to_str().unwrap(),
-            "--config",
-            c.to_str().unwrap(),
-            "--size",
-            "64",
-            "--iterations",
-            "5",
-            "--no-mesh",
-        ])
+        let mut args = reconstruct_args(&photos, &out, &["--no-mesh"]);
+        args[5] = w.display().to_string(); // --weights: the copy edited below
+        ok(&args)
     };
     let first = run();
     assert!(first.contains("(0 from the cache"), "{first}");
@@ -414,16 +405,8 @@ fn no_command_touches_files_it_did_not_create() {
         (d, files)
     };
     let mut checked = Vec::new();
-    let run = |args: &[&str], must: Option<bool>| {
-        let out = dens3r(args);
-        if let Some(m) = must {
-            assert_eq!(out.status.success(), m, "{args:?}: {}", String::from_utf8_lossy(&out.stderr));
-        }
-        assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"), "{args:?}");
-    };
     let room = samples().join("room");
     let r = room.to_str().unwrap();
-    let p = photos.to_str().unwrap();
 
     let (d, files) = canary("render");
     let o = d.to_str().unwrap();
@@ -446,13 +429,7 @@ fn no_command_touches_files_it_did_not_create() {
     checked.push((d, files));
 
     let (d, files) = canary("reconstruct");
-    let o = d.to_str().unwrap();
-    let rec = |extra: &[&'static str]| {
-        let mut args = vec!["reconstruct", p, "-o", o, "--weights", w, "--config", c, "--size", "64"];
-        args.extend(["--iterations", "5"]);
-        args.extend_from_slice(extra);
-        args
-    };
+    let rec = |extra: &[&str]| reconstruct_args(&photos, &d, extra);
     run(&rec(&["--no-mesh"]), Some(true));
     run(&rec(&[]), None);
     run(&rec(&["--voxel", "0.00001", "--budget-mb", "1"]), Some(false));
