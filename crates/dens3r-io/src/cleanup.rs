@@ -42,7 +42,8 @@ pub fn stage(path: &Path) -> Staged {
 }
 
 /// Registers a folder this process created, removed if the process is stopped while the guard
-/// lives and the folder is then empty (after the paths registered later are removed).
+/// lives and it then holds no file (after the paths registered later are removed; empty
+/// folders inside it go too).
 pub fn stage_if_empty(dir: &Path) -> Staged {
     STAGED.lock().unwrap_or_else(|e| e.into_inner()).push((dir.to_path_buf(), true));
     Staged(dir.to_path_buf())
@@ -68,13 +69,26 @@ pub fn remove_all() -> usize {
     let mut n = 0;
     for (p, if_empty) in paths.iter().rev() {
         let r = match (p.is_dir(), if_empty) {
-            (true, true) => std::fs::remove_dir(p),
+            (true, true) => remove_empty_tree(p),
             (true, false) => std::fs::remove_dir_all(p),
             (false, _) => std::fs::remove_file(p),
         };
         n += r.is_ok() as usize;
     }
     n
+}
+
+/// Removes the folders under `dir` that hold no file (deepest first), then `dir` if it is
+/// then empty: a folder this process created, with nothing kept in it.
+pub fn remove_empty_tree(dir: &Path) -> std::io::Result<()> {
+    if let Ok(entries) = std::fs::read_dir(dir) {
+        for e in entries.flatten() {
+            if e.file_type().is_ok_and(|t| t.is_dir()) {
+                let _ = remove_empty_tree(&e.path());
+            }
+        }
+    }
+    std::fs::remove_dir(dir)
 }
 
 /// The marker temporary names carry: `.dens3r-tmp-PID-` (see [`sweep_stale`]).

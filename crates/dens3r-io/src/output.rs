@@ -341,7 +341,7 @@ impl OutputDir {
 }
 
 /// A run that did not finish: the staging folder and the lock go, and the folders it created
-/// go again where they are empty (a pair cache written meanwhile keeps its folder).
+/// go again where they hold no file (a pair cache written meanwhile keeps its entries).
 impl Drop for OutputDir {
     fn drop(&mut self) {
         if crate::cleanup::stopping() {
@@ -350,7 +350,7 @@ impl Drop for OutputDir {
         let _ = std::fs::remove_dir_all(&self.stage);
         self.lock.take();
         for d in self.created.iter().rev() {
-            let _ = std::fs::remove_dir(d);
+            let _ = crate::cleanup::remove_empty_tree(d);
         }
     }
 }
