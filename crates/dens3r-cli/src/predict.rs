@@ -11,7 +11,6 @@ use dens3r_heads::data::resize_nearest;
 use dens3r_heads::features::file_hash;
 use dens3r_heads::infer::{check_head, infer, write_head_output, HeadOutput};
 use dens3r_heads::{Backbone, Dens3rBackbone, Head, Task};
-use dens3r_io::output::OutputDir;
 use dens3r_recon::input::exif_focal_px;
 use dens3r_recon::mono::{write_mono_frame, FocalSource};
 use dens3r_scene::SceneWriter;
@@ -117,15 +116,6 @@ pub fn refuse_existing_scene(out: &Path, overwrite: bool) -> Result<()> {
     Ok(())
 }
 
-/// Starts the output folder of a command that writes a scene there (its lock taken, its
-/// outputs staged), counting the scene files of dens3r versions before the output manifest
-/// as dens3r's.
-pub fn begin_output(dir: &Path) -> Result<OutputDir> {
-    let mut out = OutputDir::begin(dir)?;
-    out.set_legacy(dens3r_scene::legacy_outputs(dir));
-    Ok(out)
-}
-
 /// A loaded head and where its outputs go.
 struct NamedHead {
     stem: String,
@@ -171,7 +161,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
     refuse_existing_scene(&a.output, a.overwrite)?;
     let nets = load_networks(&a)?;
     let inputs = load_inputs(&a, &nets)?;
-    let out = begin_output(&a.output)?;
+    let out = dens3r_scene::begin_output(&a.output)?;
     // A photo (or other file of the user's) where a frame's outputs go is refused now, not
     // after the network ran.
     out.check_free(&planned_outputs(&inputs, &nets))?;

@@ -52,6 +52,15 @@ fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
     out
 }
 
+/// A render of 3000 views into `out` (minutes), started in the background.
+fn long_render(out: &str) -> std::process::Child {
+    Command::new(env!("CARGO_BIN_EXE_dens3r"))
+        .args(["render", "--procedural", "room", "--views", "3000", "--width", "160", "--height", "120", "-o", out])
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
 /// Runs a command; `must`: whether it must succeed (`None`: either). Never a panic.
 fn run<S: AsRef<std::ffi::OsStr> + std::fmt::Debug>(args: &[S], must: Option<bool>) {
     let out = dens3r(args);
@@ -160,18 +169,14 @@ fn failures_and_kills_leave_no_half_output() {
     // Fusion fails at the end (a voxel far too fine for the budget), after the scene and the
     // exports were written.
     let e = fails(&reconstruct_args(&photos, &out, &["--no-cache", "--voxel", "0.00001", "--budget-mb", "1"]));
-    assert!(!e.is_empty());
+    assert!(e.contains("budget"), "{e}");
     let left: Vec<String> = snapshot(dir.path()).into_iter().map(|f| f.0).collect();
     assert!(!dir.path().join("new").exists(), "a failed reconstruct left {left:?}");
 
     // SIGKILL halfway through a render into a new folder.
     let o = dir.path().join("killed");
     let os = o.to_str().unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_dens3r"))
-        .args(["render", "--procedural", "room", "--views", "3000", "--width", "160", "--height", "120", "-o", os])
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut child = long_render(os);
     std::thread::sleep(std::time::Duration::from_millis(1500));
     child.kill().unwrap();
     child.wait().unwrap();
@@ -190,11 +195,7 @@ fn two_runs_into_one_folder_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let o = dir.path().join("busy");
     let os = o.to_str().unwrap();
-    let mut first = Command::new(env!("CARGO_BIN_EXE_dens3r"))
-        .args(["render", "--procedural", "room", "--views", "3000", "--width", "160", "--height", "120", "-o", os])
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut first = long_render(os);
     let lock = o.join(".dens3r-lock");
     for _ in 0..100 {
         if lock.is_file() {
@@ -278,21 +279,10 @@ fn numeric_flags_are_bounded() {
     assert!(e.contains("--voxel") && e.contains("bounding cube"), "{e}");
     let img = samples().join("photos/chelsea.png");
     let a = parity(A);
+    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
     let out = dir.path().join("p");
-    let e = fails(&[
-        "predict",
-        "--weights",
-        a.join("weights.safetensors").to_str().unwrap(),
-        "--config",
-        a.join("config.json").to_str().unwrap(),
-        "--size",
-        "64",
-        "--focal",
-        "1e30",
-        img.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-    ]);
+    let (w, c, o) = (w.to_str().unwrap(), c.to_str().unwrap(), out.to_str().unwrap());
+    let e = fails(&predict_args(w, c, &[img.to_str().unwrap()], o, &["--focal", "1e30"]));
     assert!(e.contains("--focal") && e.contains("degrees"), "{e}");
     assert!(!out.exists());
 }

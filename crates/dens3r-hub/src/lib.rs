@@ -112,8 +112,7 @@ pub fn fetch_model(k: &Known, progress: &mut dyn FnMut(&str, Progress)) -> Resul
                 Ok(()) => continue,
                 // A file an earlier download of dens3r's placed (its record beside it) is
                 // fetched again; one placed by hand is the user's: named, not touched.
-                Err(why) if dir.join(format!("{file}.sha256")).is_file() => {
-                    let _ = why;
+                Err(_) if dir.join(format!("{file}.sha256")).is_file() => {
                     std::fs::remove_file(&dest)
                         .map_err(|e| HubError::file(&dest, format!("damaged, and cannot be removed ({e})")))?;
                 }

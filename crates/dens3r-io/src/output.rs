@@ -168,25 +168,20 @@ impl OutputDir {
             p = d.parent();
         }
         missing.reverse();
-        let mut created_guards = Vec::new();
-        for d in &missing {
-            match std::fs::create_dir(d) {
-                Ok(()) => created_guards.push(crate::cleanup::stage_if_empty(d)),
-                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && d.is_dir() => {}
-                Err(e) => {
-                    for c in missing.iter().rev() {
-                        let _ = std::fs::remove_dir(c);
-                    }
-                    return Err(IoError::new(dest, format!("cannot create the output folder: {e}")));
-                }
-            }
-        }
         let undo = |e: IoError| {
             for c in missing.iter().rev() {
                 let _ = std::fs::remove_dir(c);
             }
             e
         };
+        let mut created_guards = Vec::new();
+        for d in &missing {
+            match std::fs::create_dir(d) {
+                Ok(()) => created_guards.push(crate::cleanup::stage_if_empty(d)),
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && d.is_dir() => {}
+                Err(e) => return Err(undo(IoError::new(dest, format!("cannot create the output folder: {e}")))),
+            }
+        }
         crate::cleanup::sweep_stale(dest);
         let lock = Lock::take(dest).map_err(undo)?;
         let stage = dest.join(format!(".dens3r-stage-{}", std::process::id()));

@@ -88,9 +88,7 @@ pub struct OutputSummary {
 /// refused), its outputs staged; the outputs of dens3r versions before the output manifest
 /// count as dens3r's (replaced, not refused).
 pub fn begin_outputs(out: &Path) -> Result<OutputDir, ReconError> {
-    let mut dir = OutputDir::begin(out)?;
-    dir.set_legacy(dens3r_scene::legacy_outputs(out));
-    Ok(dir)
+    Ok(dens3r_scene::begin_output(out)?)
 }
 
 /// Writes everything under `out` as one transaction (staged, then moved into place; nothing

@@ -155,19 +155,30 @@ pub fn normal_scores(p: &Paired, source: NormalSource) -> Result<Scores<NormalMe
 
 /// The cameras of the frames both scenes hold (matched by name, in `gt`'s order): `pred`'s, then
 /// `gt`'s.
-fn shared_cameras(pred: &Path, gt: &Path) -> Result<(Vec<PinholeCamera>, Vec<PinholeCamera>), SceneError> {
+fn shared_cameras(pred: &Path, gt: &Path) -> Result<SharedCameras, SceneError> {
     let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
-    Ok(g.frames().iter().filter_map(|gf| p.frame(&gf.name).map(|pf| (pf.camera(), gf.camera()))).unzip())
+    let (mut est, mut truth, mut missing) = (Vec::new(), Vec::new(), Vec::new());
+    for gf in g.frames() {
+        match p.frame(&gf.name) {
+            Some(pf) => {
+                est.push(pf.camera());
+                truth.push(gf.camera());
+            }
+            None => missing.push(gf.name.clone()),
+        }
+    }
+    Ok((est, truth, missing))
 }
+
+/// `pred`'s and `gt`'s cameras of the frames both hold, and the names of `gt`'s frames that
+/// `pred` lacks.
+type SharedCameras = (Vec<PinholeCamera>, Vec<PinholeCamera>, Vec<String>);
 
 /// Relative camera errors over every pair of the frames both scenes hold; with the number of
 /// those frames and the ground truth's frames the prediction lacks. An error when fewer than
 /// 2 are shared.
 pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, Vec<String>, CameraMetrics), SceneError> {
-    let (est, truth) = shared_cameras(pred, gt)?;
-    let (p, g) = (Scene::open(pred)?, Scene::open(gt)?);
-    let missing: Vec<String> =
-        g.frames().iter().filter(|gf| p.frame(&gf.name).is_none()).map(|gf| gf.name.clone()).collect();
+    let (est, truth, missing) = shared_cameras(pred, gt)?;
     if truth.len() < 2 {
         return Err(SceneError::new(
             pred,
@@ -187,7 +198,7 @@ pub fn camera_scores(pred: &Path, gt: &Path) -> Result<(usize, Vec<String>, Came
 /// ground truth is, e.g. to score its mesh. An error for fewer than 3 shared cameras or
 /// centres on one line.
 pub fn camera_similarity(pred: &Path, gt: &Path) -> Result<(dens3r_geom::transform::Sim3, usize), SceneError> {
-    let (est, truth) = shared_cameras(pred, gt)?;
+    let (est, truth, _) = shared_cameras(pred, gt)?;
     let src: Vec<_> = est.iter().map(PinholeCamera::center).collect();
     let dst: Vec<_> = truth.iter().map(PinholeCamera::center).collect();
     let n = src.len();

@@ -88,12 +88,20 @@ pub fn legacy_outputs(dir: &Path) -> Vec<String> {
     out
 }
 
+/// Starts the output folder `dir` of a command that writes scenes there (its lock taken, its
+/// outputs staged; see [`OutputDir`]), counting the files of scenes written before the output
+/// manifest ([`legacy_outputs`]) as dens3r's.
+pub fn begin_output(dir: &Path) -> Result<OutputDir, SceneError> {
+    let mut out = OutputDir::begin(dir)?;
+    out.set_legacy(legacy_outputs(dir));
+    Ok(out)
+}
+
 impl SceneWriter {
     /// Starts a scene in `dir` (created if missing), staged until `finish`; fails, naming
     /// `dir`, when another run is writing it.
     pub fn create(dir: &Path) -> Result<Self, SceneError> {
-        let mut out = OutputDir::begin(dir)?;
-        out.set_legacy(legacy_outputs(dir));
+        let out = begin_output(dir)?;
         let root = out.root().to_path_buf();
         Ok(Self { root, out: Some(out), frames: Vec::new(), extra: Default::default() })
     }
