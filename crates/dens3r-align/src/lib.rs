@@ -20,7 +20,7 @@ mod ransac;
 pub mod resection;
 pub mod rotations;
 pub mod two_view;
-mod union_find;
+pub mod union_find;
 
 pub use global::{global_align, AlignOptions, AlignedView, Alignment, ConfTransform, GlobalAlignError, PairPrediction};
 pub use pairs::{make_pairs, verified_subgraph, PairGraph};

@@ -1,22 +1,22 @@
 //! Disjoint sets over `0..n` (path halving), shared by the spanning tree and the tracks.
 
 /// Disjoint sets over indices.
-pub(crate) struct UnionFind(Vec<usize>);
+pub struct UnionFind(Vec<usize>);
 
 impl UnionFind {
     /// `n` singletons.
-    pub(crate) fn new(n: usize) -> Self {
+    pub fn new(n: usize) -> Self {
         Self((0..n).collect())
     }
 
     /// Adds a singleton and returns its index.
-    pub(crate) fn push(&mut self) -> usize {
+    pub fn push(&mut self) -> usize {
         self.0.push(self.0.len());
         self.0.len() - 1
     }
 
     /// The representative of `a`'s set.
-    pub(crate) fn find(&mut self, mut a: usize) -> usize {
+    pub fn find(&mut self, mut a: usize) -> usize {
         while self.0[a] != a {
             self.0[a] = self.0[self.0[a]];
             a = self.0[a];
@@ -25,7 +25,7 @@ impl UnionFind {
     }
 
     /// Joins the sets of `a` and `b`; false when they were already one.
-    pub(crate) fn union(&mut self, a: usize, b: usize) -> bool {
+    pub fn union(&mut self, a: usize, b: usize) -> bool {
         let (ra, rb) = (self.find(a), self.find(b));
         if ra != rb {
             self.0[ra.max(rb)] = ra.min(rb);
