@@ -68,7 +68,9 @@ def reconstruct(
     """Photos -> cameras, depth, normals and a mesh, as ``dens3r reconstruct PHOTOS -o OUTPUT``.
 
     ``photos``: a folder or a list of image files. ``model``: a loaded :class:`Model` (default:
-    the bundled dens3r-s). ``options``: ``graph`` ("complete", "swin", "logwin", "oneref"),
+    the bundled dens3r-s). ``options``: ``align`` ("sfm": cameras by structure-from-motion, the
+    default; "dense": the network's pairs and the dense alignment), ``graph`` ("complete",
+    "swin", "logwin", "oneref": which photos are matched, or which pairs the network runs),
     ``window``, ``cyclic``, ``iterations``, ``fixed_focal``, ``focal``, ``voxel``, ``min_conf``
     (default: the model's, :attr:`Model.min_conf`), ``masks`` (a folder of object masks, one per
     photo by file stem: only the object is fused), ``mesh``, ``cache``, ``match_pictures``, ``gpu``. ``progress``: True for tqdm bars (when tqdm is

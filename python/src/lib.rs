@@ -667,19 +667,22 @@ fn pair_graph(graph: &str, window: usize, cyclic: bool) -> PyResult<dens3r_align
 /// Photos -> cameras, depth, normals and a mesh, as `dens3r reconstruct PHOTOS -o OUTPUT`
 /// (the same pipeline and outputs: `OUTPUT/scene/`, `colmap/`, `matches/`, `mesh.glb`).
 /// Returns `read_scene` of the scene folder plus `output`, `mesh` (a mesh dict, or None) and
-/// `summary` (alignment residuals, pairs, warnings). `progress(stage, done, total)` is called
+/// `summary` (alignment residuals, pairs, photos registered, warnings). `align` is "sfm"
+/// (cameras by structure-from-motion, the default) or "dense" (the network's pairs and the
+/// dense alignment). `progress(stage, done, total)` is called
 /// with stage "predict", "align" or "fuse". `focal` (pixels of the photos) fixes every focal;
 /// without it a photo's EXIF 35 mm equivalent focal length is kept where it has one.
 /// `min_conf` defaults to the model's (`Model.min_conf`); `masks` is a folder of object masks,
 /// one per photo by file stem, as `reconstruct --masks` (only the object is fused).
 #[pyfunction]
-#[pyo3(signature = (photos, output, *, model=None, graph="complete".to_string(), window=3, cyclic=false, iterations=300, fixed_focal=false, focal=None, voxel=None, min_conf=None, masks=None, mesh=true, cache=true, match_pictures=20, gpu=false, progress=None))]
+#[pyo3(signature = (photos, output, *, model=None, align="sfm".to_string(), graph="complete".to_string(), window=3, cyclic=false, iterations=300, fixed_focal=false, focal=None, voxel=None, min_conf=None, masks=None, mesh=true, cache=true, match_pictures=20, gpu=false, progress=None))]
 #[allow(clippy::too_many_arguments)]
 fn reconstruct<'py>(
     py: Python<'py>,
     photos: Vec<PathBuf>,
     output: PathBuf,
     model: Option<&Model>,
+    align: String,
     graph: String,
     window: usize,
     cyclic: bool,
@@ -696,6 +699,11 @@ fn reconstruct<'py>(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let graph = pair_graph(&graph, window, cyclic)?;
+    let cameras = match align.as_str() {
+        "sfm" => dens3r_recon::Cameras::Sfm(dens3r_recon::SfmSettings::default()),
+        "dense" => dens3r_recon::Cameras::Dense,
+        a => return Err(PyValueError::new_err(format!("align={a:?}: expected sfm or dense"))),
+    };
     if voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         return Err(PyValueError::new_err("voxel: must be positive"));
     }
@@ -746,6 +754,7 @@ fn reconstruct<'py>(
         };
         let predictor = NetworkPredictor::new(model.net.model(), format!("{id} size {}", model.size));
         let opts = dens3r_recon::ReconOptions {
+            cameras,
             graph,
             align: dens3r_align::AlignOptions { iterations, optimize_focal: !fixed_focal, ..Default::default() },
             matching: dens3r_align::matching::MatchOptions::default(),
@@ -773,6 +782,9 @@ fn reconstruct<'py>(
             "pairs_left_out": rec.stats.pairs_left_out,
             "tracks": rec.points.len(),
             "triangulated_points": rec.stats.triangulated_points,
+            "registered": rec.stats.registered,
+            "unregistered": rec.stats.unregistered,
+            "sfm_rms_px": rec.stats.sfm.as_ref().map(|s| [s.rms_px.0, s.rms_px.1]),
             "warnings": rec.stats.warnings.iter().chain(&summary.warnings).collect::<Vec<_>>(),
             "voxel": summary.voxel,
             "triangles": summary.triangles,

@@ -34,8 +34,20 @@ impl Keypoints {
 /// normalised, square-rooted: Euclidean distance between them compares as the Hellinger
 /// kernel, which matches better than raw SIFT).
 pub fn detect(img: &RgbImage, max: usize) -> Keypoints {
+    detect_with_gain(img, max, 1.0)
+}
+
+/// [`detect`] with the difference-of-Gaussians scaled by `gain` before extrema are kept:
+/// `gain` 2 halves the contrast threshold (OpenCV's 0.04 over 3 scales) to COLMAP's peak
+/// threshold (0.02 / 3), which finds keypoints on the weak texture of walls and floors. The
+/// descriptors are unchanged (they are normalised).
+pub fn detect_with_gain(img: &RgbImage, max: usize, gain: f32) -> Keypoints {
     let gray = image::imageops::grayscale(img);
-    let r = sift_features::sift(&gray, Some(max));
+    let mut pre = sift_features::precompute_images::<sift_features::ImageprocProcessing>(&gray);
+    if gain != 1.0 {
+        pre.dog.iter_mut().for_each(|d| d.mapv_inplace(|v| v * gain));
+    }
+    let r = sift_features::sift_with_precomputed(&pre, Some(max));
     let mut out = Keypoints { xy: Vec::with_capacity(r.keypoints.len()), desc: Vec::new() };
     for (k, kp) in r.keypoints.iter().enumerate() {
         let d = r.descriptors.row(k);

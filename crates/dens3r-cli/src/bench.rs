@@ -27,6 +27,9 @@ pub enum BenchCommand {
     /// (internal) time Rust training steps on a batch written by `bench train`.
     #[command(hide = true)]
     RunTrain { dir: PathBuf },
+    /// `reconstruct`'s cameras vs COLMAP's on rendered walkthroughs and orbits (registered
+    /// views, rotation, baseline and focal errors, reprojection error, time, memory).
+    Sfm(crate::bench_sfm::SfmBenchArgs),
     /// Neural SDF vs TSDF fusion on a noisy object orbit, with the no-normals ablation.
     Nsdf(crate::bench_nsdf::NsdfBenchArgs),
     /// (internal) fuse one scene and print timings as JSON.
@@ -89,6 +92,7 @@ pub fn run(c: BenchCommand) -> Result<()> {
         BenchCommand::Backbone(a) => backbone(a),
         BenchCommand::Fusion(a) => crate::bench_fusion::fusion(a),
         BenchCommand::Nsdf(a) => crate::bench_nsdf::run(a),
+        BenchCommand::Sfm(a) => crate::bench_sfm::run(a),
         BenchCommand::Train(a) => crate::bench_train::train(a),
         BenchCommand::RunTrain { dir } => crate::bench_train::run_train(&dir),
         BenchCommand::RunFuse { scene, voxel, out, gpu } => crate::bench_fusion::run_fuse(&scene, voxel, &out, gpu),

@@ -5,6 +5,7 @@ mod bench;
 mod bench_fusion;
 mod bench_nsdf;
 mod bench_peer;
+mod bench_sfm;
 mod bench_train;
 mod convert;
 mod eval;

@@ -10,8 +10,9 @@ use dens3r_align::{AlignOptions, PairGraph};
 use dens3r_backbone::Precision;
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
-    begin_outputs, list_images, load_images, reconstruct, write_outputs_into, KeypointOptions, NetworkPredictor,
-    OutputOptions, OutputSummary, PairCache, ReconOptions, Reconstruction, Stage, TrackOptions,
+    begin_outputs, list_images, load_images, reconstruct, write_outputs_into, Cameras, KeypointOptions,
+    NetworkPredictor, OutputOptions, OutputSummary, PairCache, ReconOptions, Reconstruction, SfmSettings, Stage,
+    TrackOptions,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -29,6 +30,16 @@ enum Graph {
     Oneref,
 }
 
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Align {
+    /// Cameras by global structure-from-motion on SIFT keypoints (rotation averaging, global
+    /// positioning, bundle adjustment); the network gives each photo's depth and normals.
+    Sfm,
+    /// The network's pairs, placed by keypoints and matches where they agree, then DUSt3R's
+    /// dense global alignment.
+    Dense,
+}
+
 #[derive(Args)]
 pub struct ReconstructArgs {
     /// Photos: a folder (its .png / .jpg / .jpeg / .pgm / .ppm files, sorted by name) or files.
@@ -39,7 +50,13 @@ pub struct ReconstructArgs {
     output: PathBuf,
     #[command(flatten)]
     model: crate::model_args::ModelArgs,
-    /// Which pairs the network runs (both orders of each).
+    /// How the cameras are found. With sfm, photos the structure-from-motion does not
+    /// register are left out (and named); with fewer than half registered the run falls back
+    /// to dense.
+    #[arg(long, value_enum, default_value = "sfm")]
+    align: Align,
+    /// Which photos are matched (sfm), or which pairs the network runs, both orders of each
+    /// (dense).
     #[arg(long, value_enum, default_value = "complete")]
     graph: Graph,
     /// Window of --graph swin / logwin.
@@ -193,6 +210,10 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     };
     let predictor = NetworkPredictor::new(&model, format!("{id} size {}{precision}", a.model.size));
     let opts = ReconOptions {
+        cameras: match a.align {
+            Align::Sfm => Cameras::Sfm(SfmSettings::default()),
+            Align::Dense => Cameras::Dense,
+        },
         graph,
         align: AlignOptions {
             iterations: a.iterations,
@@ -254,6 +275,34 @@ fn report(
     for w in s.warnings.iter().chain(&summary.warnings) {
         eprintln!("warning: {w}");
     }
+    match &s.sfm {
+        Some(sfm) => report_sfm(rec, sfm, encoded),
+        None => report_dense(a, rec, encoded),
+    }
+    match &summary.mesh {
+        Some(m) => println!(
+            "mesh: {} triangles at voxel {:.4} in {:.1}s ({}; pixels of confidence {min_conf} or more{}) -> {}",
+            summary.triangles,
+            summary.voxel,
+            summary.fuse_seconds,
+            summary.gpu_adapter.as_deref().map_or("CPU".to_string(), |g| format!("GPU: {g}")),
+            if a.masks.is_some() { ", within the masks" } else { "" },
+            m.display()
+        ),
+        None if a.no_mesh => println!("mesh: skipped (--no-mesh)"),
+        None => println!("mesh: none (see the warning above)"),
+    }
+    println!(
+        "scene: {} (nerfstudio: transforms.json), COLMAP: {} (image path: the scene folder); total {:.1}s",
+        summary.scene.display(),
+        summary.colmap.display(),
+        t0.elapsed().as_secs_f64()
+    );
+}
+
+/// The cameras' lines of a run on the dense path.
+fn report_dense(a: &ReconstructArgs, rec: &Reconstruction, encoded: usize) {
+    let s = &rec.stats;
     let tracks = rec.points.len();
     let nmatch: usize = rec.matches.iter().map(|m| m.2.len()).sum();
     println!(
@@ -309,23 +358,43 @@ fn report(
         "tracks: {tracks} points ({} triangulated from the cameras, the rest placed by one view's depth)",
         s.triangulated_points
     );
-    match &summary.mesh {
-        Some(m) => println!(
-            "mesh: {} triangles at voxel {:.4} in {:.1}s ({}; pixels of confidence {min_conf} or more{}) -> {}",
-            summary.triangles,
-            summary.voxel,
-            summary.fuse_seconds,
-            summary.gpu_adapter.as_deref().map_or("CPU".to_string(), |g| format!("GPU: {g}")),
-            if a.masks.is_some() { ", within the masks" } else { "" },
-            m.display()
-        ),
-        None if a.no_mesh => println!("mesh: skipped (--no-mesh)"),
-        None => println!("mesh: none (see the warning above)"),
-    }
+}
+
+/// The cameras' lines of a run whose cameras came from structure-from-motion.
+fn report_sfm(rec: &Reconstruction, sfm: &dens3r_sfm::SfmStats, encoded: usize) {
+    let s = &rec.stats;
     println!(
-        "scene: {} (nerfstudio: transforms.json), COLMAP: {} (image path: the scene folder); total {:.1}s",
-        summary.scene.display(),
-        summary.colmap.display(),
-        t0.elapsed().as_secs_f64()
+        "{} photos: {} network passes for depth and normals ({} from the cache; {} images encoded) in {:.1}s; SIFT in {:.1}s",
+        s.registered + s.unregistered.len(),
+        s.pairs - s.cache_hits,
+        s.cache_hits,
+        encoded,
+        s.predict_seconds,
+        s.keypoint_seconds
+    );
+    let [m, v, r, p, b] = sfm.seconds;
+    println!(
+        "structure from motion: {} of {} photos registered; pairs: {} matched, {} verified, {} consistent; \
+         {} tracks ({} ambiguous dropped) -> {} points, {} observations; reprojection RMS {:.2} -> {:.2} px; \
+         {:.1}s (matching {m:.1}, verification {v:.1}, rotations {r:.1}, positions {p:.1}, bundle adjustment {b:.1}{})",
+        s.registered,
+        s.registered + s.unregistered.len(),
+        sfm.matched_pairs,
+        sfm.verified_pairs,
+        sfm.consistent_pairs,
+        sfm.tracks,
+        sfm.ambiguous_tracks,
+        rec.points.len(),
+        sfm.observations,
+        sfm.rms_px.0,
+        sfm.rms_px.1,
+        s.align_seconds,
+        if sfm.passes > 1 { format!("; {} passes: adjustment moved the focal", sfm.passes) } else { String::new() }
+    );
+    println!(
+        "focals: {} ({} of {} known, the rest refined by bundle adjustment); depth: the network's, scaled per photo onto the points",
+        rec.alignment.views.iter().map(|v| format!("{:.1}", v.camera.intrinsics.fx)).collect::<Vec<_>>().join(", "),
+        s.known_focals,
+        s.registered
     );
 }

@@ -18,6 +18,7 @@ pub mod mono;
 pub mod output;
 pub mod pipeline;
 pub mod predictor;
+pub mod sfm;
 pub mod tracks;
 pub mod viz;
 
@@ -25,8 +26,9 @@ pub use cache::PairCache;
 pub use input::{list_images, load_images, InputImage};
 pub use masks::attach_masks;
 pub use output::{begin_outputs, write_outputs, write_outputs_into, OutputOptions, OutputSummary};
-pub use pipeline::{reconstruct, KeypointOptions, ReconOptions, Reconstruction, Stage};
+pub use pipeline::{reconstruct, reconstruct_dense, Cameras, KeypointOptions, ReconOptions, Reconstruction, Stage};
 pub use predictor::{NetworkPredictor, PairPredictor, ViewOutput, Wanted};
+pub use sfm::SfmSettings;
 pub use tracks::TrackOptions;
 
 use std::path::Path;

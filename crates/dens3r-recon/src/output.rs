@@ -125,7 +125,7 @@ pub fn write_outputs_into(
     for (k, v) in rec.alignment.views.iter().enumerate() {
         let name = &rec.names[k];
         let mut frame = Frame::new(name, &v.camera);
-        if let Some(src) = sources.get(k) {
+        if let Some(src) = rec.inputs.get(k).and_then(|&i| sources.get(i)) {
             frame.extra.insert("source".into(), serde_json::json!(src.display().to_string()));
         }
         w.add_frame(frame, &rec.rgb[k])?;

@@ -3,6 +3,7 @@
 use crate::cache::PairCache;
 use crate::input::InputImage;
 use crate::predictor::{PairPredictor, ViewOutput, Wanted};
+use crate::sfm::{reconstruct_sfm, SfmSettings};
 use crate::tracks::{track_points, TrackOptions};
 use crate::ReconError;
 use dens3r_align::cycle_focal::{focal_from_cycles, CycleFocal, CycleFocalOptions};
@@ -18,6 +19,7 @@ use dens3r_geom::transform::Sim3;
 use dens3r_geom::{DVec3, Raster, Vec3};
 use dens3r_io::panics::catch_quietly;
 use dens3r_scene::export::TrackPoint;
+use dens3r_sfm::SfmStats;
 use glam::{DMat3, DVec2};
 use image::RgbImage;
 use rayon::prelude::*;
@@ -43,6 +45,9 @@ pub struct ReconOptions {
     /// agree ([`dens3r_align::match_pose::pose_from_keypoints`]): the rotation then owes
     /// nothing to the network's depth or descriptors. `None` skips keypoints.
     pub keypoints: Option<KeypointOptions>,
+    /// How the cameras are found: global structure-from-motion (the default), or the
+    /// network's pairs and DUSt3R's dense alignment.
+    pub cameras: Cameras,
     /// Leave out of the alignment the pairs neither keypoints nor matches placed, among
     /// images that placed pairs already connect ([`dens3r_align::verified_subgraph`]): a
     /// network's unverified cross-view pointmaps then cannot pull verified cameras. Off keeps
@@ -86,9 +91,21 @@ impl Default for KeypointOptions {
     }
 }
 
+/// How `reconstruct` finds the cameras ([`ReconOptions::cameras`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Cameras {
+    /// SIFT keypoints through global structure-from-motion ([`crate::sfm`]); the network gives
+    /// depth and normals. The pair graph says which photos are matched.
+    Sfm(SfmSettings),
+    /// The network's pairs (the pair graph), placed by keypoints and matches where they
+    /// agree, then DUSt3R's dense global alignment.
+    Dense,
+}
+
 impl Default for ReconOptions {
     fn default() -> Self {
         Self {
+            cameras: Cameras::Sfm(SfmSettings::default()),
             graph: PairGraph::Complete,
             align: AlignOptions::default(),
             matching: MatchOptions::default(),
@@ -126,6 +143,8 @@ pub struct Reconstruction {
     pub points: Vec<TrackPoint>,
     /// The photos' object masks at the maps' size, where given ([`InputImage::mask`]).
     pub masks: Vec<Option<Raster<bool>>>,
+    /// Each frame's index among the input photos (photos not registered have no frame).
+    pub inputs: Vec<usize>,
     /// Counts, timings and warnings.
     pub stats: ReconStats,
 }
@@ -169,11 +188,35 @@ pub struct ReconStats {
     pub triangulated_points: usize,
     /// Things the user should know (fallbacks, cache problems).
     pub warnings: Vec<String>,
+    /// Photos given cameras (all of them on the dense path).
+    pub registered: usize,
+    /// Photos structure-from-motion left out, by name.
+    pub unregistered: Vec<String>,
+    /// Structure-from-motion's counts and timings, where its cameras were used.
+    pub sfm: Option<SfmStats>,
 }
 
-/// Runs the pair graph over `images`, matches, aligns and triangulates tracks.
-/// `progress(stage, done, total)` reports each stage.
+/// Reconstructs `images`: cameras as [`ReconOptions::cameras`] says, depth and normals from
+/// the network. `progress(stage, done, total)` reports each stage.
 pub fn reconstruct(
+    images: &[InputImage],
+    predictor: &dyn PairPredictor,
+    cache: &PairCache,
+    opts: &ReconOptions,
+    progress: impl FnMut(Stage, usize, usize),
+) -> Result<Reconstruction, ReconError> {
+    let n = images.len();
+    if n < 2 {
+        return Err(ReconError::Other(format!("reconstruction needs at least 2 photos, got {n}")));
+    }
+    match &opts.cameras {
+        Cameras::Sfm(settings) => reconstruct_sfm(images, predictor, cache, opts, settings, progress),
+        Cameras::Dense => reconstruct_dense(images, predictor, cache, opts, progress),
+    }
+}
+
+/// Runs the pair graph over `images`, matches, aligns and triangulates tracks (the dense path).
+pub fn reconstruct_dense(
     images: &[InputImage],
     predictor: &dyn PairPredictor,
     cache: &PairCache,
@@ -181,9 +224,6 @@ pub fn reconstruct(
     mut progress: impl FnMut(Stage, usize, usize),
 ) -> Result<Reconstruction, ReconError> {
     let n = images.len();
-    if n < 2 {
-        return Err(ReconError::Other(format!("reconstruction needs at least 2 photos, got {n}")));
-    }
     let sizes: Vec<(usize, usize)> = images.iter().map(|im| im.size()).collect();
     // Every pair, each followed by its reverse (the set DUSt3R symmetrises to): a predictor
     // may reuse work between the two runs of one pair.
@@ -191,7 +231,7 @@ pub fn reconstruct(
         make_pairs(n, opts.graph, false).into_iter().flat_map(|(i, j)| [(i, j), (j, i)]).collect();
     let ordered: HashSet<(usize, usize)> = order.iter().copied().collect();
     let known_focals = images.iter().filter(|im| im.focal.is_some()).count();
-    let mut stats = ReconStats { pairs: order.len(), known_focals, ..Default::default() };
+    let mut stats = ReconStats { pairs: order.len(), known_focals, registered: n, ..Default::default() };
     let id = predictor.id();
     let mut normal_sum: Vec<Option<(Vec<Vec3>, Vec<f32>)>> = vec![None; n];
     let mut matches = Vec::new();
@@ -317,6 +357,7 @@ pub fn reconstruct(
         matches,
         points,
         masks: images.iter().map(|im| im.mask.clone()).collect(),
+        inputs: (0..n).collect(),
         stats,
     })
 }

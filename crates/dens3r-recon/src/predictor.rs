@@ -4,7 +4,7 @@
 use crate::input::InputImage;
 use dens3r_backbone::model::Dens3r;
 use dens3r_backbone::predict::{
-    decode_pair, encode, pair_maps, swapped_features, DescriptorMap, Encoded, Resolution, ViewMaps,
+    decode_pair, encode, pair_maps, predict_mono, swapped_features, DescriptorMap, Encoded, Resolution, ViewMaps,
 };
 use dens3r_backbone::{Features, HeadOutputs, Tensor};
 use dens3r_geom::{Raster, Vec3};
@@ -88,6 +88,13 @@ pub trait PairPredictor {
     /// Predicts the ordered pair `(images[i], images[j])`: both pointmaps in camera `i`'s
     /// frame, and what `want` asks for.
     fn predict(&self, images: &[InputImage], i: usize, j: usize, want: Wanted) -> Result<[ViewOutput; 2], String>;
+    /// Image `i` alone: its pointmap in its own frame, confidence and normals (the self-pair's
+    /// first view, as the official pipeline reads a single image). By default the self-pair
+    /// through [`PairPredictor::predict`].
+    fn predict_mono(&self, images: &[InputImage], i: usize) -> Result<ViewOutput, String> {
+        let [v, _] = self.predict(images, i, i, Wanted { descriptors: false })?;
+        Ok(v)
+    }
 }
 
 /// An image's identity for the encoder cache: content hash, crop box, portrait rotation.
@@ -167,6 +174,13 @@ impl PairPredictor for NetworkPredictor<'_> {
         };
         let [va, vb] = pair_maps(&pred, &a.prep, &b.prep, Resolution::Network);
         Ok([ViewOutput::from_maps(va), ViewOutput::from_maps(vb)])
+    }
+
+    /// The self-pair without its redundant half ([`predict_mono`]): one decoder view, one
+    /// set of heads.
+    fn predict_mono(&self, images: &[InputImage], i: usize) -> Result<ViewOutput, String> {
+        let want = HeadOutputs { normal: true, desc: false };
+        Ok(ViewOutput::from_maps(predict_mono(self.model, &images[i].prep, Resolution::Network, want)))
     }
 }
 

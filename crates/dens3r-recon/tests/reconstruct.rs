@@ -11,8 +11,8 @@ use dens3r_geom::transform::{axis_angle, rotation_angle_deg, Sim3};
 use dens3r_geom::{DMat3, DVec3, Intrinsics, PinholeCamera, Raster, Vec3};
 use dens3r_mesh::metrics::{mesh_metrics, MeshMetricsOptions};
 use dens3r_recon::{
-    list_images, load_images, reconstruct, write_outputs, InputImage, KeypointOptions, OutputOptions, PairCache,
-    PairPredictor, ReconOptions, ViewOutput, Wanted,
+    list_images, load_images, reconstruct, write_outputs, Cameras, InputImage, KeypointOptions, OutputOptions,
+    PairCache, PairPredictor, ReconOptions, ViewOutput, Wanted,
 };
 use dens3r_render::path::room_walk;
 use dens3r_render::procedural::{room, ROOM_HI, ROOM_LO};
@@ -195,7 +195,7 @@ fn oracle_photos_become_the_true_scene() {
     let cache = PairCache::new(Some(out.join("cache")));
     // Keypoint placement assumes each pair's first view in its camera frame (as the networks
     // give it); this oracle's random similarity frames test the alignment without it.
-    let opts = ReconOptions { keypoints: None, ..Default::default() };
+    let opts = ReconOptions { cameras: Cameras::Dense, keypoints: None, ..Default::default() };
     let mut stages = Vec::new();
     let rec = reconstruct(&images, &oracle, &cache, &opts, |s, d, _| stages.push((s, d))).unwrap();
     assert_eq!((rec.stats.pairs, oracle.calls.get(), rec.stats.cache_hits), (n * (n - 1), n * (n - 1), 0));
@@ -429,7 +429,7 @@ fn matches_place_the_pairs_a_network_cannot() {
     let graph = dens3r_align::PairGraph::SlidingWindow { k: 1, cyclic: false };
     // Reciprocal matches are few at 160x112 (20 between the walk's widest neighbours).
     let match_pose = Some(dens3r_align::match_pose::MatchPoseOptions { min_inliers: 12, ..Default::default() });
-    let opts = ReconOptions { graph, match_pose, keypoints: None, ..Default::default() };
+    let opts = ReconOptions { cameras: Cameras::Dense, graph, match_pose, keypoints: None, ..Default::default() };
     let with = reconstruct(&images, &blind, &cache, &opts, |_, _, _| {}).unwrap();
     let (med, worst) = rotation_errors(&t, &with.alignment);
     eprintln!(
@@ -520,7 +520,7 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
     let net = DepthOnly(&t);
     let cache = PairCache::new(None);
     let graph = dens3r_align::PairGraph::SlidingWindow { k: 1, cyclic: false };
-    let opts = ReconOptions { graph, ..Default::default() };
+    let opts = ReconOptions { cameras: Cameras::Dense, graph, ..Default::default() };
     let with = reconstruct(&images, &net, &cache, &opts, |_, _, _| {}).unwrap();
     let (med, worst) = rotation_errors(&t, &with.alignment);
     eprintln!(
@@ -547,6 +547,56 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
     assert!(med0 > 5.0, "{med0}");
 }
 
+/// Structure-from-motion's cameras through `reconstruct` (the default): the depth-only
+/// network's photos of the noise room, eight views walking along the room, the focal unknown
+/// (started from the network's warped rays): every view registered, relative rotations and
+/// baseline directions near the truth, the focal within 1%, and each view's depth the
+/// network's scaled onto the SfM points (the truth's depth up to one scale for all views).
+#[test]
+fn structure_from_motion_places_the_cameras_by_default() {
+    let n = 8;
+    let poses = (0..n)
+        .map(|k| {
+            let eye = DVec3::new(-1.0 + 0.3 * k as f64, -1.3 + 0.05 * k as f64, 1.2 + 0.04 * (k % 3) as f64);
+            let at = DVec3::new(0.6 - 0.15 * k as f64, 2.0, 0.9);
+            dens3r_geom::camera::look_at(eye, at, DVec3::Z).unwrap()
+        })
+        .collect();
+    let (t, images) = noise_room_photos(poses);
+    let net = DepthOnly(&t);
+    let rec = reconstruct(&images, &net, &PairCache::new(None), &ReconOptions::default(), |_, _, _| {}).unwrap();
+    let sfm = rec.stats.sfm.as_ref().expect("cameras by structure from motion");
+    assert_eq!((rec.stats.registered, rec.alignment.views.len()), (n, n), "{:?}", rec.stats.warnings);
+    let (med, worst) = rotation_errors(&t, &rec.alignment);
+    let est: Vec<_> = rec.alignment.views.iter().map(|v| v.camera).collect();
+    let m = dens3r_geom::metrics::cameras::camera_metrics(&est, &t.cams);
+    let trans = dens3r_geom::metrics::cameras::median(&m.translation_deg);
+    let f = (est[0].intrinsics.fx / t.cams[0].intrinsics.fx - 1.0).abs();
+    eprintln!(
+        "SfM: rotation median {med:.3} worst {worst:.3} deg, baselines {trans:.3} deg, focal {f:.4}, RMS {:.2} px",
+        sfm.rms_px.1
+    );
+    assert!(med < 0.2 && worst < 0.5 && trans < 1.0 && f < 0.01, "{med} {worst} {trans} {f}");
+    assert!(sfm.rms_px.1 < 1.0 && rec.points.len() > 200, "{} px, {} points", sfm.rms_px.1, rec.points.len());
+    // Depth: one scale for every view against the truth (the SfM's gauge), within 2%.
+    let ratios: Vec<f64> = (0..n)
+        .map(|k| {
+            let (d, own) = (&rec.alignment.views[k].depth, &t.own[k]);
+            let mut r: Vec<f64> = d
+                .data()
+                .iter()
+                .zip(own.data())
+                .filter(|(z, p)| **z > 0.0 && p.is_finite() && p.z > 0.0)
+                .map(|(z, p)| *z as f64 / p.z as f64)
+                .collect();
+            r.sort_by(f64::total_cmp);
+            r[r.len() / 2]
+        })
+        .collect();
+    let (lo, hi) = ratios.iter().fold((f64::INFINITY, 0.0f64), |(a, b), &r| (a.min(r), b.max(r)));
+    assert!(hi / lo < 1.02, "depth scales {ratios:?}");
+}
+
 /// A camera panning across the room, 28 degrees a step with a 62 degree field of view:
 /// neighbours share about half their view and keypoints place them; views two steps apart
 /// share little and stay unplaced. Those pairs' cross-view pointmaps (the depth-only network's
@@ -571,7 +621,7 @@ fn unplaced_pairs_do_not_pull_placed_cameras() {
     let net = DepthOnly(&t);
     let cache = PairCache::new(None);
     let graph = dens3r_align::PairGraph::SlidingWindow { k: 2, cyclic: false };
-    let opts = ReconOptions { graph, ..Default::default() };
+    let opts = ReconOptions { cameras: Cameras::Dense, graph, ..Default::default() };
     let with = reconstruct(&images, &net, &cache, &opts, |_, _, _| {}).unwrap();
     let (med, worst) = rotation_errors(&t, &with.alignment);
     let s = &with.stats;

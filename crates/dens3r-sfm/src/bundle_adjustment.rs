@@ -180,7 +180,9 @@ pub fn bundle_adjust(p: &mut BaProblem, opts: &BaOptions) -> BaReport {
             let mut couplings: Vec<(Vec<usize>, [[f64; 3]; 7])> = Vec::new();
             for &(v, kp) in t {
                 let Some(c) = &p.cameras[v] else { continue };
-                let Some((r, jc, jf, jp)) = linearise(c, p.focals[c.focal], *x, p.keypoints[v].xy[kp]) else { continue };
+                let Some((r, jc, jf, jp)) = linearise(c, p.focals[c.focal], *x, p.keypoints[v].xy[kp]) else {
+                    continue;
+                };
                 let w = huber(r.length(), delta);
                 // Camera-side Jacobian columns of this observation.
                 let mut cols: Vec<(usize, [f64; 2])> = Vec::with_capacity(7);

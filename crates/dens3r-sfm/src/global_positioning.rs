@@ -82,8 +82,11 @@ pub fn position(n: usize, tracks: &[Vec<Ray>], anchor: usize, opts: &PositionOpt
         let mut solved = Vec::with_capacity(tracks.len());
         for (t, w) in tracks.iter().zip(&weights) {
             // B (X - c - v) for each observation: B = w P beyond the bound (P v = 0), w I at it.
-            let blocks: Vec<DMat3> =
-                w.iter().zip(t).map(|(&(w, beyond), &(_, v))| if beyond { projector(v) * w } else { DMat3::IDENTITY * w }).collect();
+            let blocks: Vec<DMat3> = w
+                .iter()
+                .zip(t)
+                .map(|(&(w, beyond), &(_, v))| if beyond { projector(v) * w } else { DMat3::IDENTITY * w })
+                .collect();
             let a = blocks.iter().fold(DMat3::ZERO, |acc, &b| acc + b);
             if t.len() < 2 || a.determinant().abs() < 1e-18 {
                 solved.push(None);

@@ -122,6 +122,9 @@ pub struct Sfm {
     pub focal_sources: Vec<FocalSource>,
     /// The points.
     pub points: Vec<SfmPoint>,
+    /// The verified pairs of the reconstructed group whose rotations agree, with their
+    /// inlier matches.
+    pub edges: Vec<Edge>,
     /// The groups of views the verified pairs connect, largest first (single views that no
     /// pair joins are groups of one). Only the first is reconstructed: groups are never merged.
     pub groups: Vec<Vec<usize>>,
@@ -135,11 +138,7 @@ fn principal((w, h): (usize, usize)) -> DVec2 {
 
 /// The starting focals: known ones; for the rest, per image size, the cycles' focal when the
 /// view graph picks one clearly, else the guesses' median.
-fn initial_focals(
-    input: &SfmInput,
-    matched: &[PairMatches],
-    opts: &SfmOptions,
-) -> (Vec<f64>, Vec<FocalSource>) {
+fn initial_focals(input: &SfmInput, matched: &[PairMatches], opts: &SfmOptions) -> (Vec<f64>, Vec<FocalSource>) {
     let n = input.sizes.len();
     let mut focals = vec![0.0; n];
     let mut sources = vec![FocalSource::Known; n];
@@ -199,8 +198,9 @@ fn groups(n: usize, edges: &[&Edge]) -> Vec<Vec<usize>> {
 pub fn run(input: &SfmInput, opts: &SfmOptions) -> Sfm {
     let clock = Instant::now();
     let matched = match_pairs(input.keypoints, input.pairs, &opts.view_graph);
+    let seconds = clock.elapsed().as_secs_f64();
     let mut sfm = run_matched(input, &matched, opts);
-    sfm.stats.seconds[0] = clock.elapsed().as_secs_f64();
+    sfm.stats.seconds[0] = seconds;
     sfm
 }
 
@@ -219,8 +219,9 @@ pub fn run_matched(input: &SfmInput, matched: &[PairMatches], opts: &SfmOptions)
         sfm.stats.seconds = seconds;
         sfm.stats.passes = passes;
         let adjusted: Vec<Option<f64>> = sfm.cameras.iter().map(|c| c.map(|c| c.intrinsics.fx)).collect();
-        let moved = (0..focals.len())
-            .any(|k| input.known_focals[k].is_none() && adjusted[k].is_some_and(|f| (f / focals[k] - 1.0).abs() > 0.03));
+        let moved = (0..focals.len()).any(|k| {
+            input.known_focals[k].is_none() && adjusted[k].is_some_and(|f| (f / focals[k] - 1.0).abs() > 0.03)
+        });
         if !moved || passes == 3 {
             return sfm;
         }
@@ -239,7 +240,13 @@ pub fn run_matched(input: &SfmInput, matched: &[PairMatches], opts: &SfmOptions)
 }
 
 /// One pass of every stage at the given starting focals.
-fn solve(input: &SfmInput, matched: &[PairMatches], focals: &[f64], focal_sources: &[FocalSource], opts: &SfmOptions) -> Sfm {
+fn solve(
+    input: &SfmInput,
+    matched: &[PairMatches],
+    focals: &[f64],
+    focal_sources: &[FocalSource],
+    opts: &SfmOptions,
+) -> Sfm {
     let n = input.sizes.len();
     let mut focals = focals.to_vec();
     let focal_sources = focal_sources.to_vec();
@@ -259,7 +266,14 @@ fn solve(input: &SfmInput, matched: &[PairMatches], focals: &[f64], focal_source
     stats.consistent_pairs = kept.len();
     let groups = groups(n, &kept);
     lap(&mut stats, 2);
-    let empty = |groups, stats| Sfm { cameras: vec![None; n], focal_sources: focal_sources.clone(), points: vec![], groups, stats };
+    let empty = |groups, stats| Sfm {
+        cameras: vec![None; n],
+        focal_sources: focal_sources.clone(),
+        points: vec![],
+        edges: vec![],
+        groups,
+        stats,
+    };
     let main: Vec<usize> = groups.first().cloned().unwrap_or_default();
     let in_main = |v: usize| main.contains(&v) && rot.world[v].is_some();
     let main_edges: Vec<Edge> = kept.iter().filter(|e| in_main(e.i) && in_main(e.j)).map(|e| (*e).clone()).collect();
@@ -355,7 +369,7 @@ fn solve(input: &SfmInput, matched: &[PairMatches], focals: &[f64], focal_source
         })
         .collect();
     stats.observations = points.iter().map(|p| p.observations.len()).sum();
-    Sfm { cameras: cams, focal_sources, points, groups, stats }
+    Sfm { cameras: cams, focal_sources, points, edges: main_edges, groups, stats }
 }
 
 fn pinhole(c: &BaCamera, focal: f64, (w, h): (usize, usize)) -> PinholeCamera {
@@ -401,7 +415,8 @@ fn filter(
         }
         let ok = t.len() >= 2 && p.is_some() && {
             let x = p.expect("checked");
-            let dirs: Vec<DVec3> = t.iter().map(|&(v, _)| (x - cams[v].as_ref().expect("kept").center).normalize()).collect();
+            let dirs: Vec<DVec3> =
+                t.iter().map(|&(v, _)| (x - cams[v].as_ref().expect("kept").center).normalize()).collect();
             let mut min_cos = 1.0f64;
             for (a, da) in dirs.iter().enumerate() {
                 for db in &dirs[a + 1..] {

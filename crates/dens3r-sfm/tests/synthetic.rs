@@ -34,8 +34,9 @@ fn gauss(rng: &mut ChaCha8Rng) -> f64 {
 fn capture(views: usize, npts: usize, centre: DVec3, noise_px: f64, seed: u64) -> Capture {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let k = Intrinsics { fx: 500.0, fy: 500.0, cx: W as f64 / 2.0, cy: H as f64 / 2.0 };
-    let points: Vec<DVec3> =
-        (0..npts).map(|_| centre + DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0))).collect();
+    let points: Vec<DVec3> = (0..npts)
+        .map(|_| centre + DVec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0)))
+        .collect();
     let cameras: Vec<PinholeCamera> = (0..views)
         .map(|v| {
             let a = v as f64 * 0.35;
@@ -138,11 +139,19 @@ fn bundle_adjustment_reaches_the_noise_level() {
                 let axis = DVec3::new(gauss(&mut rng), gauss(&mut rng), gauss(&mut rng)).normalize();
                 (DMat3::from_axis_angle(axis, 2f64.to_radians()), DVec3::new(0.2, -0.1, 0.15))
             };
-            Some(BaCamera { rotation: r * dr, center: cam.center() + dc, focal: 0, principal: DVec2::new(320.0, 240.0) })
+            Some(BaCamera {
+                rotation: r * dr,
+                center: cam.center() + dc,
+                focal: 0,
+                principal: DVec2::new(320.0, 240.0),
+            })
         })
         .collect();
-    let mut points: Vec<Option<DVec3>> =
-        c.points.iter().map(|p| Some(*p + DVec3::new(gauss(&mut rng), gauss(&mut rng), gauss(&mut rng)) * 0.1)).collect();
+    let mut points: Vec<Option<DVec3>> = c
+        .points
+        .iter()
+        .map(|p| Some(*p + DVec3::new(gauss(&mut rng), gauss(&mut rng), gauss(&mut rng)) * 0.1))
+        .collect();
     let mut obs: Vec<Vec<(usize, usize)>> = vec![Vec::new(); c.points.len()];
     for (v, s) in c.sees.iter().enumerate() {
         for (k, &p) in s.iter().enumerate() {
@@ -176,7 +185,8 @@ fn disconnected_groups_are_reported_never_merged() {
     let a = capture(9, 1000, DVec3::ZERO, 0.5, 5);
     let b = capture(6, 1000, DVec3::new(50.0, 0.0, 0.0), 0.5, 6);
     let (na, nb) = (a.cameras.len(), b.cameras.len());
-    let mut both = Capture { cameras: a.cameras.clone(), keypoints: a.keypoints.clone(), sees: a.sees.clone(), points: vec![] };
+    let mut both =
+        Capture { cameras: a.cameras.clone(), keypoints: a.keypoints.clone(), sees: a.sees.clone(), points: vec![] };
     both.cameras.extend(b.cameras.iter().copied());
     both.keypoints.extend(b.keypoints.iter().cloned());
     both.sees.extend(b.sees.iter().cloned());
