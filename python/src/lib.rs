@@ -700,7 +700,7 @@ fn reconstruct<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let graph = pair_graph(&graph, window, cyclic)?;
     let cameras = match align.as_str() {
-        "sfm" => dens3r_recon::Cameras::Sfm(dens3r_recon::SfmSettings::default()),
+        "sfm" => dens3r_recon::Cameras::Sfm(Box::default()),
         "dense" => dens3r_recon::Cameras::Dense,
         a => return Err(PyValueError::new_err(format!("align={a:?}: expected sfm or dense"))),
     };

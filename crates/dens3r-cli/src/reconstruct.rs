@@ -1,5 +1,6 @@
-//! `dens3r reconstruct`: photos -> pairwise predictions (cached) -> matches -> global
-//! alignment -> scene folder, COLMAP / nerfstudio exports, match pictures and a mesh.
+//! `dens3r reconstruct`: photos -> cameras (structure-from-motion, or the network's pairs and
+//! global alignment) -> depth and normals -> scene folder, COLMAP / nerfstudio exports, match
+//! pictures and a mesh.
 
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
@@ -11,8 +12,7 @@ use dens3r_backbone::Precision;
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
     begin_outputs, list_images, load_images, reconstruct, write_outputs_into, Cameras, KeypointOptions,
-    NetworkPredictor, OutputOptions, OutputSummary, PairCache, ReconOptions, Reconstruction, SfmSettings, Stage,
-    TrackOptions,
+    NetworkPredictor, OutputOptions, OutputSummary, PairCache, ReconOptions, Reconstruction, Stage, TrackOptions,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
@@ -65,10 +65,10 @@ pub struct ReconstructArgs {
     /// Close the window around the end (captures that circle the object).
     #[arg(long)]
     cyclic: bool,
-    /// Global alignment iterations (DUSt3R: 300).
+    /// Global alignment iterations (DUSt3R: 300; --align dense).
     #[arg(long, default_value_t = 300)]
     iterations: usize,
-    /// Keep the estimated focals fixed during alignment.
+    /// Keep the estimated focals fixed during alignment (--align dense).
     #[arg(long)]
     fixed_focal: bool,
     /// Focal length of every photo in pixels of the photo as stored (after its EXIF rotation),
@@ -80,11 +80,11 @@ pub struct ReconstructArgs {
     #[arg(long)]
     no_exif_focal: bool,
     /// Photos of one size with no focal known share one focal in the alignment (one camera's
-    /// photos; COLMAP's single camera). Without it each gets its own, as DUSt3R does: a network
+    /// photos; COLMAP's single camera; --align dense, where sfm always shares one). Without it each gets its own, as DUSt3R does: a network
     /// misjudging one photo's field of view then costs that focal, not that photo's pose.
     #[arg(long)]
     shared_focal: bool,
-    /// Keep the network's focal even where the keypoint pairs' cycles give one (by default,
+    /// Keep the network's focal even where the keypoint pairs' cycles give one (--align dense; by default,
     /// photos of one size with no focal known take the focal at which the rotations of the
     /// pairs placed by keypoints close their cycles, when those pick one clearly).
     #[arg(long)]
@@ -108,17 +108,17 @@ pub struct ReconstructArgs {
     /// on it (wgpu).
     #[arg(long)]
     gpu: bool,
-    /// Keep the network's cross-view pointmaps for every pair (by default a pair's second view
+    /// Keep the network's cross-view pointmaps for every pair (--align dense; by default a pair's second view
     /// is placed by its matches and its own-frame pointmap where enough matches agree on a
     /// camera).
     #[arg(long)]
     no_match_pose: bool,
-    /// Do not place pairs by SIFT keypoint matches (by default a pair is placed by their
+    /// Do not place pairs by SIFT keypoint matches (--align dense; by default a pair is placed by their
     /// epipolar geometry first, where enough agree, so its rotation needs neither the
     /// network's descriptors nor its depth).
     #[arg(long)]
     no_keypoints: bool,
-    /// Align every pair, also those neither keypoints nor matches placed (by default these
+    /// Align every pair, also those neither keypoints nor matches placed (--align dense; by default these
     /// are left out among images that placed pairs already connect: their cross-view
     /// pointmaps are the network's unchecked guess).
     #[arg(long)]
@@ -211,7 +211,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let predictor = NetworkPredictor::new(&model, format!("{id} size {}{precision}", a.model.size));
     let opts = ReconOptions {
         cameras: match a.align {
-            Align::Sfm => Cameras::Sfm(SfmSettings::default()),
+            Align::Sfm => Cameras::Sfm(Box::default()),
             Align::Dense => Cameras::Dense,
         },
         graph,
@@ -276,7 +276,7 @@ fn report(
         eprintln!("warning: {w}");
     }
     match &s.sfm {
-        Some(sfm) => report_sfm(rec, sfm, encoded),
+        Some(sfm) => report_sfm(rec, sfm),
         None => report_dense(a, rec, encoded),
     }
     match &summary.mesh {
@@ -361,14 +361,13 @@ fn report_dense(a: &ReconstructArgs, rec: &Reconstruction, encoded: usize) {
 }
 
 /// The cameras' lines of a run whose cameras came from structure-from-motion.
-fn report_sfm(rec: &Reconstruction, sfm: &dens3r_sfm::SfmStats, encoded: usize) {
+fn report_sfm(rec: &Reconstruction, sfm: &dens3r_sfm::SfmStats) {
     let s = &rec.stats;
     println!(
-        "{} photos: {} network passes for depth and normals ({} from the cache; {} images encoded) in {:.1}s; SIFT in {:.1}s",
+        "{} photos: {} network passes for depth and normals ({} from the cache) in {:.1}s; SIFT in {:.1}s",
         s.registered + s.unregistered.len(),
         s.pairs - s.cache_hits,
         s.cache_hits,
-        encoded,
         s.predict_seconds,
         s.keypoint_seconds
     );
@@ -391,9 +390,12 @@ fn report_sfm(rec: &Reconstruction, sfm: &dens3r_sfm::SfmStats, encoded: usize) 
         s.align_seconds,
         if sfm.passes > 1 { format!("; {} passes: adjustment moved the focal", sfm.passes) } else { String::new() }
     );
+    let mut focals: Vec<String> =
+        rec.alignment.views.iter().map(|v| format!("{:.1}", v.camera.intrinsics.fx)).collect();
+    focals.dedup();
     println!(
-        "focals: {} ({} of {} known, the rest refined by bundle adjustment); depth: the network's, scaled per photo onto the points",
-        rec.alignment.views.iter().map(|v| format!("{:.1}", v.camera.intrinsics.fx)).collect::<Vec<_>>().join(", "),
+        "focals: {} px ({} of {} known, the rest refined by bundle adjustment); depth: the network's, scaled per photo onto the points",
+        focals.join(", "),
         s.known_focals,
         s.registered
     );

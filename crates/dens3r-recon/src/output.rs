@@ -15,7 +15,7 @@ use crate::ReconError;
 use dens3r_fusion::scene::{fuse_frames, FusionFrame, SceneFusion, SceneFusionError};
 use dens3r_fusion::{extract_mesh, ExtractOptions, FusionError, TsdfParams};
 use dens3r_io::output::OutputDir;
-use dens3r_scene::export::{write_colmap_text, write_transforms_json};
+use dens3r_scene::export::{write_colmap_binary, write_colmap_text, write_transforms_json};
 use dens3r_scene::{Frame, Layer, Scene, SceneWriter};
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
@@ -143,6 +143,7 @@ pub fn write_outputs_into(
     write_transforms_json(&scene_dir.join("transforms.json"), scene.frames(), |f| scene.has(f, Layer::Depth))?;
     let colmap = out.join("colmap");
     write_colmap_text(&colmap, scene.frames(), &rec.points)?;
+    write_colmap_binary(&colmap, scene.frames(), &rec.points)?;
 
     let mut ranked: Vec<&(usize, usize, Vec<_>)> = rec.matches.iter().filter(|m| !m.2.is_empty()).collect();
     ranked.sort_by_key(|m| std::cmp::Reverse(m.2.len()));

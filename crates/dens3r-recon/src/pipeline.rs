@@ -96,7 +96,7 @@ impl Default for KeypointOptions {
 pub enum Cameras {
     /// SIFT keypoints through global structure-from-motion ([`crate::sfm`]); the network gives
     /// depth and normals. The pair graph says which photos are matched.
-    Sfm(SfmSettings),
+    Sfm(Box<SfmSettings>),
     /// The network's pairs (the pair graph), placed by keypoints and matches where they
     /// agree, then DUSt3R's dense global alignment.
     Dense,
@@ -105,7 +105,7 @@ pub enum Cameras {
 impl Default for ReconOptions {
     fn default() -> Self {
         Self {
-            cameras: Cameras::Sfm(SfmSettings::default()),
+            cameras: Cameras::Sfm(Box::default()),
             graph: PairGraph::Complete,
             align: AlignOptions::default(),
             matching: MatchOptions::default(),

@@ -1,6 +1,6 @@
 //! Cameras by global structure-from-motion ([`dens3r_sfm`]), depth and normals by the network:
 //! SIFT keypoints of every photo -> the SfM's cameras and points (no network) -> one network
-//! pass per photo (its self-pair, through the pair cache) for depth, confidence and normals ->
+//! pass per registered photo (its self-pair, through the pair cache) for depth, confidence and normals ->
 //! each registered view's depth scaled onto the SfM by the median ratio at its track points.
 //! Views the SfM does not register are left out and named; with fewer than half registered,
 //! the run falls back to the network's pairs and the dense alignment ([`crate::pipeline`]).
@@ -13,7 +13,6 @@ use crate::ReconError;
 use dens3r_align::keypoints::{detect_with_gain, Keypoints};
 use dens3r_align::matching::Match;
 use dens3r_align::{make_pairs, AlignedView, Alignment};
-use dens3r_geom::focal::focal_or_fallback;
 use dens3r_geom::{Raster, Vec3};
 use dens3r_io::panics::catch_quietly;
 use dens3r_scene::export::TrackPoint;
@@ -40,27 +39,27 @@ impl Default for SfmSettings {
     }
 }
 
-/// One photo's network outputs: own-frame depth (z), confidence, normals, and the focal its
-/// pointmap implies.
+/// One photo's network outputs: own-frame depth (z), confidence and normals.
 struct Mono {
     depth: Raster<f32>,
     conf: Raster<f32>,
     normals: Option<Raster<Vec3>>,
-    focal: f64,
 }
 
-/// Runs the network once per photo (its self-pair), through the cache.
+/// Runs the network once on each photo of `which` (its self-pair), through the cache.
 fn mono_passes(
     images: &[InputImage],
+    which: &[usize],
     predictor: &dyn PairPredictor,
     cache: &PairCache,
     stats: &mut ReconStats,
     progress: &mut impl FnMut(Stage, usize, usize),
-) -> Result<Vec<Mono>, ReconError> {
+) -> Result<Vec<Option<Mono>>, ReconError> {
     let id = format!("{} mono", predictor.id());
-    let mut out = Vec::with_capacity(images.len());
-    progress(Stage::Predict, 0, images.len());
-    for (k, im) in images.iter().enumerate() {
+    let mut out: Vec<Option<Mono>> = (0..images.len()).map(|_| None).collect();
+    progress(Stage::Predict, 0, which.len());
+    for (done, &k) in which.iter().enumerate() {
+        let im = &images[k];
         let t = Instant::now();
         let key = PairCache::key(&id, im, im);
         let size = im.size();
@@ -81,20 +80,19 @@ fn mono_passes(
             }
         };
         let [v, _] = pred;
-        let focal = focal_or_fallback(&v.points, size.0, size.1).unwrap_or_else(|f| f);
         let depth = v.points.map(|p| if p.is_finite() && p.z > 0.0 { p.z } else { 0.0 });
-        out.push(Mono { depth, conf: v.conf, normals: v.normals, focal });
+        out[k] = Some(Mono { depth, conf: v.conf, normals: v.normals });
         stats.predict_seconds += t.elapsed().as_secs_f64();
-        progress(Stage::Predict, k + 1, images.len());
+        progress(Stage::Predict, done + 1, which.len());
     }
-    stats.pairs = images.len();
+    stats.pairs = which.len();
     Ok(out)
 }
 
 /// Each registered view's depth scale: the median of SfM depth over network depth at its
 /// track points (the network's depth is known up to scale); views with fewer than 5 usable
 /// points take the median scale of the others.
-fn depth_scales(sfm: &Sfm, kps: &[Keypoints], mono: &[Mono]) -> Vec<Option<f64>> {
+fn depth_scales(sfm: &Sfm, kps: &[Keypoints], mono: &[Option<Mono>]) -> Vec<Option<f64>> {
     let n = mono.len();
     let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); n];
     for p in &sfm.points {
@@ -103,7 +101,8 @@ fn depth_scales(sfm: &Sfm, kps: &[Keypoints], mono: &[Mono]) -> Vec<Option<f64>>
             let z = cam.world_to_cam().transform_point3(p.xyz).z;
             let xy = kps[v].xy[kp];
             let (x, y) = (xy.x.round(), xy.y.round());
-            let d = &mono[v].depth;
+            let Some(m) = &mono[v] else { continue };
+            let d = &m.depth;
             if x < 0.0 || y < 0.0 || x as usize >= d.width() || y as usize >= d.height() {
                 continue;
             }
@@ -145,22 +144,31 @@ pub fn reconstruct_sfm(
     let known_focals: Vec<Option<f64>> = images.iter().map(|im| im.focal).collect();
     let mut stats = ReconStats { known_focals: known_focals.iter().flatten().count(), ..Default::default() };
     let t = Instant::now();
-    let kps: Vec<Keypoints> = images
+    // A panic inside the SIFT crate costs that photo its keypoints, not the run.
+    let detected: Vec<Result<Keypoints, String>> = images
         .par_iter()
         .zip(&rgb)
         .map(|(im, rgb)| {
-            catch_quietly(|| detect_with_gain(rgb, settings.max_keypoints, settings.sift_gain)).unwrap_or_else(|e| {
-                eprintln!("warning: {}: no SIFT keypoints ({e})", im.name);
+            catch_quietly(|| detect_with_gain(rgb, settings.max_keypoints, settings.sift_gain))
+                .map_err(|e| format!("{}: no SIFT keypoints ({e})", im.name))
+        })
+        .collect();
+    let kps: Vec<Keypoints> = detected
+        .into_iter()
+        .map(|r| {
+            r.unwrap_or_else(|w| {
+                stats.warnings.push(w);
                 Keypoints::default()
             })
         })
         .collect();
     stats.keypoint_seconds = t.elapsed().as_secs_f64();
-    let mono = mono_passes(images, predictor, cache, &mut stats, &mut progress)?;
+    // Structure from motion needs no network: a focal not known starts at 1.2 times the
+    // photo's long side (COLMAP's guess) and bundle adjustment finds it.
     progress(Stage::Align, 0, 1);
     let t = Instant::now();
     let pairs = make_pairs(n, opts.graph, false);
-    let guesses: Vec<f64> = mono.iter().map(|m| m.focal).collect();
+    let guesses: Vec<f64> = sizes.iter().map(|&(w, h)| 1.2 * w.max(h) as f64).collect();
     let input =
         SfmInput { keypoints: &kps, sizes: &sizes, known_focals: &known_focals, focal_guess: &guesses, pairs: &pairs };
     let sfm = run(&input, &settings.sfm);
@@ -194,6 +202,7 @@ pub fn reconstruct_sfm(
             }
         ));
     }
+    let mono = mono_passes(images, &registered, predictor, cache, &mut stats, &mut progress)?;
     let scales = depth_scales(&sfm, &kps, &mono);
     // Frames of the registered views only, in input order.
     let index: Vec<Option<usize>> = {
@@ -207,7 +216,7 @@ pub fn reconstruct_sfm(
             })
             .collect()
     };
-    let mut mono: Vec<Option<Mono>> = mono.into_iter().map(Some).collect();
+    let mut mono = mono;
     let mut views = Vec::with_capacity(registered.len());
     let mut normals = Vec::with_capacity(registered.len());
     for &v in &registered {

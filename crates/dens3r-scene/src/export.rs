@@ -35,9 +35,13 @@ fn write_text(path: &Path, text: &str) -> Result<(), SceneError> {
     Ok(write_atomic(path, |w| std::io::Write::write_all(w, text.as_bytes()))?)
 }
 
-/// Writes `cameras.txt`, `images.txt` and `points3D.txt` into `dir` (created if needed).
-/// Image and camera ids are frame index + 1; point ids are track index + 1.
-pub fn write_colmap_text(dir: &Path, frames: &[Frame], points: &[TrackPoint]) -> Result<(), SceneError> {
+/// Per image, its keypoints (POINTS2D) in track order `(x, y, point id)` (COLMAP's pixel
+/// convention: +0.5), and per point its track `(image id, keypoint index)`; ids are 1-based.
+type Layout = (Vec<Vec<(f64, f64, usize)>>, Vec<Vec<(usize, usize)>>);
+
+/// The keypoints and tracks of a COLMAP model of `frames` and `points` (checked: every
+/// observation names a frame).
+fn layout(dir: &Path, frames: &[Frame], points: &[TrackPoint]) -> Result<Layout, SceneError> {
     for (t, p) in points.iter().enumerate() {
         if let Some(&(f, _)) = p.observations.iter().find(|(f, _)| *f >= frames.len()) {
             return Err(SceneError::new(
@@ -46,7 +50,6 @@ pub fn write_colmap_text(dir: &Path, frames: &[Frame], points: &[TrackPoint]) ->
             ));
         }
     }
-    // Per image, its keypoints (POINTS2D) in track order: (x, y, point id).
     let mut kps: Vec<Vec<(f64, f64, usize)>> = vec![Vec::new(); frames.len()];
     let mut track_refs: Vec<Vec<(usize, usize)>> = Vec::with_capacity(points.len());
     for (t, p) in points.iter().enumerate() {
@@ -57,6 +60,74 @@ pub fn write_colmap_text(dir: &Path, frames: &[Frame], points: &[TrackPoint]) ->
         }
         track_refs.push(refs);
     }
+    Ok((kps, track_refs))
+}
+
+/// A frame's world-to-camera rotation (unit quaternion, `w >= 0`) and translation.
+fn colmap_pose(f: &Frame) -> (DQuat, DVec3) {
+    let w2c = rigid_inverse(&f.camera().cam_to_world);
+    let q = DQuat::from_mat3(&DMat3::from_mat4(w2c)).normalize();
+    (if q.w < 0.0 { -q } else { q }, w2c.w_axis.truncate())
+}
+
+/// Writes COLMAP's binary model, `cameras.bin`, `images.bin` and `points3D.bin`, into `dir`:
+/// the same model as [`write_colmap_text`] (PINHOLE cameras, little-endian, as COLMAP's
+/// `model_converter` writes it).
+pub fn write_colmap_binary(dir: &Path, frames: &[Frame], points: &[TrackPoint]) -> Result<(), SceneError> {
+    let (kps, track_refs) = layout(dir, frames, points)?;
+    let mut cams = Vec::new();
+    cams.extend((frames.len() as u64).to_le_bytes());
+    let mut imgs = Vec::new();
+    imgs.extend((frames.len() as u64).to_le_bytes());
+    for (i, f) in frames.iter().enumerate() {
+        let k = f.camera().intrinsics;
+        cams.extend((i as i32 + 1).to_le_bytes());
+        cams.extend(1i32.to_le_bytes()); // PINHOLE
+        cams.extend((f.width as u64).to_le_bytes());
+        cams.extend((f.height as u64).to_le_bytes());
+        for v in [k.fx, k.fy, k.cx + 0.5, k.cy + 0.5] {
+            cams.extend(v.to_le_bytes());
+        }
+        let (q, t) = colmap_pose(f);
+        imgs.extend((i as u32 + 1).to_le_bytes());
+        for v in [q.w, q.x, q.y, q.z, t.x, t.y, t.z] {
+            imgs.extend(v.to_le_bytes());
+        }
+        imgs.extend((i as u32 + 1).to_le_bytes());
+        imgs.extend(f.image.as_bytes());
+        imgs.push(0);
+        imgs.extend((kps[i].len() as u64).to_le_bytes());
+        for &(x, y, id) in &kps[i] {
+            imgs.extend(x.to_le_bytes());
+            imgs.extend(y.to_le_bytes());
+            imgs.extend((id as u64).to_le_bytes());
+        }
+    }
+    let mut pts = Vec::new();
+    pts.extend((points.len() as u64).to_le_bytes());
+    for (t, p) in points.iter().enumerate() {
+        pts.extend((t as u64 + 1).to_le_bytes());
+        for v in [p.xyz.x, p.xyz.y, p.xyz.z] {
+            pts.extend(v.to_le_bytes());
+        }
+        pts.extend(p.rgb);
+        pts.extend(p.error.to_le_bytes());
+        pts.extend((track_refs[t].len() as u64).to_le_bytes());
+        for &(im, idx) in &track_refs[t] {
+            pts.extend((im as u32).to_le_bytes());
+            pts.extend((idx as u32).to_le_bytes());
+        }
+    }
+    for (name, bytes) in [("cameras.bin", cams), ("images.bin", imgs), ("points3D.bin", pts)] {
+        write_atomic(&dir.join(name), |w| std::io::Write::write_all(w, &bytes))?;
+    }
+    Ok(())
+}
+
+/// Writes `cameras.txt`, `images.txt` and `points3D.txt` into `dir` (created if needed).
+/// Image and camera ids are frame index + 1; point ids are track index + 1.
+pub fn write_colmap_text(dir: &Path, frames: &[Frame], points: &[TrackPoint]) -> Result<(), SceneError> {
+    let (kps, track_refs) = layout(dir, frames, points)?;
     let mut cams = String::from(
         "# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n",
     );
@@ -79,10 +150,7 @@ pub fn write_colmap_text(dir: &Path, frames: &[Frame], points: &[TrackPoint]) ->
             k.cx + 0.5,
             k.cy + 0.5
         );
-        let w2c = rigid_inverse(&cam.cam_to_world);
-        let q = DQuat::from_mat3(&DMat3::from_mat4(w2c)).normalize();
-        let q = if q.w < 0.0 { -q } else { q };
-        let t = w2c.w_axis.truncate();
+        let (q, t) = colmap_pose(f);
         let _ =
             writeln!(imgs, "{} {} {} {} {} {} {} {} {} {}", i + 1, q.w, q.x, q.y, q.z, t.x, t.y, t.z, i + 1, f.image);
         let line: Vec<String> = kps[i].iter().map(|(x, y, id)| format!("{x} {y} {id}")).collect();
@@ -223,6 +291,154 @@ mod tests {
         let other = tempfile::tempdir().unwrap();
         assert!(write_colmap_text(other.path(), &frames, &[bad]).is_err());
         assert_eq!(std::fs::read_dir(other.path()).unwrap().count(), 0);
+    }
+
+    /// Two cameras and one point observed by both, as in the text test.
+    fn two_view_model() -> (Vec<Frame>, Vec<TrackPoint>) {
+        let cams = [
+            PinholeCamera {
+                intrinsics: Intrinsics { fx: 500.0, fy: 510.0, cx: 319.5, cy: 239.0 },
+                width: 640,
+                height: 480,
+                cam_to_world: look_at(DVec3::new(2.0, 0.5, 1.0), DVec3::ZERO, DVec3::Z).unwrap(),
+            },
+            PinholeCamera {
+                intrinsics: Intrinsics::from_hfov(320, 200, 70.0),
+                width: 320,
+                height: 200,
+                cam_to_world: look_at(DVec3::new(-1.0, 2.0, 0.3), DVec3::new(0.1, 0.0, 0.2), DVec3::Z).unwrap(),
+            },
+        ];
+        let frames: Vec<Frame> = cams.iter().enumerate().map(|(i, c)| Frame::new(&format!("v{i}"), c)).collect();
+        let x = DVec3::new(0.1, -0.2, 0.3);
+        let obs = cams
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (i, c.intrinsics.project(rigid_inverse(&c.cam_to_world).transform_point3(x))))
+            .collect();
+        (frames, vec![TrackPoint { xyz: x, rgb: [10, 20, 30], error: 0.25, observations: obs }])
+    }
+
+    /// The binary model, parsed as COLMAP's documentation lays it out (read_write_model.py),
+    /// holds the text model's numbers; and where Debian's `colmap` is installed, COLMAP itself
+    /// converts it to the same text.
+    #[test]
+    fn colmap_binary_holds_the_text_model() {
+        let (frames, points) = two_view_model();
+        let dir = tempfile::tempdir().unwrap();
+        write_colmap_binary(dir.path(), &frames, &points).unwrap();
+        write_colmap_text(dir.path(), &frames, &points).unwrap();
+        let bytes = |f: &str| std::fs::read(dir.path().join(f)).unwrap();
+        struct Reader(Vec<u8>, usize);
+        impl Reader {
+            fn take<const N: usize>(&mut self) -> [u8; N] {
+                let out = self.0[self.1..self.1 + N].try_into().unwrap();
+                self.1 += N;
+                out
+            }
+            fn u64(&mut self) -> u64 {
+                u64::from_le_bytes(self.take())
+            }
+            fn u32(&mut self) -> u32 {
+                u32::from_le_bytes(self.take())
+            }
+            fn f64(&mut self) -> f64 {
+                f64::from_le_bytes(self.take())
+            }
+        }
+        let text = |f: &str| -> Vec<Vec<f64>> {
+            std::fs::read_to_string(dir.path().join(f))
+                .unwrap()
+                .lines()
+                .filter(|l| !l.starts_with('#'))
+                .map(|l| l.split(' ').filter_map(|v| v.parse().ok()).collect())
+                .collect()
+        };
+        let mut c = Reader(bytes("cameras.bin"), 0);
+        let cam_rows = text("cameras.txt");
+        assert_eq!(c.u64(), 2);
+        for row in &cam_rows {
+            let (id, model, w, h) = (c.u32(), c.u32(), c.u64(), c.u64());
+            let params = [c.f64(), c.f64(), c.f64(), c.f64()];
+            assert_eq!((id as f64, model, w as f64, h as f64), (row[0], 1, row[1], row[2]));
+            assert_eq!(&params[..], &row[3..7]);
+        }
+        assert_eq!(c.1, c.0.len());
+        let mut im = Reader(bytes("images.bin"), 0);
+        let img_rows = text("images.txt");
+        assert_eq!(im.u64(), 2);
+        for k in 0..2 {
+            let id = im.u32();
+            let pose: Vec<f64> = (0..7).map(|_| im.f64()).collect();
+            let cam = im.u32();
+            let end = im.0[im.1..].iter().position(|&b| b == 0).unwrap();
+            let name = String::from_utf8(im.0[im.1..im.1 + end].to_vec()).unwrap();
+            im.1 += end + 1;
+            assert_eq!(name, frames[k].image);
+            assert_eq!((id as f64, cam as f64), (img_rows[2 * k][0], img_rows[2 * k][8]));
+            assert_eq!(&pose[..], &img_rows[2 * k][1..8]);
+            assert_eq!(im.u64(), 1);
+            let (x, y, pid) = (im.f64(), im.f64(), im.u64());
+            assert_eq!(vec![x, y, pid as f64], img_rows[2 * k + 1]);
+        }
+        let mut p = Reader(bytes("points3D.bin"), 0);
+        let row = &text("points3D.txt")[0];
+        assert_eq!((p.u64(), p.u64()), (1, 1));
+        let xyz = [p.f64(), p.f64(), p.f64()];
+        let rgb: [u8; 3] = p.take();
+        let err = p.f64();
+        assert_eq!(&xyz[..], &row[1..4]);
+        assert_eq!((rgb, err), ([10, 20, 30], row[7]));
+        assert_eq!(p.u64(), 2);
+        let track: Vec<f64> = (0..4).map(|_| p.u32() as f64).collect();
+        assert_eq!(&track[..], &row[8..]);
+        assert_eq!(p.1, p.0.len());
+
+        // COLMAP's own reading, where it is installed.
+        let out = tempfile::tempdir().unwrap();
+        let bin = tempfile::tempdir().unwrap();
+        for f in ["cameras.bin", "images.bin", "points3D.bin"] {
+            std::fs::copy(dir.path().join(f), bin.path().join(f)).unwrap();
+        }
+        let run = std::process::Command::new("colmap")
+            .args(["model_converter", "--output_type", "TXT", "--input_path"])
+            .arg(bin.path())
+            .arg("--output_path")
+            .arg(out.path())
+            .output();
+        match run {
+            Ok(o) if o.status.success() => {
+                let theirs = |f: &str| -> Vec<Vec<f64>> {
+                    std::fs::read_to_string(out.path().join(f))
+                        .unwrap()
+                        .lines()
+                        .filter(|l| !l.starts_with('#'))
+                        .map(|l| l.split(' ').filter_map(|v| v.parse().ok()).collect())
+                        .collect()
+                };
+                // COLMAP writes its maps in its own order: compared by id (images as their
+                // two lines together).
+                let by_id = |rows: Vec<Vec<f64>>, per: usize| -> Vec<Vec<f64>> {
+                    let mut groups: Vec<Vec<f64>> = rows.chunks(per).map(|c| c.concat()).collect();
+                    groups.sort_by(|a, b| a[0].total_cmp(&b[0]));
+                    groups
+                };
+                for (f, per) in [("cameras.txt", 1), ("images.txt", 2), ("points3D.txt", 1)] {
+                    let (a, b) = (by_id(text(f), per), by_id(theirs(f), per));
+                    assert_eq!(a.len(), b.len(), "{f}");
+                    for (ra, rb) in a.iter().zip(&b) {
+                        assert!(
+                            ra.len() == rb.len()
+                                && ra.iter().zip(rb).all(|(x, y)| (x - y).abs() <= 1e-9 * x.abs().max(1.0)),
+                            "{f}: {ra:?} vs COLMAP's {rb:?}"
+                        );
+                    }
+                }
+            }
+            _ => eprintln!(
+                "skipped COLMAP's reading of the binary model: no `colmap` (scripts/bench-setup.sh installs it)"
+            ),
+        }
     }
 
     #[test]

@@ -26,6 +26,9 @@ fn main() {
     let guess = vec![1.2 * sizes[0].0 as f64; n];
     let input =
         SfmInput { keypoints: &kps, sizes: &sizes, known_focals: &vec![None; n], focal_guess: &guess, pairs: &pairs };
+    if std::env::var("EDGES").is_ok() {
+        debug_edges(&scene, &kps, &pairs, frames[0].camera().intrinsics.fx);
+    }
     let t = Instant::now();
     let sfm = run(&input, &SfmOptions::default());
     println!("SfM {:.1}s: {:?}", t.elapsed().as_secs_f64(), sfm.stats);
@@ -43,4 +46,26 @@ fn main() {
         est.first().map_or(0.0, |c| c.intrinsics.fx),
         truth.first().map_or(0.0, |c| c.intrinsics.fx)
     );
+}
+
+#[allow(dead_code)]
+fn debug_edges(scene: &Scene, kps: &[dens3r_align::keypoints::Keypoints], pairs: &[(usize, usize)], f: f64) {
+    use dens3r_sfm::view_graph::{match_pairs, verify, ViewGraphOptions};
+    let frames = scene.frames();
+    let opts = ViewGraphOptions::default();
+    let m = match_pairs(kps, pairs, &opts);
+    let n = frames.len();
+    let pps: Vec<glam::DVec2> =
+        frames.iter().map(|fr| glam::DVec2::new(fr.width as f64 / 2.0, fr.height as f64 / 2.0)).collect();
+    let edges = verify(kps, &m, &vec![f; n], &pps, &opts);
+    for e in &edges {
+        let (ci, cj) = (frames[e.i].camera(), frames[e.j].camera());
+        let ri = glam::DMat3::from_mat4(ci.cam_to_world);
+        let rj = glam::DMat3::from_mat4(cj.cam_to_world);
+        // x_j = R x_i: R = Rj^T Ri
+        let truth = rj.transpose() * ri;
+        let err = dens3r_geom::transform::rotation_angle_deg(&(truth.transpose() * e.rotation));
+        let matches = m.iter().find(|p| p.i == e.i && p.j == e.j).map_or(0, |p| p.matches.len());
+        println!("edge {}-{}: {} inliers of {}, rotation error {:.2} deg", e.i, e.j, e.inliers.len(), matches, err);
+    }
 }

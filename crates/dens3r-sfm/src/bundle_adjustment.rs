@@ -70,9 +70,16 @@ pub struct BaReport {
     pub iterations: usize,
 }
 
-/// One observation's residual and Jacobians: `r` (pixels), `d r / d (rotation tangent,
-/// centre)` (2x6), `d r / d focal` (2), `d r / d point` (2x3). `None` behind the camera.
-fn linearise(c: &BaCamera, f: f64, x: DVec3, uv: DVec2) -> Option<(DVec2, [[f64; 6]; 2], DVec2, [[f64; 3]; 2])> {
+/// One observation linearised: residual (pixels), `d r / d (rotation tangent, centre)` (2x6),
+/// `d r / d focal` (2), `d r / d point` (2x3).
+type Linearised = (DVec2, [[f64; 6]; 2], DVec2, [[f64; 3]; 2]);
+
+/// A point's part of the normal equations: its 3x3 block, its gradient, and per observation
+/// the camera-side columns it couples to with their rows of `J_c^T J_p`.
+type PointPart = (DMat3, DVec3, Vec<(Vec<usize>, [[f64; 3]; 7])>);
+
+/// One observation's residual and Jacobians ([`Linearised`]); `None` behind the camera.
+fn linearise(c: &BaCamera, f: f64, x: DVec3, uv: DVec2) -> Option<Linearised> {
     let rt = c.rotation.transpose();
     let q = rt * (x - c.center);
     if q.z <= 1e-9 {
@@ -139,9 +146,9 @@ pub fn bundle_adjust(p: &mut BaProblem, opts: &BaOptions) -> BaReport {
     // Camera-side unknowns: 6 per free camera, then one per free focal.
     let mut cam_col = vec![usize::MAX; n];
     let mut dim = 0;
-    for v in 0..n {
+    for (v, col) in cam_col.iter_mut().enumerate() {
         if p.cameras[v].is_some() && Some(v) != gauge {
-            cam_col[v] = dim;
+            *col = dim;
             dim += 6;
         }
     }
@@ -169,7 +176,7 @@ pub fn bundle_adjust(p: &mut BaProblem, opts: &BaOptions) -> BaReport {
         let mut s = vec![0.0; dim * dim];
         let mut g = vec![0.0; dim];
         // Per point: its V block, gradient and the camera-side columns it couples to.
-        let mut point_parts: Vec<Option<(DMat3, DVec3, Vec<(Vec<usize>, [[f64; 3]; 7])>)>> = Vec::new();
+        let mut point_parts: Vec<Option<PointPart>> = Vec::new();
         for (t, x) in p.observations.iter().zip(p.points.iter()) {
             let Some(x) = x else {
                 point_parts.push(None);
@@ -187,9 +194,7 @@ pub fn bundle_adjust(p: &mut BaProblem, opts: &BaOptions) -> BaReport {
                 // Camera-side Jacobian columns of this observation.
                 let mut cols: Vec<(usize, [f64; 2])> = Vec::with_capacity(7);
                 if cam_col[v] != usize::MAX {
-                    for k in 0..6 {
-                        cols.push((cam_col[v] + k, [jc[0][k], jc[1][k]]));
-                    }
+                    cols.extend((0..6).map(|k| (cam_col[v] + k, [jc[0][k], jc[1][k]])));
                 }
                 if focal_col[c.focal] != usize::MAX {
                     cols.push((focal_col[c.focal], [jf.x, jf.y]));
@@ -258,12 +263,11 @@ pub fn bundle_adjust(p: &mut BaProblem, opts: &BaOptions) -> BaReport {
         // Back-substitution and the trial parameters.
         let saved = (p.cameras.to_vec(), p.focals.to_vec(), p.points.to_vec());
         if ok {
-            for v in 0..n {
-                if cam_col[v] == usize::MAX {
+            for (&k, cam) in cam_col.iter().zip(p.cameras.iter_mut()) {
+                if k == usize::MAX {
                     continue;
                 }
-                let k = cam_col[v];
-                let c = p.cameras[v].as_mut().expect("in the adjustment");
+                let c = cam.as_mut().expect("in the adjustment");
                 let w = DVec3::new(step[k], step[k + 1], step[k + 2]);
                 if w.length() > 0.0 {
                     c.rotation = nearest_rotation(c.rotation * axis_angle(w / w.length(), w.length()));

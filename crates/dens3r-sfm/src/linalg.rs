@@ -9,7 +9,7 @@ pub fn cholesky_solve(a: &mut [f64], b: &mut [f64], n: usize) -> Option<()> {
         for k in 0..j {
             d -= a[j * n + k] * a[j * n + k];
         }
-        if !(d > 0.0) || !d.is_finite() {
+        if d.is_nan() || d <= 0.0 || !d.is_finite() {
             return None;
         }
         let d = d.sqrt();

@@ -277,7 +277,9 @@ fn solve(
     let main: Vec<usize> = groups.first().cloned().unwrap_or_default();
     let in_main = |v: usize| main.contains(&v) && rot.world[v].is_some();
     let main_edges: Vec<Edge> = kept.iter().filter(|e| in_main(e.i) && in_main(e.j)).map(|e| (*e).clone()).collect();
-    let Some(strongest) = main_edges.iter().max_by_key(|e| e.inliers.len()) else { return empty(groups, stats) };
+    let Some(strongest) = main_edges.iter().max_by(|a, b| a.weight().total_cmp(&b.weight())) else {
+        return empty(groups, stats);
+    };
     let (tracks, ambiguous) = build_tracks(&main_edges);
     stats.tracks = tracks.len();
     stats.ambiguous_tracks = ambiguous;

@@ -1,5 +1,5 @@
 //! Stage 3: rotation averaging. The edges' relative rotations checked against a spanning
-//! forest of the strongest (most inliers), averaged into one camera-to-world rotation per view
+//! forest of the strongest ([`Edge::weight`]: inliers times inlier share), averaged into one camera-to-world rotation per view
 //! (robust chordal averaging, [`dens3r_align::average_rotations`]), and the edges that still
 //! disagree with the averaged rotations dropped before everything after.
 
@@ -39,7 +39,7 @@ pub struct Rotations {
 pub fn average(n: usize, edges: &[Edge], opts: &RotationOptions) -> Rotations {
     // average_rotations' edges say x_i = r x_j: the transpose of an edge's rotation.
     let rel: Vec<(usize, usize, DMat3, f64)> =
-        edges.iter().map(|e| (e.i, e.j, e.rotation.transpose(), e.inliers.len() as f64)).collect();
+        edges.iter().map(|e| (e.i, e.j, e.rotation.transpose(), e.weight())).collect();
     let consistent = consistent_rotations(n, &rel, opts.max_disagreement_deg);
     let mut kept = consistent.clone();
     let mut world = vec![None; n];

@@ -51,6 +51,18 @@ pub struct Edge {
     pub translation: DVec3,
     /// The inlier matches, keypoint indices `(in i, in j)`.
     pub inliers: Vec<(usize, usize)>,
+    /// Putative matches the inliers were found among.
+    pub matches: usize,
+}
+
+impl Edge {
+    /// How far the edge is trusted: its inliers times their share of its matches. A pair
+    /// matched across repeated texture (two sides of an object in one tiled photograph) can
+    /// find as many inliers as a true neighbour, but among far more putative matches.
+    pub fn weight(&self) -> f64 {
+        let n = self.inliers.len() as f64;
+        n * n / self.matches.max(1) as f64
+    }
 }
 
 /// Putative matches of `pairs` (pairs with fewer than `min_inliers` matches are left out).
@@ -93,7 +105,15 @@ pub fn verify(
                 p.matches.iter().zip(&pose.inliers).filter(|(_, &ok)| ok).map(|(m, _)| *m).collect();
             let enough = inliers.len() >= opts.min_inliers
                 && inliers.len() as f64 >= opts.min_inlier_ratio * p.matches.len() as f64;
-            enough.then_some(Edge { i: p.i, j: p.j, rotation: pose.rotation, translation: pose.translation, inliers })
+            let matches = p.matches.len();
+            enough.then_some(Edge {
+                i: p.i,
+                j: p.j,
+                rotation: pose.rotation,
+                translation: pose.translation,
+                inliers,
+                matches,
+            })
         })
         .collect()
 }
