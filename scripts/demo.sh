@@ -19,10 +19,11 @@ set -x
 $B predict data-samples/photos/*.png --original-size -o "$out/photos" --overwrite
 # 2. An object seen from 10 views (512x384, rendered from the bundled mesh with a photographed
 #    gravel surface, data-samples/textures, so the true cameras are known), then the photos ->
-#    mesh pipeline on its images alone: no focal is given (the keypoint pairs' cycles find it).
+#    mesh pipeline on its images alone: no focal is given (bundle adjustment finds it).
 $B render --mesh data-samples/orbit/gt_mesh.ply --views 10 --width 512 --height 384 \
   --texture data-samples/textures/gravel.png -o "$out/orbit" --overwrite
-#    The views circle the object: each is paired with its 3 neighbours on either side. The mesh
+#    Cameras by structure-from-motion on SIFT keypoints; the views circle the object, so each
+#    is matched with its 3 neighbours on either side; the network gives depth and normals. The mesh
 #    keeps the object: --masks takes one object mask per photo (here the render's own; for
 #    photos, any background remover's output), as photogrammetry tools do.
 rm -rf "$out/recon"
