@@ -226,28 +226,10 @@ mod tests {
     #[test]
     fn colmap_text_reads_back_and_projects() {
         let dir = tempfile::tempdir().unwrap();
-        let cams = [
-            PinholeCamera {
-                intrinsics: Intrinsics { fx: 500.0, fy: 510.0, cx: 319.5, cy: 239.0 },
-                width: 640,
-                height: 480,
-                cam_to_world: look_at(DVec3::new(2.0, 0.5, 1.0), DVec3::ZERO, DVec3::Z).unwrap(),
-            },
-            PinholeCamera {
-                intrinsics: Intrinsics::from_hfov(320, 200, 70.0),
-                width: 320,
-                height: 200,
-                cam_to_world: look_at(DVec3::new(-1.0, 2.0, 0.3), DVec3::new(0.1, 0.0, 0.2), DVec3::Z).unwrap(),
-            },
-        ];
-        let frames: Vec<Frame> = cams.iter().enumerate().map(|(i, c)| Frame::new(&format!("v{i}"), c)).collect();
-        let x = DVec3::new(0.1, -0.2, 0.3);
-        let obs: Vec<(usize, (f64, f64))> = cams
-            .iter()
-            .enumerate()
-            .map(|(i, c)| (i, c.intrinsics.project(rigid_inverse(&c.cam_to_world).transform_point3(x))))
-            .collect();
-        let track = TrackPoint { xyz: x, rgb: [10, 20, 30], error: 0.0, observations: obs.clone() };
+        let (frames, points) = two_view_model();
+        let cams: Vec<PinholeCamera> = frames.iter().map(Frame::camera).collect();
+        let (x, obs) = (points[0].xyz, points[0].observations.clone());
+        let track = TrackPoint { error: 0.0, ..points[0].clone() };
         write_colmap_text(dir.path(), &frames, &[track]).unwrap();
 
         let lines = |f: &str| -> Vec<String> {
@@ -346,14 +328,16 @@ mod tests {
                 f64::from_le_bytes(self.take())
             }
         }
-        let text = |f: &str| -> Vec<Vec<f64>> {
-            std::fs::read_to_string(dir.path().join(f))
+        // A text model file's data lines as numbers (names dropped).
+        let numbers = |path: &Path| -> Vec<Vec<f64>> {
+            std::fs::read_to_string(path)
                 .unwrap()
                 .lines()
                 .filter(|l| !l.starts_with('#'))
                 .map(|l| l.split(' ').filter_map(|v| v.parse().ok()).collect())
                 .collect()
         };
+        let text = |f: &str| numbers(&dir.path().join(f));
         let mut c = Reader(bytes("cameras.bin"), 0);
         let cam_rows = text("cameras.txt");
         assert_eq!(c.u64(), 2);
@@ -408,14 +392,7 @@ mod tests {
             .output();
         match run {
             Ok(o) if o.status.success() => {
-                let theirs = |f: &str| -> Vec<Vec<f64>> {
-                    std::fs::read_to_string(out.path().join(f))
-                        .unwrap()
-                        .lines()
-                        .filter(|l| !l.starts_with('#'))
-                        .map(|l| l.split(' ').filter_map(|v| v.parse().ok()).collect())
-                        .collect()
-                };
+                let theirs = |f: &str| numbers(&out.path().join(f));
                 // COLMAP writes its maps in its own order: compared by id (images as their
                 // two lines together).
                 let by_id = |rows: Vec<Vec<f64>>, per: usize| -> Vec<Vec<f64>> {
