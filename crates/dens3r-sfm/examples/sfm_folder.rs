@@ -30,7 +30,21 @@ fn main() {
         debug_edges(&scene, &kps, &pairs, frames[0].camera().intrinsics.fx);
     }
     let t = Instant::now();
-    let sfm = run(&input, &SfmOptions::default());
+    let mut opts = SfmOptions::default();
+    let env = |k: &str| std::env::var(k).ok().map(|v| v.parse::<f64>().expect("a number"));
+    if let Some(v) = env("HUBER") {
+        opts.ba.huber_px = v;
+    }
+    if let Some(v) = env("MINTRI") {
+        opts.min_triangulation_deg = v;
+    }
+    if let Some(v) = env("REPROJ") {
+        opts.max_reprojection_px = v;
+    }
+    if let Some(v) = env("RATIO") {
+        opts.view_graph.ratio = v as f32;
+    }
+    let sfm = run(&input, &opts);
     println!("SfM {:.1}s: {:?}", t.elapsed().as_secs_f64(), sfm.stats);
     println!("groups {:?}", sfm.groups.iter().map(|g| g.len()).collect::<Vec<_>>());
     let reg: Vec<usize> = (0..n).filter(|&v| sfm.cameras[v].is_some()).collect();

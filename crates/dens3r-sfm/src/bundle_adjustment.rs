@@ -23,7 +23,7 @@ pub struct BaOptions {
 
 impl Default for BaOptions {
     fn default() -> Self {
-        Self { iterations: 40, huber_px: 1.5, tolerance: 1e-7 }
+        Self { iterations: 40, huber_px: 0.5, tolerance: 1e-7 }
     }
 }
 
