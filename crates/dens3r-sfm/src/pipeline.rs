@@ -98,7 +98,7 @@ pub struct SfmStats {
     pub verified_pairs: usize,
     /// Verified pairs whose rotation agrees with the averaged rotations.
     pub consistent_pairs: usize,
-    /// Tracks built, and those dropped as ambiguous (one view seen at two keypoints).
+    /// Tracks built (at least two views each).
     pub tracks: usize,
     /// Tracks dropped as ambiguous.
     pub ambiguous_tracks: usize,
