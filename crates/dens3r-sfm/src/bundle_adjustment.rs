@@ -78,10 +78,23 @@ type Linearised = (DVec2, [[f64; 6]; 2], DVec2, [[f64; 3]; 2]);
 /// the camera-side columns it couples to with their rows of `J_c^T J_p`.
 type PointPart = (DMat3, DVec3, Vec<(Vec<usize>, [[f64; 3]; 7])>);
 
+impl BaCamera {
+    /// Point `x` in this camera's frame.
+    fn to_camera(&self, x: DVec3) -> DVec3 {
+        self.rotation.transpose() * (x - self.center)
+    }
+
+    /// The pixel where point `x` lands at focal `f`; `None` behind the camera.
+    pub fn project(&self, f: f64, x: DVec3) -> Option<DVec2> {
+        let q = self.to_camera(x);
+        (q.z > 1e-9).then(|| DVec2::new(q.x / q.z, q.y / q.z) * f + self.principal)
+    }
+}
+
 /// One observation's residual and Jacobians ([`Linearised`]); `None` behind the camera.
 fn linearise(c: &BaCamera, f: f64, x: DVec3, uv: DVec2) -> Option<Linearised> {
     let rt = c.rotation.transpose();
-    let q = rt * (x - c.center);
+    let q = c.to_camera(x);
     if q.z <= 1e-9 {
         return None;
     }
@@ -127,8 +140,9 @@ fn cost(p: &BaProblem, delta: f64) -> (f64, f64, usize) {
         let Some(x) = x else { continue };
         for &(v, kp) in t {
             let Some(c) = &p.cameras[v] else { continue };
-            let e = match linearise(c, p.focals[c.focal], *x, p.keypoints[v].xy[kp]) {
-                Some((r, ..)) => r.length(),
+            // The residual alone: the cost is evaluated at every trial step.
+            let e = match c.project(p.focals[c.focal], *x) {
+                Some(uv) => (uv - p.keypoints[v].xy[kp]).length(),
                 None => 10.0 * delta,
             };
             robust += if e <= delta { 0.5 * e * e } else { delta * (e - 0.5 * delta) };

@@ -159,18 +159,3 @@ pub fn position(n: usize, tracks: &[Vec<Ray>], anchor: usize, opts: &PositionOpt
     }
     Positions { centers, points }
 }
-
-/// Observations whose point lies in front of its view, and all with a point.
-pub fn count_in_front(tracks: &[Vec<Ray>], centers: &[Option<DVec3>], points: &[Option<DVec3>]) -> (usize, usize) {
-    let (mut front, mut all) = (0, 0);
-    for (tr, p) in tracks.iter().zip(points) {
-        let Some(x) = p else { continue };
-        for &(v, ray) in tr {
-            if let Some(c) = centers[v] {
-                all += 1;
-                front += usize::from((*x - c).dot(ray) > 0.0);
-            }
-        }
-    }
-    (front, all)
-}

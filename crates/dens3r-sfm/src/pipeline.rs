@@ -387,13 +387,8 @@ fn pinhole(c: &BaCamera, focal: f64, (w, h): (usize, usize)) -> PinholeCamera {
 
 /// Reprojection error (pixels) of point `x` in view `v` at keypoint `kp`; infinite behind it.
 fn reprojection(cams: &[Option<BaCamera>], focals: &[f64], input: &SfmInput, v: usize, kp: usize, x: DVec3) -> f64 {
-    let Some(c) = &cams[v] else { return f64::INFINITY };
-    let q = c.rotation.transpose() * (x - c.center);
-    if q.z <= 0.0 {
-        return f64::INFINITY;
-    }
-    let uv = DVec2::new(q.x / q.z, q.y / q.z) * focals[v] + c.principal;
-    (uv - input.keypoints[v].xy[kp]).length()
+    let uv = cams[v].as_ref().and_then(|c| c.project(focals[v], x));
+    uv.map_or(f64::INFINITY, |uv| (uv - input.keypoints[v].xy[kp]).length())
 }
 
 /// Keeps the observations of each track that reproject within `max_px` (on registered
