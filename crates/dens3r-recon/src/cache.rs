@@ -52,6 +52,26 @@ impl PairCache {
         Some([read(0)?, read(1)?])
     }
 
+    /// The cached output of `key`, else `compute`'s, checked by it and stored; the bool says
+    /// whether it came from the cache. A store that fails is a warning pushed on `warnings`,
+    /// not an error.
+    pub fn load_or<E>(
+        &self,
+        key: &str,
+        sizes: [(usize, usize); 2],
+        warnings: &mut Vec<String>,
+        compute: impl FnOnce() -> Result<[ViewOutput; 2], E>,
+    ) -> Result<([ViewOutput; 2], bool), E> {
+        if let Some(out) = self.load(key, sizes) {
+            return Ok((out, true));
+        }
+        let out = compute()?;
+        if let Err(w) = self.store(key, &out) {
+            warnings.push(format!("pair cache not written: {w}"));
+        }
+        Ok((out, false))
+    }
+
     /// Stores `out` under `key` (no-op without a folder).
     pub fn store(&self, key: &str, out: &[ViewOutput; 2]) -> Result<(), IoError> {
         let Some(root) = &self.dir else { return Ok(()) };

@@ -248,24 +248,15 @@ pub fn reconstruct_dense(
         } else {
             PairCache::key(&format!("{id} without descriptors"), &images[i], &images[j])
         };
-        let out = match cache.load(&key, [sizes[i], sizes[j]]) {
-            Some(out) => {
-                stats.cache_hits += 1;
-                out
+        let (out, hit) = cache.load_or(&key, [sizes[i], sizes[j]], &mut stats.warnings, || {
+            let err = |msg: String| ReconError::Predict { a: images[i].name.clone(), b: images[j].name.clone(), msg };
+            let out = predictor.predict(images, i, j, want).map_err(err)?;
+            for (v, k) in [(0, i), (1, j)] {
+                out[v].check(sizes[k]).map_err(|m| err(format!("{}: {m}", images[k].name)))?;
             }
-            None => {
-                let err =
-                    |msg: String| ReconError::Predict { a: images[i].name.clone(), b: images[j].name.clone(), msg };
-                let out = predictor.predict(images, i, j, want).map_err(err)?;
-                for (v, k) in [(0, i), (1, j)] {
-                    out[v].check(sizes[k]).map_err(|m| err(format!("{}: {m}", images[k].name)))?;
-                }
-                if let Err(w) = cache.store(&key, &out) {
-                    stats.warnings.push(format!("pair cache not written: {w}"));
-                }
-                out
-            }
-        };
+            Ok::<_, ReconError>(out)
+        })?;
+        stats.cache_hits += usize::from(hit);
         stats.predict_seconds += t.elapsed().as_secs_f64();
         for (v, k) in [(0, i), (1, j)] {
             if let Some(nm) = &out[v].normals {

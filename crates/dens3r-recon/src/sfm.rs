@@ -63,22 +63,13 @@ fn mono_passes(
         let t = Instant::now();
         let key = PairCache::key(&id, im, im);
         let size = im.size();
-        let pred = match cache.load(&key, [size, size]) {
-            Some(p) => {
-                stats.cache_hits += 1;
-                p
-            }
-            None => {
-                let err = |msg: String| ReconError::Predict { a: im.name.clone(), b: im.name.clone(), msg };
-                let v = predictor.predict_mono(images, k).map_err(err)?;
-                v.check(size).map_err(|m| err(m.to_string()))?;
-                let p = [v.clone(), v];
-                if let Err(w) = cache.store(&key, &p) {
-                    stats.warnings.push(format!("pair cache not written: {w}"));
-                }
-                p
-            }
-        };
+        let (pred, hit) = cache.load_or(&key, [size, size], &mut stats.warnings, || {
+            let err = |msg: String| ReconError::Predict { a: im.name.clone(), b: im.name.clone(), msg };
+            let v = predictor.predict_mono(images, k).map_err(err)?;
+            v.check(size).map_err(|m| err(m.to_string()))?;
+            Ok::<_, ReconError>([v.clone(), v])
+        })?;
+        stats.cache_hits += usize::from(hit);
         let [v, _] = pred;
         let depth = v.points.map(|p| if p.is_finite() && p.z > 0.0 { p.z } else { 0.0 });
         out[k] = Some(Mono { depth, conf: v.conf, normals: v.normals });
