@@ -18,6 +18,7 @@ pub mod matching;
 pub mod pairs;
 mod ransac;
 pub mod resection;
+pub mod retrieval;
 pub mod rotations;
 pub mod two_view;
 pub mod union_find;

@@ -13,6 +13,42 @@ pub enum PairGraph {
     LogWindow { k: usize, cyclic: bool },
     /// Every image with one reference image (DUSt3R "oneref").
     OneReference { reference: usize },
+    /// MASt3R-SfM's "retrieval-NA-K": `keys` key images paired among themselves, each image
+    /// with its `neighbours` most similar ([`crate::retrieval`]). [`make_pairs`] has no
+    /// images to compare and takes neighbours by index; [`crate::retrieval::retrieval_pairs`]
+    /// takes them by image similarity.
+    Retrieval { keys: usize, neighbours: usize },
+}
+
+impl PairGraph {
+    /// MASt3R-SfM's retrieval defaults: 20 key images, 10 neighbours.
+    pub const RETRIEVAL: Self = Self::Retrieval { keys: 20, neighbours: 10 };
+
+    /// Parses a graph's name as the CLI and the Python module take it: `complete`, `swin`,
+    /// `logwin` (window `window`, closed around the end when `cyclic`), `oneref`, `retrieval`
+    /// or `retrieval-NA-K` (NA key images, K neighbours).
+    pub fn parse(name: &str, window: usize, cyclic: bool) -> Result<Self, String> {
+        let k = window.max(1);
+        Ok(match name {
+            "complete" => Self::Complete,
+            "swin" => Self::SlidingWindow { k, cyclic },
+            "logwin" => Self::LogWindow { k, cyclic },
+            "oneref" => Self::OneReference { reference: 0 },
+            "retrieval" => Self::RETRIEVAL,
+            g if g.starts_with("retrieval-") => {
+                let parts: Vec<Option<usize>> = g["retrieval-".len()..].split('-').map(|v| v.parse().ok()).collect();
+                match parts[..] {
+                    [Some(keys), Some(neighbours)] if neighbours > 0 => Self::Retrieval { keys, neighbours },
+                    _ => {
+                        return Err(format!(
+                            "{g}: expected retrieval-NA-K (key images, neighbours; K >= 1), e.g. retrieval-20-10"
+                        ))
+                    }
+                }
+            }
+            g => return Err(format!("{g}: expected complete, swin, logwin, oneref, retrieval or retrieval-NA-K")),
+        })
+    }
 }
 
 /// The ordered pairs `(i, j)` (i = the network's first view) of a graph over `n` images, without
@@ -20,8 +56,9 @@ pub enum PairGraph {
 /// [`crate::global_align`] needs for every image to have a pointmap in its own frame.
 pub fn make_pairs(n: usize, graph: PairGraph, symmetrize: bool) -> Vec<(usize, usize)> {
     let mut out: Vec<(usize, usize)> = Vec::new();
+    let mut seen = std::collections::HashSet::new();
     let mut push = |i: usize, j: usize| {
-        if i != j && !out.contains(&(i, j)) && !out.contains(&(j, i)) {
+        if i != j && seen.insert((i.min(j), i.max(j))) {
             out.push((i, j));
         }
     };
@@ -63,6 +100,13 @@ pub fn make_pairs(n: usize, graph: PairGraph, symmetrize: bool) -> Vec<(usize, u
                 if reference < n {
                     push(reference, j);
                 }
+            }
+        }
+        PairGraph::Retrieval { keys, neighbours } => {
+            let by_index = (0..n * n).map(|k| 1.0 - (k / n).abs_diff(k % n) as f32 / n.max(1) as f32).collect();
+            let sim = crate::retrieval::Similarity::from_matrix(n, by_index);
+            for (i, j) in crate::retrieval::retrieval_pairs(&sim, keys, neighbours, 0) {
+                push(i, j);
             }
         }
     }
@@ -114,6 +158,15 @@ mod tests {
         let p = make_pairs(3, PairGraph::SlidingWindow { k: 5, cyclic: true }, true);
         assert_eq!(p.len(), 6);
         assert!(p.iter().all(|(i, j)| i != j));
+        // Retrieval by index: each image with its neighbours on either side, keys joined.
+        let r = make_pairs(30, PairGraph::Retrieval { keys: 3, neighbours: 2 }, false);
+        assert!((0..29).all(|i| r.contains(&(i, i + 1))));
+        assert!(r.len() < 30 * 3 + 3);
+        assert_eq!(PairGraph::parse("retrieval-5-7", 3, false), Ok(PairGraph::Retrieval { keys: 5, neighbours: 7 }));
+        assert_eq!(PairGraph::parse("retrieval", 3, false), Ok(PairGraph::RETRIEVAL));
+        assert!(PairGraph::parse("retrieval-5", 3, false).is_err());
+        assert!(PairGraph::parse("retrieval-5-0", 3, false).is_err());
+        assert!(PairGraph::parse("sideways", 3, false).is_err());
     }
 
     #[test]

@@ -154,6 +154,29 @@ pub struct Encoded {
     grid: (usize, usize),
 }
 
+impl Encoded {
+    /// The image as one global descriptor for retrieval (which photos to pair): its encoder
+    /// tokens, each scaled to unit length, averaged (what the image holds overall) and
+    /// generalised-mean pooled with exponent 3 per channel (its strongest responses, as GeM
+    /// pooling does), the two concatenated.
+    pub fn global_descriptor(&self) -> Vec<f32> {
+        let [_, t, c] = self.tokens.dims();
+        let data = values(&self.tokens);
+        let mut mean = vec![0f64; c];
+        let mut gem = vec![0f64; c];
+        for tok in data.chunks_exact(c).take(t) {
+            let norm = tok.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+            for ((m, g), &v) in mean.iter_mut().zip(&mut gem).zip(tok) {
+                let u = (v / norm) as f64;
+                *m += u;
+                *g += u.abs().powi(3);
+            }
+        }
+        let t = t.max(1) as f64;
+        mean.iter().map(|m| m / t).chain(gem.iter().map(|g| (g / t).cbrt())).map(|v| v as f32).collect()
+    }
+}
+
 /// Runs the encoder on one preprocessed image.
 pub fn encode(model: &Dens3r, prep: &Prepared) -> Encoded {
     let (tokens, grid) = model.encode_image(prep.tensor(model.device()));

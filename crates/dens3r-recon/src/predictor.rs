@@ -95,6 +95,12 @@ pub trait PairPredictor {
         let [v, _] = self.predict(images, i, i, Wanted { descriptors: false })?;
         Ok(v)
     }
+    /// Image `i` as one global descriptor for retrieval ([`dens3r_align::retrieval`]), or None
+    /// when this predictor has none (then `--graph retrieval` cannot run on it).
+    fn embed(&self, images: &[InputImage], i: usize) -> Result<Option<Vec<f32>>, String> {
+        let _ = (images, i);
+        Ok(None)
+    }
 }
 
 /// An image's identity for the encoder cache: content hash, crop box, portrait rotation.
@@ -181,6 +187,17 @@ impl PairPredictor for NetworkPredictor<'_> {
     fn predict_mono(&self, images: &[InputImage], i: usize) -> Result<ViewOutput, String> {
         let want = HeadOutputs { normal: true, desc: false };
         Ok(ViewOutput::from_maps(predict_mono(self.model, &images[i].prep, Resolution::Network, want)))
+    }
+
+    /// The pooled encoder tokens ([`Encoded::global_descriptor`]); the tokens are not kept
+    /// (hundreds of photos' tokens would not fit the memory a run may take).
+    fn embed(&self, images: &[InputImage], i: usize) -> Result<Option<Vec<f32>>, String> {
+        let im = &images[i];
+        let desc = match self.encoded.borrow().get(&image_key(im)) {
+            Some(e) => e.global_descriptor(),
+            None => encode(self.model, &im.prep).global_descriptor(),
+        };
+        Ok(Some(desc))
     }
 }
 
