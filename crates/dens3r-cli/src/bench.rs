@@ -30,6 +30,9 @@ pub enum BenchCommand {
     /// `reconstruct`'s cameras vs COLMAP's on rendered walkthroughs and orbits (registered
     /// views, rotation, baseline and focal errors, reprojection error, time, memory).
     Sfm(crate::bench_sfm::SfmBenchArgs),
+    /// `reconstruct` on walkthroughs of 25 to 300 views (time per stage, peak RSS, camera
+    /// error, the pair graph against the truth's co-visibility).
+    Scale(crate::bench_scale::ScaleBenchArgs),
     /// Neural SDF vs TSDF fusion on a noisy object orbit, with the no-normals ablation.
     Nsdf(crate::bench_nsdf::NsdfBenchArgs),
     /// (internal) fuse one scene and print timings as JSON.
@@ -93,6 +96,7 @@ pub fn run(c: BenchCommand) -> Result<()> {
         BenchCommand::Fusion(a) => crate::bench_fusion::fusion(a),
         BenchCommand::Nsdf(a) => crate::bench_nsdf::run(a),
         BenchCommand::Sfm(a) => crate::bench_sfm::run(a),
+        BenchCommand::Scale(a) => crate::bench_scale::run(a),
         BenchCommand::Train(a) => crate::bench_train::train(a),
         BenchCommand::RunTrain { dir } => crate::bench_train::run_train(&dir),
         BenchCommand::RunFuse { scene, voxel, out, gpu } => crate::bench_fusion::run_fuse(&scene, voxel, &out, gpu),

@@ -71,13 +71,13 @@ fn sets(data: &Path) -> Vec<(String, Vec<String>)> {
 }
 
 /// Wall seconds and peak RSS (MB) of a finished child.
-struct Measured {
-    seconds: f64,
-    rss_mb: f64,
+pub(crate) struct Measured {
+    pub seconds: f64,
+    pub rss_mb: f64,
 }
 
 /// Runs `cmd` to completion, its output to `log`; fails naming `what` when it fails.
-fn measured(cmd: &mut Command, what: &str, log: &Path) -> Result<Measured> {
+pub(crate) fn measured(cmd: &mut Command, what: &str, log: &Path) -> Result<Measured> {
     let file = std::fs::File::create(log).with_context(|| format!("{}: cannot create", log.display()))?;
     cmd.stdout(file.try_clone()?).stderr(file);
     let t = Instant::now();
@@ -107,7 +107,7 @@ fn wait_rss(child: &mut std::process::Child) -> Result<(bool, f64)> {
 }
 
 /// A COLMAP text model's cameras by image name, and its points' mean reprojection error.
-fn read_colmap_text(dir: &Path) -> Result<(HashMap<String, PinholeCamera>, f64)> {
+pub(crate) fn read_colmap_text(dir: &Path) -> Result<(HashMap<String, PinholeCamera>, f64)> {
     let read = |f: &str| {
         std::fs::read_to_string(dir.join(f)).with_context(|| format!("{}: cannot read", dir.join(f).display()))
     };
@@ -143,12 +143,12 @@ fn read_colmap_text(dir: &Path) -> Result<(HashMap<String, PinholeCamera>, f64)>
     Ok((cams, errors.iter().sum::<f64>() / errors.len().max(1) as f64))
 }
 
-fn stem(name: &str) -> String {
+pub(crate) fn stem(name: &str) -> String {
     Path::new(name).file_stem().map_or(name.to_string(), |s| s.to_string_lossy().into_owned())
 }
 
 /// One side's scores on a set.
-fn score(
+pub(crate) fn score(
     truth: &HashMap<String, PinholeCamera>,
     est: &HashMap<String, PinholeCamera>,
     reproj: f64,
@@ -168,14 +168,18 @@ fn score(
 }
 
 /// The truth's cameras by frame name.
-fn scene_cameras(dir: &Path) -> Result<HashMap<String, PinholeCamera>> {
+pub(crate) fn scene_cameras(dir: &Path) -> Result<HashMap<String, PinholeCamera>> {
     let scene = Scene::open(dir)?;
     Ok(scene.frames().iter().map(|f| (stem(&f.name), f.camera())).collect())
 }
 
 /// COLMAP's whole pipeline on `images` (one shared camera, CPU SIFT, exhaustive matching,
 /// the incremental mapper), its largest model as text.
-fn run_colmap(colmap: &Path, images: &Path, out: &Path) -> Result<(HashMap<String, PinholeCamera>, f64, Measured)> {
+pub(crate) fn run_colmap(
+    colmap: &Path,
+    images: &Path,
+    out: &Path,
+) -> Result<(HashMap<String, PinholeCamera>, f64, Measured)> {
     let _ = std::fs::remove_dir_all(out);
     std::fs::create_dir_all(out.join("sparse"))?;
     let db = out.join("database.db");

@@ -5,6 +5,7 @@ mod bench;
 mod bench_fusion;
 mod bench_nsdf;
 mod bench_peer;
+mod bench_scale;
 mod bench_sfm;
 mod bench_train;
 mod convert;
@@ -15,6 +16,7 @@ mod info;
 mod model_args;
 mod models;
 mod nsdf;
+mod pairs;
 mod predict;
 mod real_scenes;
 mod reconstruct;
@@ -105,6 +107,9 @@ enum Command {
     Predict(predict::PredictArgs),
     /// Photos -> cameras, aligned depth and normals, COLMAP / nerfstudio export and a mesh.
     Reconstruct(reconstruct::ReconstructArgs),
+    /// One shard of a reconstruction's network runs into a pair cache (`--shard I/N`), for
+    /// spreading them over machines; `reconstruct --cache DIR` then runs no network.
+    Pairs(pairs::PairsArgs),
     /// Fuse a scene folder's depth (+ colour, confidence, normals) into a mesh (TSDF).
     Fuse(fuse::FuseArgs),
     /// Train a neural SDF (NeuS-style, normal- and depth-supervised) on a scene folder and mesh it.
@@ -167,6 +172,7 @@ fn main() {
         Command::Predict(a) => predict::run(a),
         Command::Fuse(a) => fuse::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),
+        Command::Pairs(a) => pairs::run(a),
         Command::Nsdf(a) => nsdf::run(a),
         Command::Synth(a) => synth::run(a),
         Command::RealScenes(a) => real_scenes::run(a),

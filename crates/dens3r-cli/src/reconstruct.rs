@@ -9,6 +9,7 @@ use dens3r_align::match_pose::MatchPoseOptions;
 use dens3r_align::matching::MatchOptions;
 use dens3r_align::{AlignOptions, PairGraph};
 use dens3r_backbone::Precision;
+use dens3r_recon::oracle::SceneOracle;
 use dens3r_recon::predictor::weights_id;
 use dens3r_recon::{
     begin_outputs, list_images, load_images, reconstruct, write_outputs_into, Cameras, KeypointOptions,
@@ -18,20 +19,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::time::Instant;
 
-#[derive(Clone, Copy, ValueEnum)]
-enum Graph {
-    /// Every pair (Dens3R "exhaustive").
-    Complete,
-    /// Each photo with the next --window (ordered captures; Dens3R "sequential").
-    Swin,
-    /// Each photo with those 1, 2, 4, .. ahead (--window of them).
-    Logwin,
-    /// Every photo with the first.
-    Oneref,
-}
-
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
-enum Align {
+pub(crate) enum Align {
     /// Cameras by global structure-from-motion on SIFT keypoints (rotation averaging, global
     /// positioning, bundle adjustment); the network gives each photo's depth and normals.
     Sfm,
@@ -56,9 +45,14 @@ pub struct ReconstructArgs {
     #[arg(long, value_enum, default_value = "sfm")]
     align: Align,
     /// Which photos are matched (sfm), or which pairs the network runs, both orders of each
-    /// (dense).
-    #[arg(long, value_enum, default_value = "complete")]
-    graph: Graph,
+    /// (dense): complete (every pair), swin (each photo with the next --window: ordered
+    /// captures), logwin (those 1, 2, 4, .. ahead), oneref (every photo with the first),
+    /// retrieval or retrieval-NA-K (NA key images found by the network's encoder paired
+    /// among themselves, each photo with its K most similar, 20 and 10 by default; the
+    /// sliding window added when the file order looks like the capture's), or auto: complete
+    /// up to 30 photos, retrieval above.
+    #[arg(long, default_value = "auto", value_name = "GRAPH")]
+    graph: String,
     /// Window of --graph swin / logwin.
     #[arg(long, default_value_t = 3)]
     window: usize,
@@ -130,29 +124,70 @@ pub struct ReconstructArgs {
     /// network).
     #[arg(long)]
     no_cache: bool,
+    /// Keep network outputs in this folder instead of OUTPUT/cache/ (one shared by runs, or
+    /// filled beforehand by `dens3r pairs --shard`).
+    #[arg(long, value_name = "DIR", conflicts_with = "no_cache")]
+    cache: Option<PathBuf>,
+    /// Most MB the pair cache may take: the least recently used entries are removed to stay
+    /// within it (entries are about 1.6 MB a photo at 512 px).
+    #[arg(long, value_name = "MB")]
+    cache_budget: Option<f64>,
     /// Match pictures for at most this many pairs (0: none).
     #[arg(long, default_value_t = 20)]
     match_pictures: usize,
+    /// Benchmarks only: depth and normals read from this rendered scene folder with a
+    /// network's errors instead of the network's (`dens3r bench scale`); the network still
+    /// compares photos for --graph retrieval.
+    #[arg(long, hide = true, value_name = "SCENE")]
+    oracle: Option<PathBuf>,
     /// Shortest match track exported as a COLMAP 3-D point.
     #[arg(long, default_value_t = 2)]
     min_track: usize,
 }
 
-fn bar(prefix: &str, len: usize, unit: &str) -> ProgressBar {
+pub(crate) fn bar(prefix: &str, len: usize, unit: &str) -> ProgressBar {
     ProgressBar::new(len as u64).with_style(
         ProgressStyle::with_template(&format!("{prefix:>9} {{bar:30}} {{pos}}/{{len}} {unit} [{{elapsed}} < {{eta}}]"))
             .expect("valid template"),
     )
 }
 
+/// The pair cache in `dir` (none: memory only), within `budget_mb` when given.
+pub(crate) fn open_cache(dir: Option<PathBuf>, budget_mb: Option<f64>) -> Result<PairCache> {
+    Ok(match (dir, budget_mb) {
+        (Some(d), Some(mb)) if mb.is_finite() && mb > 0.0 => PairCache::with_budget(d, (mb * 1e6) as u64),
+        (_, Some(mb)) if !(mb.is_finite() && mb > 0.0) => {
+            bail!("--cache-budget {mb}: expected a positive number of MB")
+        }
+        (d, _) => PairCache::new(d),
+    })
+}
+
+/// The network's id in the pair cache: its files' content, input size and precision (another
+/// size or precision gives other outputs).
+pub(crate) fn network_id(
+    m: &crate::model_args::ModelArgs,
+    weights: &std::path::Path,
+    config: Option<&std::path::Path>,
+    cache: &PairCache,
+) -> Result<String> {
+    let precision = match m.precision {
+        Precision::F32 => String::new(),
+        p => format!(" {p}"),
+    };
+    let id = match cache.dir() {
+        Some(dir) => weights_id(weights, config, Some(&dir.join(".file-hashes.json")))?,
+        None => "uncached".into(),
+    };
+    Ok(format!("{id} size {}{precision}", m.size))
+}
+
 /// The pair graph of `a`, after refusing options that cannot work.
-fn checked_graph(a: &ReconstructArgs) -> Result<PairGraph> {
+fn checked_graph(a: &ReconstructArgs) -> Result<Option<PairGraph>> {
     crate::model_args::check_size(a.model.size)?;
-    let graph = match a.graph {
-        Graph::Complete => PairGraph::Complete,
-        Graph::Swin => PairGraph::SlidingWindow { k: a.window.max(1), cyclic: a.cyclic },
-        Graph::Logwin => PairGraph::LogWindow { k: a.window.max(1), cyclic: a.cyclic },
-        Graph::Oneref => PairGraph::OneReference { reference: 0 },
+    let graph = match a.graph.as_str() {
+        "auto" => None,
+        g => Some(PairGraph::parse(g, a.window, a.cyclic).map_err(|e| anyhow::anyhow!("--graph {e} (or auto)"))?),
     };
     if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         bail!("--voxel must be positive");
@@ -195,20 +230,17 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     }
     let min_conf = a.min_conf.unwrap_or(settings.min_conf);
     let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu, a.model.precision)?;
-    // The pair cache is keyed by this: another size or precision gives other outputs.
-    let precision = match a.model.precision {
-        Precision::F32 => String::new(),
-        p => format!(" {p}"),
-    };
     // The output folder is locked (a second run into it is refused) and staged from here;
     // the pair cache in it is written as it goes, so a rerun after a failure resumes.
     let out_dir = begin_outputs(&a.output)?;
-    let cache = PairCache::new((!a.no_cache).then(|| a.output.join("cache")));
-    let id = match cache.dir() {
-        Some(dir) => weights_id(&weights, config.as_deref(), Some(&dir.join(".file-hashes.json")))?,
-        None => "uncached".into(),
+    let cache = open_cache(a.cache.clone().or_else(|| (!a.no_cache).then(|| a.output.join("cache"))), a.cache_budget)?;
+    let id = network_id(&a.model, &weights, config.as_deref(), &cache)?;
+    let network = NetworkPredictor::new(&model, id);
+    let oracle = a.oracle.as_deref().map(|dir| SceneOracle::new(dir, Some(&network))).transpose()?;
+    let predictor: &dyn dens3r_recon::PairPredictor = match &oracle {
+        Some(o) => o,
+        None => &network,
     };
-    let predictor = NetworkPredictor::new(&model, format!("{id} size {}{precision}", a.model.size));
     let opts = ReconOptions {
         cameras: match a.align {
             Align::Sfm => Cameras::Sfm(Box::default()),
@@ -231,7 +263,8 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         drop_unplaced: !a.keep_unplaced,
     };
     let (pbar, abar) = (bar("pairs", 0, "pairs"), bar("align", a.iterations, "iterations"));
-    let rec = reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
+    let rbar = bar("retrieval", 0, "photos");
+    let rec = reconstruct(&images, predictor, &cache, &opts, |stage, done, total| match stage {
         Stage::Predict => {
             pbar.set_length(total as u64);
             pbar.set_position(done as u64);
@@ -240,7 +273,12 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
             pbar.finish_and_clear();
             abar.set_position(done as u64);
         }
+        Stage::Retrieve => {
+            rbar.set_length(total as u64);
+            rbar.set_position(done as u64);
+        }
     })?;
+    rbar.finish_and_clear();
     abar.finish_and_clear();
     let out_opts = OutputOptions {
         voxel: a.voxel,
@@ -258,7 +296,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     })?;
     out_dir.finish()?;
     fbar.finish_and_clear();
-    report(&a, &rec, &summary, min_conf, predictor.encoded_images(), t0);
+    report(&a, &rec, &summary, min_conf, network.encoded_images(), t0);
     Ok(())
 }
 
@@ -275,6 +313,21 @@ fn report(
     for w in s.warnings.iter().chain(&summary.warnings) {
         eprintln!("warning: {w}");
     }
+    let g = &s.graph;
+    println!(
+        "pair graph: {}, {} pairs{}",
+        g.name,
+        g.pairs,
+        if g.name.starts_with("retrieval") {
+            format!(
+                " (photos compared by the encoder in {:.1}s{})",
+                g.seconds,
+                if g.ordered { "; file order looks like the capture's: each photo also with the next 3" } else { "" }
+            )
+        } else {
+            String::new()
+        }
+    );
     match &s.sfm {
         Some(sfm) => report_sfm(rec, sfm),
         None => report_dense(a, rec, encoded),

@@ -666,6 +666,41 @@ fn reconstruct_end_to_end(b: &Path) {
     assert_eq!(std::fs::read(out.join("scene/cameras.json")).unwrap(), cameras, "same cameras from the cache");
     assert_no_temp_files(&out);
 
+    // Issue 68, 5: the network's runs in two shards (two machines, say) into one cache; then
+    // reconstruct runs no network and gives the same cameras.
+    let shared = dir.path().join("shared-cache");
+    let net = ["--weights", w, "--config", c, "--size", "64", "--align", "dense"];
+    let shard = |s: &str| {
+        ok(&[&["pairs", photos.to_str().unwrap(), "--cache", shared.to_str().unwrap()][..], &net, &["--shard", s]]
+            .concat())
+    };
+    let s0 = shard("0/2");
+    assert!(s0.contains("shard 0/2: 10 of 20 network runs (0 already cached)"), "{s0}");
+    shard("1/2");
+    assert!(shard("1/2").contains("(10 already cached)"));
+    let out2 = dir.path().join("out2");
+    let from_shards =
+        ok(&[
+            &[
+                "reconstruct",
+                photos.to_str().unwrap(),
+                "-o",
+                out2.to_str().unwrap(),
+                "--cache",
+                shared.to_str().unwrap(),
+            ][..],
+            &net,
+            &["--iterations", "50", "--min-conf", "0"],
+        ]
+        .concat());
+    assert!(from_shards.contains("0 network pairs (20 from the cache; 0 images encoded)"), "{from_shards}");
+    assert_eq!(std::fs::read(out2.join("scene/cameras.json")).unwrap(), cameras, "the shards' cameras");
+    let e = fails(
+        &[&["pairs", photos.to_str().unwrap(), "--cache", shared.to_str().unwrap()][..], &net, &["--shard", "2/2"]]
+            .concat(),
+    );
+    assert!(e.contains("--shard") && e.contains("0 <= I < N"), "{e}");
+
     // Bad input: one line naming the problem, nothing written.
     let bad = dir.path().join("bad");
     let empty = dir.path().join("empty");

@@ -279,7 +279,6 @@ fuzz_tests! {
     head_json => "head-json",
     head_safetensors => "head-safetensors",
     pair_cache => "pair-cache",
-    pair_cache_desc => "pair-cache-desc",
     feature_cache => "feature-cache",
     arch_toml => "arch-toml",
     train_log => "train-log",

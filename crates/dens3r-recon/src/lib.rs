@@ -11,14 +11,17 @@
 //! [`model`] resolves which network runs (a file, a folder, a known name, the bundled default).
 
 pub mod cache;
+pub mod graph;
 pub mod input;
 pub mod masks;
 pub mod model;
 pub mod mono;
+pub mod oracle;
 pub mod output;
 pub mod pipeline;
 pub mod predictor;
 pub mod sfm;
+pub mod shard;
 pub mod tracks;
 pub mod viz;
 
@@ -29,6 +32,7 @@ pub use output::{begin_outputs, write_outputs, write_outputs_into, OutputOptions
 pub use pipeline::{reconstruct, reconstruct_dense, Cameras, KeypointOptions, ReconOptions, Reconstruction, Stage};
 pub use predictor::{NetworkPredictor, PairPredictor, ViewOutput, Wanted};
 pub use sfm::SfmSettings;
+pub use shard::{compute_shard, Shard, ShardStats};
 pub use tracks::TrackOptions;
 
 use std::path::Path;

@@ -3,6 +3,7 @@
 //!
 //! ```text
 //! out/scene/            cameras.json, images/, depth/, normals/, conf/ (dens3r scene folder)
+//! out/summary.json      what the run did, stage by stage (photos registered, pair graph, seconds)
 //! out/scene/transforms.json   nerfstudio (OpenGL poses, paths relative to out/scene)
 //! out/colmap/           cameras.txt, images.txt, points3D.txt (image names relative to out/scene)
 //! out/matches/<a>-<b>.png     match pictures
@@ -116,6 +117,7 @@ pub fn write_outputs_into(
     opts: &OutputOptions,
     mut fuse_progress: impl FnMut(usize, usize),
 ) -> Result<OutputSummary, ReconError> {
+    let t_write = std::time::Instant::now();
     let out = dir.root();
     let scene_dir = out.join("scene");
     let mut w = SceneWriter::in_folder(&scene_dir)?;
@@ -160,7 +162,45 @@ pub fn write_outputs_into(
         fuse(rec, out, opts, &mut summary, &mut fuse_progress)?;
         summary.mesh = summary.mesh.map(|_| dest.join("mesh.glb"));
     }
+    let write_seconds = t_write.elapsed().as_secs_f64() - summary.fuse_seconds;
+    let json = run_summary(rec, &summary, write_seconds);
+    let text = serde_json::to_string_pretty(&json).expect("plain JSON values");
+    dens3r_io::write_atomic(&out.join("summary.json"), |w| std::io::Write::write_all(w, text.as_bytes()))?;
     Ok(summary)
+}
+
+/// `OUT/summary.json`: what the run did and how long each stage took (seconds), for tools
+/// and benchmarks that read a run rather than its printout.
+fn run_summary(rec: &Reconstruction, out: &OutputSummary, write_seconds: f64) -> serde_json::Value {
+    let s = &rec.stats;
+    let mut focals: Vec<f64> = rec.alignment.views.iter().map(|v| v.camera.intrinsics.fx).collect();
+    focals.dedup();
+    serde_json::json!({
+        "photos": s.registered + s.unregistered.len(),
+        "registered": s.registered,
+        "unregistered": s.unregistered,
+        "cameras": if s.sfm.is_some() { "sfm" } else { "dense" },
+        "graph": {
+            "name": s.graph.name, "pairs": s.graph.pairs, "ordered": s.graph.ordered,
+            "list": s.graph.list.iter().map(|&(i, j)| [&s.graph.names[i], &s.graph.names[j]]).collect::<Vec<_>>(),
+        },
+        "network_runs": s.pairs - s.cache_hits,
+        "cache_hits": s.cache_hits,
+        "focals_px": focals,
+        "reprojection_rms_px": s.sfm.as_ref().map(|f| f.rms_px.1),
+        "points": rec.points.len(),
+        "mesh_triangles": out.triangles,
+        "seconds": {
+            "retrieval": s.graph.seconds,
+            "keypoints": s.keypoint_seconds,
+            "cameras": s.align_seconds,
+            "network": s.predict_seconds,
+            "matching": s.match_seconds,
+            "write": write_seconds,
+            "fuse": out.fuse_seconds,
+        },
+        "warnings": s.warnings.iter().chain(&out.warnings).collect::<Vec<_>>(),
+    })
 }
 
 /// The default voxel: twice the pixel footprint at the median depth of all views (within

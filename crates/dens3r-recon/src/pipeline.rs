@@ -11,8 +11,8 @@ use dens3r_align::keypoints::{detect, match_mutual, Keypoints};
 use dens3r_align::match_pose::{pose_from_keypoints, pose_from_matches, KeypointPoseOptions, MatchPoseOptions};
 use dens3r_align::matching::{reciprocal_matches, Descriptors, Match, MatchOptions};
 use dens3r_align::{
-    average_rotations, consistent_rotations, global_align, make_pairs, verified_subgraph, AlignOptions, Alignment,
-    PairGraph, PairPrediction,
+    average_rotations, consistent_rotations, global_align, verified_subgraph, AlignOptions, Alignment, PairGraph,
+    PairPrediction,
 };
 use dens3r_geom::focal::{focal_or_fallback, median};
 use dens3r_geom::transform::Sim3;
@@ -29,8 +29,10 @@ use std::time::Instant;
 /// Reconstruction settings.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReconOptions {
-    /// Which pairs run (symmetrised: both orders of each pair).
-    pub graph: PairGraph,
+    /// Which photos are paired: the network's pairs, both orders of each (dense), or the
+    /// SIFT matches (sfm). None: every pair up to 30 photos, retrieval above
+    /// ([`crate::graph::resolve`]).
+    pub graph: Option<PairGraph>,
     /// Global alignment.
     pub align: AlignOptions,
     /// Descriptor matching (skipped when the model has no descriptor head).
@@ -106,7 +108,7 @@ impl Default for ReconOptions {
     fn default() -> Self {
         Self {
             cameras: Cameras::Sfm(Box::default()),
-            graph: PairGraph::Complete,
+            graph: None,
             align: AlignOptions::default(),
             matching: MatchOptions::default(),
             tracks: TrackOptions::default(),
@@ -124,6 +126,8 @@ pub enum Stage {
     Predict,
     /// Global alignment iterations.
     Align,
+    /// Image descriptors for a retrieval graph (before anything else).
+    Retrieve,
 }
 
 /// What one run produced (all maps at each image's network size, own orientation).
@@ -194,6 +198,8 @@ pub struct ReconStats {
     pub unregistered: Vec<String>,
     /// Structure-from-motion's counts and timings, where its cameras were used.
     pub sfm: Option<SfmStats>,
+    /// How the photos were paired.
+    pub graph: crate::graph::GraphInfo,
 }
 
 /// Reconstructs `images`: cameras as [`ReconOptions::cameras`] says, depth and normals from
@@ -215,6 +221,35 @@ pub fn reconstruct(
     }
 }
 
+/// The ordered pair `(i, j)`'s network output, through `cache`; with descriptors where the
+/// pair is `matched` on this run (each unordered pair is matched once, on the run with the
+/// smaller index first where both run; those runs are cached apart from runs without them).
+pub(crate) fn pair_output(
+    images: &[InputImage],
+    predictor: &dyn PairPredictor,
+    cache: &PairCache,
+    (i, j): (usize, usize),
+    matched: bool,
+    warnings: &mut Vec<String>,
+) -> Result<([ViewOutput; 2], bool), ReconError> {
+    let id = predictor.id();
+    let want = Wanted { descriptors: matched };
+    let key = if matched {
+        PairCache::key(&id, &images[i], &images[j])
+    } else {
+        PairCache::key(&format!("{id} without descriptors"), &images[i], &images[j])
+    };
+    let sizes = [images[i].size(), images[j].size()];
+    cache.load_or(&key, sizes, warnings, || {
+        let err = |msg: String| ReconError::Predict { a: images[i].name.clone(), b: images[j].name.clone(), msg };
+        let out = predictor.predict(images, i, j, want).map_err(err)?;
+        for (v, k) in [(0, i), (1, j)] {
+            out[v].check(sizes[v]).map_err(|m| err(format!("{}: {m}", images[k].name)))?;
+        }
+        Ok::<_, ReconError>(out)
+    })
+}
+
 /// Runs the pair graph over `images`, matches, aligns and triangulates tracks (the dense path).
 pub fn reconstruct_dense(
     images: &[InputImage],
@@ -227,12 +262,14 @@ pub fn reconstruct_dense(
     let sizes: Vec<(usize, usize)> = images.iter().map(|im| im.size()).collect();
     // Every pair, each followed by its reverse (the set DUSt3R symmetrises to): a predictor
     // may reuse work between the two runs of one pair.
-    let order: Vec<(usize, usize)> =
-        make_pairs(n, opts.graph, false).into_iter().flat_map(|(i, j)| [(i, j), (j, i)]).collect();
+    let mut warnings = Vec::new();
+    let (unordered, graph) =
+        crate::graph::plan_pairs(images, predictor, cache, opts.graph, &mut warnings, &mut progress)?;
+    let order: Vec<(usize, usize)> = unordered.into_iter().flat_map(|(i, j)| [(i, j), (j, i)]).collect();
     let ordered: HashSet<(usize, usize)> = order.iter().copied().collect();
     let known_focals = images.iter().filter(|im| im.focal.is_some()).count();
-    let mut stats = ReconStats { pairs: order.len(), known_focals, registered: n, ..Default::default() };
-    let id = predictor.id();
+    let mut stats =
+        ReconStats { pairs: order.len(), known_focals, registered: n, graph, warnings, ..Default::default() };
     let mut normal_sum: Vec<Option<(Vec<Vec3>, Vec<f32>)>> = vec![None; n];
     let mut matches = Vec::new();
     let mut preds = Vec::with_capacity(order.len());
@@ -242,20 +279,7 @@ pub fn reconstruct_dense(
         // Each unordered pair is matched once, on the run with the smaller index first: only
         // that run needs descriptors (cached apart from runs without them).
         let matched = i < j || !ordered.contains(&(j, i));
-        let want = Wanted { descriptors: matched };
-        let key = if matched {
-            PairCache::key(&id, &images[i], &images[j])
-        } else {
-            PairCache::key(&format!("{id} without descriptors"), &images[i], &images[j])
-        };
-        let (out, hit) = cache.load_or(&key, [sizes[i], sizes[j]], &mut stats.warnings, || {
-            let err = |msg: String| ReconError::Predict { a: images[i].name.clone(), b: images[j].name.clone(), msg };
-            let out = predictor.predict(images, i, j, want).map_err(err)?;
-            for (v, k) in [(0, i), (1, j)] {
-                out[v].check(sizes[k]).map_err(|m| err(format!("{}: {m}", images[k].name)))?;
-            }
-            Ok::<_, ReconError>(out)
-        })?;
+        let (out, hit) = pair_output(images, predictor, cache, (i, j), matched, &mut stats.warnings)?;
         stats.cache_hits += usize::from(hit);
         stats.predict_seconds += t.elapsed().as_secs_f64();
         for (v, k) in [(0, i), (1, j)] {

@@ -5,15 +5,14 @@
 //! Views the SfM does not register are left out and named; with fewer than half registered,
 //! the run falls back to the network's pairs and the dense alignment ([`crate::pipeline`]).
 
-use crate::cache::PairCache;
+use crate::cache::{MonoMaps, PairCache};
 use crate::input::InputImage;
 use crate::pipeline::{reconstruct_dense, ReconOptions, ReconStats, Reconstruction, Stage};
 use crate::predictor::PairPredictor;
 use crate::ReconError;
 use dens3r_align::keypoints::{detect_with_gain, Keypoints};
 use dens3r_align::matching::Match;
-use dens3r_align::{make_pairs, AlignedView, Alignment};
-use dens3r_geom::{Raster, Vec3};
+use dens3r_align::{AlignedView, Alignment};
 use dens3r_io::panics::catch_quietly;
 use dens3r_scene::export::TrackPoint;
 use dens3r_sfm::{run, Sfm, SfmInput, SfmOptions};
@@ -39,11 +38,24 @@ impl Default for SfmSettings {
     }
 }
 
-/// One photo's network outputs: own-frame depth (z), confidence and normals.
-struct Mono {
-    depth: Raster<f32>,
-    conf: Raster<f32>,
-    normals: Option<Raster<Vec3>>,
+/// Photo `k`'s own depth, confidence and normals (its self-pair, one network pass), through
+/// `cache`.
+pub(crate) fn mono_output(
+    images: &[InputImage],
+    predictor: &dyn PairPredictor,
+    cache: &PairCache,
+    k: usize,
+    warnings: &mut Vec<String>,
+) -> Result<(MonoMaps, bool), ReconError> {
+    let im = &images[k];
+    let key = PairCache::key(&format!("{} mono", predictor.id()), im, im);
+    cache.mono_or(&key, im.size(), warnings, || {
+        let err = |msg: String| ReconError::Predict { a: im.name.clone(), b: im.name.clone(), msg };
+        let v = predictor.predict_mono(images, k).map_err(err)?;
+        v.check(im.size()).map_err(|m| err(m.to_string()))?;
+        let depth = v.points.map(|p| if p.is_finite() && p.z > 0.0 { p.z } else { 0.0 });
+        Ok(MonoMaps { depth, conf: v.conf, normals: v.normals })
+    })
 }
 
 /// Runs the network once on each photo of `which` (its self-pair), through the cache.
@@ -54,25 +66,14 @@ fn mono_passes(
     cache: &PairCache,
     stats: &mut ReconStats,
     progress: &mut impl FnMut(Stage, usize, usize),
-) -> Result<Vec<Option<Mono>>, ReconError> {
-    let id = format!("{} mono", predictor.id());
-    let mut out: Vec<Option<Mono>> = (0..images.len()).map(|_| None).collect();
+) -> Result<Vec<Option<MonoMaps>>, ReconError> {
+    let mut out: Vec<Option<MonoMaps>> = (0..images.len()).map(|_| None).collect();
     progress(Stage::Predict, 0, which.len());
     for (done, &k) in which.iter().enumerate() {
-        let im = &images[k];
         let t = Instant::now();
-        let key = PairCache::key(&id, im, im);
-        let size = im.size();
-        let (pred, hit) = cache.load_or(&key, [size, size], &mut stats.warnings, || {
-            let err = |msg: String| ReconError::Predict { a: im.name.clone(), b: im.name.clone(), msg };
-            let v = predictor.predict_mono(images, k).map_err(err)?;
-            v.check(size).map_err(|m| err(m.to_string()))?;
-            Ok::<_, ReconError>([v.clone(), v])
-        })?;
+        let (m, hit) = mono_output(images, predictor, cache, k, &mut stats.warnings)?;
         stats.cache_hits += usize::from(hit);
-        let [v, _] = pred;
-        let depth = v.points.map(|p| if p.is_finite() && p.z > 0.0 { p.z } else { 0.0 });
-        out[k] = Some(Mono { depth, conf: v.conf, normals: v.normals });
+        out[k] = Some(m);
         stats.predict_seconds += t.elapsed().as_secs_f64();
         progress(Stage::Predict, done + 1, which.len());
     }
@@ -83,7 +84,7 @@ fn mono_passes(
 /// Each registered view's depth scale: the median of SfM depth over network depth at its
 /// track points (the network's depth is known up to scale); views with fewer than 5 usable
 /// points take the median scale of the others.
-fn depth_scales(sfm: &Sfm, kps: &[Keypoints], mono: &[Option<Mono>]) -> Vec<Option<f64>> {
+fn depth_scales(sfm: &Sfm, kps: &[Keypoints], mono: &[Option<MonoMaps>]) -> Vec<Option<f64>> {
     let n = mono.len();
     let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); n];
     for p in &sfm.points {
@@ -156,13 +157,19 @@ pub fn reconstruct_sfm(
     stats.keypoint_seconds = t.elapsed().as_secs_f64();
     // Structure from motion needs no network: a focal not known starts at 1.2 times the
     // photo's long side (COLMAP's guess) and bundle adjustment finds it.
+    let (pairs, graph) =
+        crate::graph::plan_pairs(images, predictor, cache, opts.graph, &mut stats.warnings, &mut progress)?;
+    stats.graph = graph;
     progress(Stage::Align, 0, 1);
     let t = Instant::now();
-    let pairs = make_pairs(n, opts.graph, false);
     let guesses: Vec<f64> = sizes.iter().map(|&(w, h)| 1.2 * w.max(h) as f64).collect();
     let input =
         SfmInput { keypoints: &kps, sizes: &sizes, known_focals: &known_focals, focal_guess: &guesses, pairs: &pairs };
     let sfm = run(&input, &settings.sfm);
+    // Only the keypoints' positions are read from here: their descriptors (half a GB at 300
+    // photos) go before the network's maps come.
+    let mut kps = kps;
+    kps.iter_mut().for_each(|k| k.desc = Vec::new());
     stats.align_seconds = t.elapsed().as_secs_f64();
     progress(Stage::Align, 1, 1);
     let registered: Vec<usize> = (0..n).filter(|&v| sfm.cameras[v].is_some()).collect();

@@ -319,8 +319,15 @@ fn oracle_photos_become_the_true_scene() {
     for (a, b) in again.alignment.views.iter().zip(&rec.alignment.views) {
         assert_eq!(a.camera.cam_to_world, b.camera.cam_to_world);
     }
-    let entry = std::fs::read_dir(out.join("cache")).unwrap().next().unwrap().unwrap().path();
-    std::fs::write(entry.join("v0_points.npy"), b"not an array").unwrap();
+    let entry = std::fs::read_dir(out.join("cache"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|x| x == "d3c"))
+        .unwrap();
+    let mut bytes = std::fs::read(&entry).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 1;
+    std::fs::write(&entry, bytes).unwrap();
     let e = reconstruct(&images, &Refuses, &cache, &opts, |_, _, _| {}).unwrap_err().to_string();
     assert!(e.contains("pair (view") && e.contains("the network was called"), "{e}");
 }
@@ -429,7 +436,8 @@ fn matches_place_the_pairs_a_network_cannot() {
     let graph = dens3r_align::PairGraph::SlidingWindow { k: 1, cyclic: false };
     // Reciprocal matches are few at 160x112 (20 between the walk's widest neighbours).
     let match_pose = Some(dens3r_align::match_pose::MatchPoseOptions { min_inliers: 12, ..Default::default() });
-    let opts = ReconOptions { cameras: Cameras::Dense, graph, match_pose, keypoints: None, ..Default::default() };
+    let opts =
+        ReconOptions { cameras: Cameras::Dense, graph: Some(graph), match_pose, keypoints: None, ..Default::default() };
     let with = reconstruct(&images, &blind, &cache, &opts, |_, _, _| {}).unwrap();
     let (med, worst) = rotation_errors(&t, &with.alignment);
     eprintln!(
@@ -520,7 +528,7 @@ fn keypoints_place_the_pairs_of_a_depth_only_network() {
     let net = DepthOnly(&t);
     let cache = PairCache::new(None);
     let graph = dens3r_align::PairGraph::SlidingWindow { k: 1, cyclic: false };
-    let opts = ReconOptions { cameras: Cameras::Dense, graph, ..Default::default() };
+    let opts = ReconOptions { cameras: Cameras::Dense, graph: Some(graph), ..Default::default() };
     let with = reconstruct(&images, &net, &cache, &opts, |_, _, _| {}).unwrap();
     let (med, worst) = rotation_errors(&t, &with.alignment);
     eprintln!(
@@ -621,7 +629,7 @@ fn unplaced_pairs_do_not_pull_placed_cameras() {
     let net = DepthOnly(&t);
     let cache = PairCache::new(None);
     let graph = dens3r_align::PairGraph::SlidingWindow { k: 2, cyclic: false };
-    let opts = ReconOptions { cameras: Cameras::Dense, graph, ..Default::default() };
+    let opts = ReconOptions { cameras: Cameras::Dense, graph: Some(graph), ..Default::default() };
     let with = reconstruct(&images, &net, &cache, &opts, |_, _, _| {}).unwrap();
     let (med, worst) = rotation_errors(&t, &with.alignment);
     let s = &with.stats;

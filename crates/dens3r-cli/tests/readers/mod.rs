@@ -183,7 +183,7 @@ const PAIR_KEY: &str = "00112233445566778899aabbccddeeff";
 fn pair_cache_seed(dir: &Path) -> Vec<u8> {
     let cache = PairCache::new(Some(dir.to_path_buf()));
     cache.store(PAIR_KEY, &[view_output(4, 3, 0.0), view_output(4, 3, 1.0)]).expect("store the seed pair");
-    std::fs::read(dir.join(PAIR_KEY).join("v0_points.npy")).unwrap()
+    std::fs::read(dir.join(format!("{PAIR_KEY}.d3c"))).unwrap()
 }
 
 fn read_pair_cache(dir: &Path) -> Result<(), String> {
@@ -410,17 +410,8 @@ pub fn targets() -> Vec<Target> {
         },
         Target {
             name: "pair-cache",
-            file: "00112233445566778899aabbccddeeff/v0_points.npy",
+            file: "00112233445566778899aabbccddeeff.d3c",
             seed: pair_cache_seed,
-            read: read_pair_cache,
-        },
-        Target {
-            name: "pair-cache-desc",
-            file: "00112233445566778899aabbccddeeff/v1_desc.npy",
-            seed: |d| {
-                pair_cache_seed(d);
-                std::fs::read(d.join(PAIR_KEY).join("v1_desc.npy")).unwrap()
-            },
             read: read_pair_cache,
         },
         Target { name: "feature-cache", file: "entry.feat", seed: feature_cache_seed, read: read_feature_cache },
