@@ -2,7 +2,7 @@
 # The Python package's tests (python/tests, pytest): links the `dens3r._native` extension from
 # the test build that `cargo test --workspace` leaves (same profile and features, so only the
 # extension itself is linked), stages it beside python/dens3r/ in target/python/, and runs pytest
-# in .cache/py-venv (numpy, pytest and tqdm from PyPI). Users install with `pip install ./python`.
+# in .cache/py-venv (numpy, pytest, tqdm and Ray from PyPI). Users install with `pip install ./python`.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 cargo build --workspace --profile test --locked
@@ -14,6 +14,10 @@ venv=.cache/py-venv
 if ! "$venv/bin/python" -c "import numpy, pytest, tqdm" 2>/dev/null; then
   python3 -m venv "$venv"
   "$venv/bin/pip" install -q numpy pytest tqdm
+fi
+# Ray (PyPI) for the executor test's local cluster; without it that test says so and skips.
+if ! "$venv/bin/python" -c "import ray" 2>/dev/null; then
+  "$venv/bin/pip" install -q "ray>=2.9" || echo "warning: Ray could not be installed; the Ray executor test will skip"
 fi
 # The CLI of the same build: the tests compare the module's arrays with its outputs.
 export DENS3R_BIN="$PWD/target/debug/dens3r"

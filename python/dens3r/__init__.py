@@ -17,12 +17,13 @@ import os
 from typing import Callable, Optional, Sequence, Union
 
 from . import _native
-from ._native import Dens3rError, Model, fuse, holds_scene, read_mesh, read_scene, write_scene
+from ._native import Dens3rError, Model, compute_shard, fuse, holds_scene, read_mesh, read_scene, write_scene
 
 __version__ = _native.__version__
 __all__ = [
     "Dens3rError",
     "Model",
+    "compute_shard",
     "fuse",
     "holds_scene",
     "read_mesh",
@@ -63,23 +64,68 @@ def reconstruct(
     *,
     model: Optional[Model] = None,
     progress: Union[bool, Callable[[str, int, int], None], None] = True,
+    executor: str = "local",
+    shards: Optional[int] = None,
     **options,
 ) -> dict:
     """Photos -> cameras, depth, normals and a mesh, as ``dens3r reconstruct PHOTOS -o OUTPUT``.
 
     ``photos``: a folder or a list of image files. ``model``: a loaded :class:`Model` (default:
     the bundled dens3r-s). ``options``: ``align`` ("sfm": cameras by structure-from-motion, the
-    default; "dense": the network's pairs and the dense alignment), ``graph`` ("complete",
-    "swin", "logwin", "oneref": which photos are matched, or which pairs the network runs),
+    default; "dense": the network's pairs and the dense alignment), ``graph`` ("auto": every
+    pair up to 30 photos, retrieval above; "complete", "swin", "logwin", "oneref", "retrieval"
+    or "retrieval-NA-K": which photos are matched, or which pairs the network runs),
     ``window``, ``cyclic``, ``iterations``, ``fixed_focal``, ``focal``, ``voxel``, ``min_conf``
     (default: the model's, :attr:`Model.min_conf`), ``masks`` (a folder of object masks, one per
-    photo by file stem: only the object is fused), ``mesh``, ``cache``, ``match_pictures``, ``gpu``. ``progress``: True for tqdm bars (when tqdm is
-    installed), False for none, or a callable ``(stage, done, total)``.
+    photo by file stem: only the object is fused), ``mesh``, ``cache``, ``cache_dir`` (the pair
+    cache's folder instead of ``OUTPUT/cache``), ``match_pictures``, ``gpu``. ``progress``: True
+    for tqdm bars (when tqdm is installed), False for none, or a callable ``(stage, done, total)``.
+
+    ``executor="ray"`` runs the network's share as Ray tasks on the cluster the caller connected
+    to (``ray.init(address=...)``; a local one is started if none is): ``shards`` tasks (default:
+    the cluster's CPUs), each loading the model once and computing its share into the pair cache
+    (``cache_dir``, default ``OUTPUT/cache``: a folder every machine sees); the cameras and
+    everything after are then computed here from the cache, as a single-process run computes
+    them. Needs ``pip install 'dens3r[ray]'``.
 
     Returns :func:`read_scene` of ``OUTPUT/scene`` plus ``output``, ``mesh`` (vertices, faces,
     normals, colours; None without one) and ``summary``.
     """
     if isinstance(photos, (str, os.PathLike)):
         photos = [photos]
+    photos = [os.fspath(p) for p in photos]
     callback = _tqdm_progress() if progress is True else (progress or None)
-    return _native.reconstruct([os.fspath(p) for p in photos], os.fspath(output), model=model, progress=callback, **options)
+    if executor == "ray":
+        cache_dir = options.get("cache_dir") or os.path.join(os.fspath(output), "cache")
+        options["cache_dir"] = os.path.abspath(cache_dir)
+        _ray_shards(photos, options["cache_dir"], model, shards, options)
+    elif executor != "local":
+        raise ValueError(f"executor={executor!r}: expected 'local' or 'ray'")
+    return _native.reconstruct(photos, os.fspath(output), model=model, progress=callback, **options)
+
+
+def _ray_shards(photos, cache_dir, model, shards, options) -> None:
+    """Computes every shard of the network's runs as Ray tasks into ``cache_dir``."""
+    try:
+        import ray
+    except ImportError:
+        raise Dens3rError("executor='ray' needs Ray: pip install 'dens3r[ray]' (or pip install ray)") from None
+    if not ray.is_initialized():
+        ray.init()
+    n = shards or max(1, int(ray.cluster_resources().get("CPU", 1)))
+    spec = None if model is None else {"weights": os.fspath(model.weights), "size": model.size}
+    keys = ("align", "graph", "window", "cyclic")
+    shard_options = {k: options[k] for k in keys if k in options}
+    task = ray.remote(num_cpus=1)(_shard_task)
+    done = ray.get([task.remote(photos, cache_dir, spec, (i, n), shard_options) for i in range(n)])
+    missing = sum(d["total"] for d in done[:1]) - sum(d["entries"] for d in done)
+    if missing != 0:
+        raise Dens3rError(f"the Ray shards computed {sum(d['entries'] for d in done)} network runs, expected {done[0]['total']}")
+
+
+def _shard_task(photos, cache_dir, spec, shard, options) -> dict:
+    """One Ray task: loads the model once and computes its shard."""
+    import dens3r
+
+    model = None if spec is None else dens3r.Model.load(spec["weights"], size=spec["size"])
+    return dens3r.compute_shard(photos, cache_dir, model=model, shard=shard, **options)

@@ -130,6 +130,19 @@ struct Model {
 }
 
 impl Model {
+    /// The network's id in the pair cache (its files' content and input size), as the CLI's.
+    fn cache_id(&self, cache: &dens3r_recon::PairCache) -> Result<String, dens3r_io::IoError> {
+        let id = match cache.dir() {
+            Some(dir) => dens3r_recon::predictor::weights_id(
+                &self.weights,
+                self.config.as_deref(),
+                Some(&dir.join(".file-hashes.json")),
+            )?,
+            None => "uncached".into(),
+        };
+        Ok(format!("{id} size {}", self.size))
+    }
+
     fn prepare(&self, obj: &Bound<'_, PyAny>) -> PyResult<Prepared> {
         self.prepare_image(&image_arg(obj)?)
     }
@@ -649,19 +662,14 @@ fn read_mesh<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDict>
     mesh_dict(py, m)
 }
 
-/// The pair graph named as `dens3r reconstruct --graph` names it.
-fn pair_graph(graph: &str, window: usize, cyclic: bool) -> PyResult<dens3r_align::PairGraph> {
-    use dens3r_align::PairGraph;
-    let k = window.max(1);
-    Ok(match graph {
-        "complete" => PairGraph::Complete,
-        "swin" => PairGraph::SlidingWindow { k, cyclic },
-        "logwin" => PairGraph::LogWindow { k, cyclic },
-        "oneref" => PairGraph::OneReference { reference: 0 },
-        g => {
-            return Err(PyValueError::new_err(format!("graph={g:?}: expected complete, swin, logwin or oneref")));
-        }
-    })
+/// The pair graph named as `dens3r reconstruct --graph` names it ("auto": None, the default).
+fn pair_graph(graph: &str, window: usize, cyclic: bool) -> PyResult<Option<dens3r_align::PairGraph>> {
+    if graph == "auto" {
+        return Ok(None);
+    }
+    dens3r_align::PairGraph::parse(graph, window, cyclic)
+        .map(Some)
+        .map_err(|e| PyValueError::new_err(format!("graph={e} (or auto)")))
 }
 
 /// Photos -> cameras, depth, normals and a mesh, as `dens3r reconstruct PHOTOS -o OUTPUT`
@@ -675,7 +683,7 @@ fn pair_graph(graph: &str, window: usize, cyclic: bool) -> PyResult<dens3r_align
 /// `min_conf` defaults to the model's (`Model.min_conf`); `masks` is a folder of object masks,
 /// one per photo by file stem, as `reconstruct --masks` (only the object is fused).
 #[pyfunction]
-#[pyo3(signature = (photos, output, *, model=None, align="sfm".to_string(), graph="complete".to_string(), window=3, cyclic=false, iterations=300, fixed_focal=false, focal=None, voxel=None, min_conf=None, masks=None, mesh=true, cache=true, match_pictures=20, gpu=false, progress=None))]
+#[pyo3(signature = (photos, output, *, model=None, align="sfm".to_string(), graph="auto".to_string(), window=3, cyclic=false, iterations=300, fixed_focal=false, focal=None, voxel=None, min_conf=None, masks=None, mesh=true, cache=true, cache_dir=None, match_pictures=20, gpu=false, progress=None))]
 #[allow(clippy::too_many_arguments)]
 fn reconstruct<'py>(
     py: Python<'py>,
@@ -694,6 +702,7 @@ fn reconstruct<'py>(
     masks: Option<PathBuf>,
     mesh: bool,
     cache: bool,
+    cache_dir: Option<PathBuf>,
     match_pictures: usize,
     gpu: bool,
     progress: Option<Py<PyAny>>,
@@ -742,17 +751,8 @@ fn reconstruct<'py>(
         }
         // Locked and staged from here (the pair cache in it written as it goes).
         let out_dir = dens3r_recon::begin_outputs(&output).map_err(err)?;
-        let cache = PairCache::new(cache.then(|| output.join("cache")));
-        let id = match cache.dir() {
-            Some(dir) => dens3r_recon::predictor::weights_id(
-                &model.weights,
-                model.config.as_deref(),
-                Some(&dir.join(".file-hashes.json")),
-            )
-            .map_err(err)?,
-            None => "uncached".into(),
-        };
-        let predictor = NetworkPredictor::new(model.net.model(), format!("{id} size {}", model.size));
+        let cache = PairCache::new(cache_dir.clone().or_else(|| cache.then(|| output.join("cache"))));
+        let predictor = NetworkPredictor::new(model.net.model(), model.cache_id(&cache).map_err(err)?);
         let opts = dens3r_recon::ReconOptions {
             cameras,
             graph,
@@ -766,6 +766,7 @@ fn reconstruct<'py>(
         let rec = dens3r_recon::reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
             dens3r_recon::Stage::Predict => report("predict", done, total),
             dens3r_recon::Stage::Align => report("align", done, iterations.max(total)),
+            dens3r_recon::Stage::Retrieve => report("retrieve", done, total),
         })
         .map_err(err)?;
         let min_conf = min_conf.unwrap_or(model.min_conf);
@@ -776,6 +777,7 @@ fn reconstruct<'py>(
         let stats = serde_json::json!({
             "alignment_loss": [rec.alignment.loss.0, rec.alignment.loss.1],
             "pairs": rec.stats.pairs,
+            "graph": rec.stats.graph.name,
             "pairs_from_cache": rec.stats.cache_hits,
             "pairs_placed_by_matches": rec.stats.posed_by_matches,
             "pairs_placed_by_keypoints": rec.stats.posed_by_keypoints,
@@ -799,6 +801,58 @@ fn reconstruct<'py>(
     Ok(d)
 }
 
+/// One shard of a reconstruction's network runs into the pair cache `cache_dir`, as
+/// `dens3r pairs PHOTOS --cache DIR --shard I/N`: `reconstruct(..., cache_dir=DIR)` with the
+/// same model, `align` and `graph` then runs no network. `shard` is `(I, N)`. Returns the
+/// counts: `entries` (this shard's), `cached` (of those, already there), `total`.
+#[pyfunction]
+#[pyo3(signature = (photos, cache_dir, *, model=None, align="sfm".to_string(), graph="auto".to_string(), window=3, cyclic=false, shard=(0, 1), gpu=false))]
+#[allow(clippy::too_many_arguments)]
+fn compute_shard<'py>(
+    py: Python<'py>,
+    photos: Vec<PathBuf>,
+    cache_dir: PathBuf,
+    model: Option<&Model>,
+    align: String,
+    graph: String,
+    window: usize,
+    cyclic: bool,
+    shard: (usize, usize),
+    gpu: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    let graph = pair_graph(&graph, window, cyclic)?;
+    let cameras = match align.as_str() {
+        "sfm" => dens3r_recon::Cameras::Sfm(Box::default()),
+        "dense" => dens3r_recon::Cameras::Dense,
+        a => return Err(PyValueError::new_err(format!("align={a:?}: expected sfm or dense"))),
+    };
+    let shard = dens3r_recon::Shard::parse(&format!("{}/{}", shard.0, shard.1)).map_err(PyValueError::new_err)?;
+    let loaded;
+    let model = match model {
+        Some(m) => m,
+        None => {
+            loaded = Model::load(py, None, None, 512, false, gpu, "f32")?;
+            &loaded
+        }
+    };
+    let stats = py.detach(|| {
+        use dens3r_recon::{list_images, load_images, NetworkPredictor, PairCache};
+        let paths = list_images(&photos).map_err(err)?;
+        let images = load_images(&paths, model.size, model.keep_portrait).map_err(err)?;
+        let cache = PairCache::new(Some(cache_dir));
+        let predictor = NetworkPredictor::new(model.net.model(), model.cache_id(&cache).map_err(err)?);
+        let opts = dens3r_recon::ReconOptions { cameras, graph, ..Default::default() };
+        let mut warnings = Vec::new();
+        dens3r_recon::compute_shard(&images, &predictor, &cache, &opts, shard, &mut warnings, &mut |_, _, _| {})
+            .map_err(err)
+    })?;
+    let d = PyDict::new(py);
+    d.set_item("entries", stats.entries)?;
+    d.set_item("cached", stats.cached)?;
+    d.set_item("total", stats.total)?;
+    Ok(d)
+}
+
 /// Whether `path` holds a scene folder (`cameras.json`).
 #[pyfunction]
 fn holds_scene(path: PathBuf) -> bool {
@@ -814,6 +868,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(fuse, m)?)?;
     m.add_function(wrap_pyfunction!(read_mesh, m)?)?;
     m.add_function(wrap_pyfunction!(reconstruct, m)?)?;
+    m.add_function(wrap_pyfunction!(compute_shard, m)?)?;
     m.add_function(wrap_pyfunction!(holds_scene, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
