@@ -767,6 +767,7 @@ fn reconstruct<'py>(
             dens3r_recon::Stage::Predict => report("predict", done, total),
             dens3r_recon::Stage::Align => report("align", done, iterations.max(total)),
             dens3r_recon::Stage::Retrieve => report("retrieve", done, total),
+            dens3r_recon::Stage::Keypoints => report("keypoints", done, total),
         })
         .map_err(err)?;
         let min_conf = min_conf.unwrap_or(model.min_conf);

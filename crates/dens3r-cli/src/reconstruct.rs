@@ -264,8 +264,10 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     };
     let (pbar, abar) = (bar("pairs", 0, "pairs"), bar("align", a.iterations, "iterations"));
     let rbar = bar("retrieval", 0, "photos");
+    let kbar = bar("keypoints", 0, "photos");
     let rec = reconstruct(&images, predictor, &cache, &opts, |stage, done, total| match stage {
         Stage::Predict => {
+            rbar.finish_and_clear();
             pbar.set_length(total as u64);
             pbar.set_position(done as u64);
         }
@@ -274,10 +276,16 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
             abar.set_position(done as u64);
         }
         Stage::Retrieve => {
+            kbar.finish_and_clear();
             rbar.set_length(total as u64);
             rbar.set_position(done as u64);
         }
+        Stage::Keypoints => {
+            kbar.set_length(total as u64);
+            kbar.set_position(done as u64);
+        }
     })?;
+    kbar.finish_and_clear();
     rbar.finish_and_clear();
     abar.finish_and_clear();
     let out_opts = OutputOptions {

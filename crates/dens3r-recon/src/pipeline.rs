@@ -126,8 +126,10 @@ pub enum Stage {
     Predict,
     /// Global alignment iterations.
     Align,
-    /// Image descriptors for a retrieval graph (before anything else).
+    /// Image descriptors for a retrieval graph.
     Retrieve,
+    /// SIFT keypoints of each photo (structure-from-motion cameras).
+    Keypoints,
 }
 
 /// What one run produced (all maps at each image's network size, own orientation).

@@ -136,15 +136,17 @@ pub fn reconstruct_sfm(
     let known_focals: Vec<Option<f64>> = images.iter().map(|im| im.focal).collect();
     let mut stats = ReconStats { known_focals: known_focals.iter().flatten().count(), ..Default::default() };
     let t = Instant::now();
-    // A panic inside the SIFT crate costs that photo its keypoints, not the run.
-    let detected: Vec<Result<Keypoints, String>> = images
-        .par_iter()
-        .zip(&rgb)
-        .map(|(im, rgb)| {
+    // A panic inside the SIFT crate costs that photo its keypoints, not the run. Photos go in
+    // groups (in parallel within each) so that progress is reported as they finish.
+    let mut detected: Vec<Result<Keypoints, String>> = Vec::with_capacity(n);
+    progress(Stage::Keypoints, 0, n);
+    for (group, rgbs) in images.chunks(16).zip(rgb.chunks(16)) {
+        detected.par_extend(group.par_iter().zip(rgbs).map(|(im, rgb)| {
             catch_quietly(|| detect_with_gain(rgb, settings.max_keypoints, settings.sift_gain))
                 .map_err(|e| format!("{}: no SIFT keypoints ({e})", im.name))
-        })
-        .collect();
+        }));
+        progress(Stage::Keypoints, detected.len(), n);
+    }
     let kps: Vec<Keypoints> = detected
         .into_iter()
         .map(|r| {
