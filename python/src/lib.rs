@@ -662,6 +662,28 @@ fn read_mesh<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyDict>
     mesh_dict(py, m)
 }
 
+/// Where the cameras come from, as `dens3r reconstruct --align` names it.
+fn align_arg(align: &str) -> PyResult<dens3r_recon::Cameras> {
+    match align {
+        "sfm" => Ok(dens3r_recon::Cameras::Sfm(Box::default())),
+        "dense" => Ok(dens3r_recon::Cameras::Dense),
+        a => Err(PyValueError::new_err(format!("align={a:?}: expected sfm or dense"))),
+    }
+}
+
+/// `model`, else the bundled default loaded into `slot`.
+fn model_or_default<'a>(
+    py: Python<'_>,
+    model: Option<&'a Model>,
+    slot: &'a mut Option<Model>,
+    gpu: bool,
+) -> PyResult<&'a Model> {
+    match model {
+        Some(m) => Ok(m),
+        None => Ok(slot.insert(Model::load(py, None, None, 512, false, gpu, "f32")?)),
+    }
+}
+
 /// The pair graph named as `dens3r reconstruct --graph` names it ("auto": None, the default).
 fn pair_graph(graph: &str, window: usize, cyclic: bool) -> PyResult<Option<dens3r_align::PairGraph>> {
     if graph == "auto" {
@@ -708,25 +730,15 @@ fn reconstruct<'py>(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let graph = pair_graph(&graph, window, cyclic)?;
-    let cameras = match align.as_str() {
-        "sfm" => dens3r_recon::Cameras::Sfm(Box::default()),
-        "dense" => dens3r_recon::Cameras::Dense,
-        a => return Err(PyValueError::new_err(format!("align={a:?}: expected sfm or dense"))),
-    };
+    let cameras = align_arg(&align)?;
     if voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         return Err(PyValueError::new_err("voxel: must be positive"));
     }
     if focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
         return Err(PyValueError::new_err("focal: must be a positive number of pixels of the photos"));
     }
-    let loaded;
-    let model = match model {
-        Some(m) => m,
-        None => {
-            loaded = Model::load(py, None, None, 512, false, gpu, "f32")?;
-            &loaded
-        }
-    };
+    let mut loaded = None;
+    let model = model_or_default(py, model, &mut loaded, gpu)?;
     let report = |stage: &str, done: usize, total: usize| {
         if let Some(cb) = &progress {
             Python::attach(|py| {
@@ -822,20 +834,10 @@ fn compute_shard<'py>(
     gpu: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let graph = pair_graph(&graph, window, cyclic)?;
-    let cameras = match align.as_str() {
-        "sfm" => dens3r_recon::Cameras::Sfm(Box::default()),
-        "dense" => dens3r_recon::Cameras::Dense,
-        a => return Err(PyValueError::new_err(format!("align={a:?}: expected sfm or dense"))),
-    };
+    let cameras = align_arg(&align)?;
     let shard = dens3r_recon::Shard::parse(&format!("{}/{}", shard.0, shard.1)).map_err(PyValueError::new_err)?;
-    let loaded;
-    let model = match model {
-        Some(m) => m,
-        None => {
-            loaded = Model::load(py, None, None, 512, false, gpu, "f32")?;
-            &loaded
-        }
-    };
+    let mut loaded = None;
+    let model = model_or_default(py, model, &mut loaded, gpu)?;
     let stats = py.detach(|| {
         use dens3r_recon::{list_images, load_images, NetworkPredictor, PairCache};
         let paths = list_images(&photos).map_err(err)?;

@@ -1,11 +1,10 @@
 //! `dens3r pairs`: one shard of a reconstruction's network work into a pair cache, for any
 //! scheduler (Slurm array jobs, Kubernetes jobs); `reconstruct --cache DIR` then reads it.
 
-use crate::reconstruct::{network_id, open_cache, Align};
+use crate::reconstruct::{network_id, open_cache, Pairing};
 use anyhow::{bail, Result};
 use clap::Args;
-use dens3r_align::PairGraph;
-use dens3r_recon::{compute_shard, list_images, load_images, Cameras, NetworkPredictor, ReconOptions, Shard, Stage};
+use dens3r_recon::{compute_shard, list_images, load_images, NetworkPredictor, ReconOptions, Shard, Stage};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -22,19 +21,10 @@ pub struct PairsArgs {
     shard: Shard,
     #[command(flatten)]
     model: crate::model_args::ModelArgs,
-    /// As `reconstruct --align` will run: sfm needs each photo's own pass, dense the graph's
-    /// pairs.
-    #[arg(long, value_enum, default_value = "sfm")]
-    align: Align,
-    /// As `reconstruct --graph` (dense only).
-    #[arg(long, default_value = "auto", value_name = "GRAPH")]
-    graph: String,
-    /// Window of --graph swin / logwin.
-    #[arg(long, default_value_t = 3)]
-    window: usize,
-    /// Close the window around the end.
-    #[arg(long)]
-    cyclic: bool,
+    /// As the `reconstruct` that will read the cache: sfm needs each photo's own pass, dense
+    /// the graph's pairs.
+    #[command(flatten)]
+    pairing: Pairing,
     /// Run the network on the GPU.
     #[arg(long)]
     gpu: bool,
@@ -42,10 +32,7 @@ pub struct PairsArgs {
 
 pub fn run(a: PairsArgs) -> Result<()> {
     crate::model_args::check_size(a.model.size)?;
-    let graph = match a.graph.as_str() {
-        "auto" => None,
-        g => Some(PairGraph::parse(g, a.window, a.cyclic).map_err(|e| anyhow::anyhow!("--graph {e} (or auto)"))?),
-    };
+    let graph = a.pairing.graph()?;
     let (weights, config) = a.model.resolve()?;
     let t0 = Instant::now();
     let paths = list_images(&a.photos)?;
@@ -57,14 +44,7 @@ pub fn run(a: PairsArgs) -> Result<()> {
     let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu, a.model.precision)?;
     let cache = open_cache(Some(a.cache.clone()), None)?;
     let network = NetworkPredictor::new(&model, network_id(&a.model, &weights, config.as_deref(), &cache)?);
-    let opts = ReconOptions {
-        cameras: match a.align {
-            Align::Sfm => Cameras::Sfm(Box::default()),
-            Align::Dense => Cameras::Dense,
-        },
-        graph,
-        ..Default::default()
-    };
+    let opts = ReconOptions { cameras: a.pairing.cameras(), graph, ..Default::default() };
     let bar = crate::reconstruct::bar("network", 0, "runs");
     let mut warnings = Vec::new();
     let stats = compute_shard(&images, &network, &cache, &opts, a.shard, &mut warnings, &mut |stage, done, total| {

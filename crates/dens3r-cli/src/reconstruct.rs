@@ -20,7 +20,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub(crate) enum Align {
+enum Align {
     /// Cameras by global structure-from-motion on SIFT keypoints (rotation averaging, global
     /// positioning, bundle adjustment); the network gives each photo's depth and normals.
     Sfm,
@@ -29,16 +29,10 @@ pub(crate) enum Align {
     Dense,
 }
 
+/// How the cameras are found and which photos are paired: shared by `reconstruct` and `pairs`
+/// (a shard must compute what the reconstruction will read).
 #[derive(Args)]
-pub struct ReconstructArgs {
-    /// Photos: a folder (its .png / .jpg / .jpeg / .pgm / .ppm files, sorted by name) or files.
-    #[arg(required = true)]
-    photos: Vec<PathBuf>,
-    /// Output folder (scene/, colmap/, matches/, mesh.glb, cache/).
-    #[arg(short, long)]
-    output: PathBuf,
-    #[command(flatten)]
-    model: crate::model_args::ModelArgs,
+pub(crate) struct Pairing {
     /// How the cameras are found. With sfm, photos the structure-from-motion does not
     /// register are left out (and named); with fewer than half registered the run falls back
     /// to dense.
@@ -59,6 +53,40 @@ pub struct ReconstructArgs {
     /// Close the window around the end (captures that circle the object).
     #[arg(long)]
     cyclic: bool,
+}
+
+impl Pairing {
+    /// The pair graph (None: auto), or the one-line error naming --graph.
+    pub(crate) fn graph(&self) -> Result<Option<PairGraph>> {
+        Ok(match self.graph.as_str() {
+            "auto" => None,
+            g => Some(
+                PairGraph::parse(g, self.window, self.cyclic).map_err(|e| anyhow::anyhow!("--graph {e} (or auto)"))?,
+            ),
+        })
+    }
+
+    /// The cameras' source.
+    pub(crate) fn cameras(&self) -> Cameras {
+        match self.align {
+            Align::Sfm => Cameras::Sfm(Box::default()),
+            Align::Dense => Cameras::Dense,
+        }
+    }
+}
+
+#[derive(Args)]
+pub struct ReconstructArgs {
+    /// Photos: a folder (its .png / .jpg / .jpeg / .pgm / .ppm files, sorted by name) or files.
+    #[arg(required = true)]
+    photos: Vec<PathBuf>,
+    /// Output folder (scene/, colmap/, matches/, mesh.glb, cache/).
+    #[arg(short, long)]
+    output: PathBuf,
+    #[command(flatten)]
+    model: crate::model_args::ModelArgs,
+    #[command(flatten)]
+    pairing: Pairing,
     /// Global alignment iterations (DUSt3R: 300; --align dense).
     #[arg(long, default_value_t = 300)]
     iterations: usize,
@@ -185,10 +213,7 @@ pub(crate) fn network_id(
 /// The pair graph of `a`, after refusing options that cannot work.
 fn checked_graph(a: &ReconstructArgs) -> Result<Option<PairGraph>> {
     crate::model_args::check_size(a.model.size)?;
-    let graph = match a.graph.as_str() {
-        "auto" => None,
-        g => Some(PairGraph::parse(g, a.window, a.cyclic).map_err(|e| anyhow::anyhow!("--graph {e} (or auto)"))?),
-    };
+    let graph = a.pairing.graph()?;
     if a.voxel.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
         bail!("--voxel must be positive");
     }
@@ -242,10 +267,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         None => &network,
     };
     let opts = ReconOptions {
-        cameras: match a.align {
-            Align::Sfm => Cameras::Sfm(Box::default()),
-            Align::Dense => Cameras::Dense,
-        },
+        cameras: a.pairing.cameras(),
         graph,
         align: AlignOptions {
             iterations: a.iterations,

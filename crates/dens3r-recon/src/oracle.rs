@@ -12,6 +12,8 @@ use crate::predictor::{PairPredictor, ViewOutput, Wanted};
 use dens3r_geom::{PinholeCamera, Raster, Vec3};
 use dens3r_scene::Scene;
 use glam::{DMat3, DVec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use std::path::{Path, PathBuf};
 
 /// Ground truth with a network's errors (see the module's documentation).
@@ -51,13 +53,15 @@ impl<'a> SceneOracle<'a> {
         let depth = self.scene.depth(f).map_err(|e| e.to_string())?.ok_or("the oracle's frame has no depth")?;
         let normals = self.scene.normals(f).map_err(|e| e.to_string())?;
         let cam = f.camera();
-        let mut rng = Rng(dens3r_io::hash::fnv1a(f.name.as_bytes(), 0x0ac1e));
-        let scale = (rng.uniform() * 2.0 - 1.0).exp2();
+        let mut rng = ChaCha8Rng::seed_from_u64(dens3r_io::hash::fnv1a(f.name.as_bytes(), 0x0ac1e));
+        let scale = (rng.gen::<f64>() * 2.0 - 1.0).exp2();
         let waves: Vec<(f64, f64, f64)> = (0..3)
-            .map(|_| (rng.uniform() * 2.0 - 1.0, rng.uniform() * 2.0 - 1.0, rng.uniform() * std::f64::consts::TAU))
+            .map(|_| {
+                (rng.gen::<f64>() * 2.0 - 1.0, rng.gen::<f64>() * 2.0 - 1.0, rng.gen::<f64>() * std::f64::consts::TAU)
+            })
             .collect();
         let turn = DMat3::from_axis_angle(
-            DVec3::new(rng.normal(), rng.normal(), rng.normal()).normalize_or(DVec3::X),
+            DVec3::new(normal(&mut rng), normal(&mut rng), normal(&mut rng)).normalize_or(DVec3::X),
             3f64.to_radians(),
         );
         let mut points = Vec::with_capacity(w * h);
@@ -70,7 +74,7 @@ impl<'a> SceneOracle<'a> {
                 }
                 let (u, v) = (x as f64 / w as f64, y as f64 / h as f64);
                 let warp: f64 = waves.iter().map(|&(a, b, p)| (3.0 * (a * u + b * v) + p).sin()).sum::<f64>() / 3.0;
-                let zn = z * scale * (1.0 + 0.03 * warp) * (1.0 + 0.01 * rng.normal());
+                let zn = z * scale * (1.0 + 0.03 * warp) * (1.0 + 0.01 * normal(&mut rng));
                 points.push((cam.intrinsics.unproject(x as f64, y as f64) * zn).as_vec3());
             }
         }
@@ -112,24 +116,8 @@ fn output(points: Raster<Vec3>, normals: Raster<Vec3>) -> ViewOutput {
     ViewOutput { points, conf, normals: Some(normals), desc: None, desc_conf: None }
 }
 
-/// SplitMix64: the oracle's errors are a function of the frame's name.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    fn uniform(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    fn normal(&mut self) -> f64 {
-        let (a, b) = (self.uniform().max(1e-300), self.uniform());
-        (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
-    }
+/// A standard normal number (Box-Muller).
+fn normal(rng: &mut ChaCha8Rng) -> f64 {
+    let (a, b): (f64, f64) = (rng.gen_range(f64::MIN_POSITIVE..1.0), rng.gen());
+    (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
 }
