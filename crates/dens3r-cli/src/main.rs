@@ -8,6 +8,7 @@ mod bench_peer;
 mod bench_scale;
 mod bench_sfm;
 mod bench_train;
+mod cli_reference;
 mod convert;
 mod eval;
 mod eval_head;
@@ -110,6 +111,9 @@ enum Command {
     /// One shard of a reconstruction's network runs into a pair cache (`--shard I/N`), for
     /// spreading them over machines; `reconstruct --cache DIR` then runs no network.
     Pairs(pairs::PairsArgs),
+    /// The full command-line reference as Markdown (docs/cli.md).
+    #[command(hide = true)]
+    CliReference,
     /// Fuse a scene folder's depth (+ colour, confidence, normals) into a mesh (TSDF).
     Fuse(fuse::FuseArgs),
     /// Train a neural SDF (NeuS-style, normal- and depth-supervised) on a scene folder and mesh it.
@@ -173,6 +177,11 @@ fn main() {
         Command::Fuse(a) => fuse::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),
         Command::Pairs(a) => pairs::run(a),
+        Command::CliReference => {
+            use clap::CommandFactory;
+            print!("{}", cli_reference::markdown(&Cli::command()));
+            Ok(())
+        }
         Command::Nsdf(a) => nsdf::run(a),
         Command::Synth(a) => synth::run(a),
         Command::RealScenes(a) => real_scenes::run(a),
