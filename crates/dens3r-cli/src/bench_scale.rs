@@ -92,6 +92,87 @@ fn pair_quality(pairs: &[(usize, usize)], covis: &[Vec<f64>]) -> (f64, f64) {
     (good as f64 / pairs.len().max(1) as f64, good as f64 / truth.max(1) as f64)
 }
 
+/// A rendered walkthrough and the photos a run sees.
+struct Set {
+    dir: PathBuf,
+    truth: Scene,
+    photos: PathBuf,
+    /// Photo stem -> truth frame name.
+    alias: HashMap<String, String>,
+}
+
+/// Renders the `n`-view walkthrough and lays out its photos (names shuffled if asked) and,
+/// for the oracle, the truth under the photos' names.
+fn prepare(exe: &Path, a: &ScaleBenchArgs, n: usize) -> Result<Set> {
+    let dir = a.workdir.join(format!("room-{n}{}", if a.shuffle { "-shuffled" } else { "" }));
+    let truth_dir = dir.join("truth");
+    std::fs::create_dir_all(&dir)?;
+    let seed = (1000 + n).to_string();
+    let mut render = Command::new(exe);
+    render.args(["render", "--width", "512", "--height", "384", "--overwrite", "-o"]).arg(&truth_dir);
+    render.args(["--procedural", "room", "--views", &n.to_string(), "--seed", &seed]);
+    measured(&mut render, "render", &dir.join("render.log"))?;
+    let truth = Scene::open(&truth_dir)?;
+    let photos = dir.join("photos");
+    let _ = std::fs::remove_dir_all(&photos);
+    std::fs::create_dir_all(&photos)?;
+    let mut alias: HashMap<String, String> = HashMap::new();
+    for (k, f) in truth.frames().iter().enumerate() {
+        let name = if a.shuffle { format!("p{:04}", (k * 7919 + 13) % 10007) } else { f.name.clone() };
+        std::fs::copy(truth_dir.join(&f.image), photos.join(format!("{name}.png")))?;
+        alias.insert(name, f.name.clone());
+    }
+    if !a.model {
+        // The oracle finds frames by the photos' stems.
+        let oracle = dir.join("oracle");
+        let _ = std::fs::remove_dir_all(&oracle);
+        copy_scene_renamed(&truth_dir, &oracle, &alias)?;
+    }
+    Ok(Set { dir, truth, photos, alias })
+}
+
+/// Precision / recall of the run's pairs (`summary.json`'s graph list) and of sliding and log
+/// windows over the file order with as many pairs; the window.
+fn graph_quality(set: &Set, summary: &Value) -> Result<([(f64, f64); 3], usize)> {
+    let n = set.truth.frames().len();
+    let covis = covisibility(&set.truth)?;
+    let index: HashMap<String, usize> =
+        set.truth.frames().iter().enumerate().map(|(k, f)| (f.name.clone(), k)).collect();
+    let photo_order: Vec<usize> = {
+        let mut stems: Vec<&String> = set.alias.keys().collect();
+        stems.sort();
+        stems.iter().map(|s| index[&set.alias[*s]]).collect()
+    };
+    let picked: Vec<(usize, usize)> = summary["graph"]["list"]
+        .as_array()
+        .map(|l| {
+            l.iter()
+                .filter_map(|p| {
+                    let f = |k: usize| p[k].as_str().and_then(|s| set.alias.get(s)).map(|s| index[s]);
+                    Some((f(0)?, f(1)?))
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let k = picked.len().div_ceil(n).max(1);
+    let by_order = |g: PairGraph| -> Vec<(usize, usize)> {
+        make_pairs(n, g, false).into_iter().map(|(i, j)| (photo_order[i], photo_order[j])).collect()
+    };
+    Ok((
+        [
+            pair_quality(&picked, &covis),
+            pair_quality(&by_order(PairGraph::SlidingWindow { k, cyclic: false }), &covis),
+            pair_quality(&by_order(PairGraph::LogWindow { k, cyclic: false }), &covis),
+        ],
+        k,
+    ))
+}
+
+/// Truth cameras renamed to the photos' stems are compared by truth name.
+fn by_truth_name<V>(alias: &HashMap<String, String>, cams: HashMap<String, V>) -> HashMap<String, V> {
+    cams.into_iter().map(|(k, v)| (alias.get(&k).cloned().unwrap_or(k), v)).collect()
+}
+
 pub fn run(a: ScaleBenchArgs) -> Result<()> {
     let exe = std::env::current_exe()?;
     std::fs::create_dir_all(&a.workdir)?;
@@ -99,79 +180,25 @@ pub fn run(a: ScaleBenchArgs) -> Result<()> {
     println!("| views | pairs | registered | rotation (deg, median) | retrieval | keypoints | cameras | network | write | fuse | wall (s) | s / view | peak RSS (MB) | graph precision / recall | swin same pairs | logwin same pairs | COLMAP wall (s) |");
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     for &n in &a.views {
-        let dir = a.workdir.join(format!("room-{n}{}", if a.shuffle { "-shuffled" } else { "" }));
-        let truth_dir = dir.join("truth");
-        std::fs::create_dir_all(&dir)?;
-        let seed = (1000 + n).to_string();
-        let mut render = Command::new(&exe);
-        render.args(["render", "--width", "512", "--height", "384", "--overwrite", "-o"]).arg(&truth_dir);
-        render.args(["--procedural", "room", "--views", &n.to_string(), "--seed", &seed]);
-        measured(&mut render, "render", &dir.join("render.log"))?;
-        let truth_scene = Scene::open(&truth_dir)?;
-        let truth = scene_cameras(&truth_dir)?;
-        // The photos as the run sees them: in a folder of their own, names shuffled if asked.
-        let photos = dir.join("photos");
-        let _ = std::fs::remove_dir_all(&photos);
-        std::fs::create_dir_all(&photos)?;
-        let mut alias: HashMap<String, String> = HashMap::new(); // photo stem -> truth frame
-        for (k, f) in truth_scene.frames().iter().enumerate() {
-            let name = if a.shuffle { format!("p{:04}", (k * 7919 + 13) % 10007) } else { f.name.clone() };
-            std::fs::copy(truth_dir.join(&f.image), photos.join(format!("{name}.png")))?;
-            alias.insert(name, f.name.clone());
-        }
-        let oracle = dir.join("oracle");
-        if !a.model {
-            // The oracle finds frames by the photos' stems.
-            let _ = std::fs::remove_dir_all(&oracle);
-            copy_scene_renamed(&truth_dir, &oracle, &alias)?;
-        }
-        let out = dir.join("ours");
+        let set = prepare(&exe, &a, n)?;
+        let truth = scene_cameras(set.truth.root())?;
+        let out = set.dir.join("ours");
         let _ = std::fs::remove_dir_all(&out);
         let mut rec = Command::new(&exe);
-        rec.args(["reconstruct", "--no-cache", "-o"]).arg(&out).arg(&photos);
+        rec.args(["reconstruct", "--no-cache", "-o"]).arg(&out).arg(&set.photos);
         if !a.model {
-            rec.arg("--oracle").arg(&oracle);
+            rec.arg("--oracle").arg(set.dir.join("oracle"));
         }
         rec.args(a.reconstruct_args.split_whitespace());
-        let m = measured(&mut rec, "dens3r reconstruct", &dir.join("ours.log"))?;
+        let m = measured(&mut rec, "dens3r reconstruct", &set.dir.join("ours.log"))?;
         let summary: Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json"))?)?;
-        let est: HashMap<String, _> = scene_cameras(&out.join("scene"))?
-            .into_iter()
-            .map(|(k, v)| (alias.get(&k).cloned().unwrap_or(k), v))
-            .collect();
+        let est = by_truth_name(&set.alias, scene_cameras(&out.join("scene"))?);
         let (_, reproj) = read_colmap_text(&out.join("colmap"))?;
         let ours = score(&truth, &est, reproj, &m);
-        // The graph's pairs against the truth, beside windows over the file order of as many pairs.
-        let covis = covisibility(&truth_scene)?;
-        let index: HashMap<String, usize> =
-            truth_scene.frames().iter().enumerate().map(|(k, f)| (f.name.clone(), k)).collect();
-        let photo_order: Vec<usize> = {
-            let mut stems: Vec<&String> = alias.keys().collect();
-            stems.sort();
-            stems.iter().map(|s| index[&alias[*s]]).collect()
-        };
-        let picked: Vec<(usize, usize)> = summary["graph"]["list"]
-            .as_array()
-            .map(|l| {
-                l.iter()
-                    .filter_map(|p| {
-                        let f = |k: usize| p[k].as_str().and_then(|s| alias.get(s)).map(|s| index[s]);
-                        Some((f(0)?, f(1)?))
-                    })
-                    .collect()
-            })
-            .unwrap_or_default();
-        let k = picked.len().div_ceil(n).max(1);
-        let by_order = |g: PairGraph| -> Vec<(usize, usize)> {
-            make_pairs(n, g, false).into_iter().map(|(i, j)| (photo_order[i], photo_order[j])).collect()
-        };
-        let q = pair_quality(&picked, &covis);
-        let qs = pair_quality(&by_order(PairGraph::SlidingWindow { k, cyclic: false }), &covis);
-        let ql = pair_quality(&by_order(PairGraph::LogWindow { k, cyclic: false }), &covis);
+        let ([q, qs, ql], k) = graph_quality(&set, &summary)?;
         let colmap = if a.colmap_up_to >= n {
-            let (cams, reproj, m) = run_colmap(&a.colmap, &photos, &dir.join("colmap"))?;
-            let cams = cams.into_iter().map(|(k, v)| (alias.get(&k).cloned().unwrap_or(k), v)).collect();
-            score(&truth, &cams, reproj, &m)
+            let (cams, reproj, m) = run_colmap(&a.colmap, &set.photos, &set.dir.join("colmap"))?;
+            score(&truth, &by_truth_name(&set.alias, cams), reproj, &m)
         } else {
             Value::Null
         };
@@ -179,7 +206,7 @@ pub fn run(a: ScaleBenchArgs) -> Result<()> {
         let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
         println!(
             "| {n} | {} | {}/{n} | {:.3} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2} | {:.0} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {} |",
-            picked.len(),
+            summary["graph"]["pairs"],
             ours["registered"],
             f(&ours["rotation_deg"]),
             f(&sec["retrieval"]),

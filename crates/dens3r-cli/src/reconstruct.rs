@@ -229,13 +229,14 @@ fn checked_graph(a: &ReconstructArgs) -> Result<Option<PairGraph>> {
     Ok(graph)
 }
 
-pub fn run(a: ReconstructArgs) -> Result<()> {
-    let graph = checked_graph(&a)?;
-    let (weights, config) = a.model.resolve()?;
-    let t0 = Instant::now();
-    // Every photo is decoded before the model loads: a bad photo fails in a second.
+/// The photos of `a`, decoded and preprocessed for the network, with their focals and masks;
+/// their paths; the model's settings.
+fn load_photos(
+    a: &ReconstructArgs,
+    config: Option<&std::path::Path>,
+) -> Result<(Vec<PathBuf>, Vec<dens3r_recon::InputImage>, dens3r_recon::model::ModelSettings)> {
     let paths = list_images(&a.photos)?;
-    let settings = dens3r_recon::model::model_settings(config.as_deref())?;
+    let settings = dens3r_recon::model::model_settings(config)?;
     let mut images = load_images(&paths, a.model.size, a.model.keep_portrait || settings.keep_portrait)?;
     for im in &mut images {
         match a.focal {
@@ -253,20 +254,12 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     if let Some(dir) = &a.masks {
         dens3r_recon::attach_masks(&mut images, dir)?;
     }
-    let min_conf = a.min_conf.unwrap_or(settings.min_conf);
-    let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu, a.model.precision)?;
-    // The output folder is locked (a second run into it is refused) and staged from here;
-    // the pair cache in it is written as it goes, so a rerun after a failure resumes.
-    let out_dir = begin_outputs(&a.output)?;
-    let cache = open_cache(a.cache.clone().or_else(|| (!a.no_cache).then(|| a.output.join("cache"))), a.cache_budget)?;
-    let id = network_id(&a.model, &weights, config.as_deref(), &cache)?;
-    let network = NetworkPredictor::new(&model, id);
-    let oracle = a.oracle.as_deref().map(|dir| SceneOracle::new(dir, Some(&network))).transpose()?;
-    let predictor: &dyn dens3r_recon::PairPredictor = match &oracle {
-        Some(o) => o,
-        None => &network,
-    };
-    let opts = ReconOptions {
+    Ok((paths, images, settings))
+}
+
+/// The reconstruction settings `a` asks for.
+fn recon_options(a: &ReconstructArgs, graph: Option<PairGraph>) -> ReconOptions {
+    ReconOptions {
         cameras: a.pairing.cameras(),
         graph,
         align: AlignOptions {
@@ -283,33 +276,71 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
             ..KeypointOptions::default()
         }),
         drop_unplaced: !a.keep_unplaced,
+    }
+}
+
+/// One progress bar per stage, each with its ETA.
+struct StageBars {
+    keypoints: ProgressBar,
+    retrieval: ProgressBar,
+    pairs: ProgressBar,
+    align: ProgressBar,
+}
+
+impl StageBars {
+    fn new(iterations: usize) -> Self {
+        Self {
+            keypoints: bar("keypoints", 0, "photos"),
+            retrieval: bar("retrieval", 0, "photos"),
+            pairs: bar("pairs", 0, "pairs"),
+            align: bar("align", iterations, "iterations"),
+        }
+    }
+
+    /// Shows `done` of `total` on `stage`'s bar, the bars of the stages before it cleared.
+    fn update(&self, stage: Stage, done: usize, total: usize) {
+        let (b, before): (&ProgressBar, &[&ProgressBar]) = match stage {
+            Stage::Keypoints => (&self.keypoints, &[]),
+            Stage::Retrieve => (&self.retrieval, &[&self.keypoints]),
+            Stage::Predict => (&self.pairs, &[&self.keypoints, &self.retrieval]),
+            Stage::Align => (&self.align, &[&self.pairs]),
+        };
+        before.iter().for_each(|p| p.finish_and_clear());
+        if stage != Stage::Align {
+            b.set_length(total as u64);
+        }
+        b.set_position(done as u64);
+    }
+
+    fn finish(&self) {
+        for b in [&self.keypoints, &self.retrieval, &self.pairs, &self.align] {
+            b.finish_and_clear();
+        }
+    }
+}
+
+pub fn run(a: ReconstructArgs) -> Result<()> {
+    let graph = checked_graph(&a)?;
+    let (weights, config) = a.model.resolve()?;
+    let t0 = Instant::now();
+    // Every photo is decoded before the model loads: a bad photo fails in a second.
+    let (paths, images, settings) = load_photos(&a, config.as_deref())?;
+    let min_conf = a.min_conf.unwrap_or(settings.min_conf);
+    let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu, a.model.precision)?;
+    // The output folder is locked (a second run into it is refused) and staged from here;
+    // the pair cache in it is written as it goes, so a rerun after a failure resumes.
+    let out_dir = begin_outputs(&a.output)?;
+    let cache = open_cache(a.cache.clone().or_else(|| (!a.no_cache).then(|| a.output.join("cache"))), a.cache_budget)?;
+    let id = network_id(&a.model, &weights, config.as_deref(), &cache)?;
+    let network = NetworkPredictor::new(&model, id);
+    let oracle = a.oracle.as_deref().map(|dir| SceneOracle::new(dir, Some(&network))).transpose()?;
+    let predictor: &dyn dens3r_recon::PairPredictor = match &oracle {
+        Some(o) => o,
+        None => &network,
     };
-    let (pbar, abar) = (bar("pairs", 0, "pairs"), bar("align", a.iterations, "iterations"));
-    let rbar = bar("retrieval", 0, "photos");
-    let kbar = bar("keypoints", 0, "photos");
-    let rec = reconstruct(&images, predictor, &cache, &opts, |stage, done, total| match stage {
-        Stage::Predict => {
-            rbar.finish_and_clear();
-            pbar.set_length(total as u64);
-            pbar.set_position(done as u64);
-        }
-        Stage::Align => {
-            pbar.finish_and_clear();
-            abar.set_position(done as u64);
-        }
-        Stage::Retrieve => {
-            kbar.finish_and_clear();
-            rbar.set_length(total as u64);
-            rbar.set_position(done as u64);
-        }
-        Stage::Keypoints => {
-            kbar.set_length(total as u64);
-            kbar.set_position(done as u64);
-        }
-    })?;
-    kbar.finish_and_clear();
-    rbar.finish_and_clear();
-    abar.finish_and_clear();
+    let bars = StageBars::new(a.iterations);
+    let rec = reconstruct(&images, predictor, &cache, &recon_options(&a, graph), |s, d, t| bars.update(s, d, t))?;
+    bars.finish();
     let out_opts = OutputOptions {
         voxel: a.voxel,
         min_conf,
