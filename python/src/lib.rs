@@ -132,15 +132,7 @@ struct Model {
 impl Model {
     /// The network's id in the pair cache (its files' content and input size), as the CLI's.
     fn cache_id(&self, cache: &dens3r_recon::PairCache) -> Result<String, dens3r_io::IoError> {
-        let id = match cache.dir() {
-            Some(dir) => dens3r_recon::predictor::weights_id(
-                &self.weights,
-                self.config.as_deref(),
-                Some(&dir.join(".file-hashes.json")),
-            )?,
-            None => "uncached".into(),
-        };
-        Ok(format!("{id} size {}", self.size))
+        dens3r_recon::predictor::network_cache_id(&self.weights, self.config.as_deref(), cache, self.size, "")
     }
 
     fn prepare(&self, obj: &Bound<'_, PyAny>) -> PyResult<Prepared> {

@@ -184,6 +184,12 @@ pub fn looks_ordered(sim: &Similarity, k: usize) -> bool {
 /// module's documentation), plus the sliding window `window` where the capture
 /// [`looks_ordered`] (0: never). Sorted.
 pub fn retrieval_pairs(sim: &Similarity, keys: usize, neighbours: usize, window: usize) -> Vec<(usize, usize)> {
+    retrieval_graph(sim, keys, neighbours, window).0
+}
+
+/// [`retrieval_pairs`] and whether the capture [`looks_ordered`] (false when `window` is 0,
+/// which does not ask).
+pub fn retrieval_graph(sim: &Similarity, keys: usize, neighbours: usize, window: usize) -> (Vec<(usize, usize)>, bool) {
     let n = sim.len();
     let mut out = BTreeSet::new();
     let mut add = |i: usize, j: usize| {
@@ -206,14 +212,15 @@ pub fn retrieval_pairs(sim: &Similarity, keys: usize, neighbours: usize, window:
             add(i, best);
         }
     }
-    if window > 0 && looks_ordered(sim, neighbours.max(1)) {
+    let ordered = window > 0 && looks_ordered(sim, neighbours.max(1));
+    if ordered {
         for i in 0..n {
             for j in i + 1..(i + 1 + window).min(n) {
                 add(i, j);
             }
         }
     }
-    out.into_iter().collect()
+    (out.into_iter().collect(), ordered)
 }
 
 #[cfg(test)]

@@ -48,6 +48,7 @@ pub struct ScaleBenchArgs {
 fn covisibility(scene: &Scene) -> Result<Vec<Vec<f64>>> {
     let frames = scene.frames();
     let cams: Vec<_> = frames.iter().map(|f| f.camera()).collect();
+    let to_cam: Vec<glam::DMat4> = cams.iter().map(|c| c.world_to_cam()).collect();
     let depths: Vec<_> =
         frames.iter().map(|f| scene.depth(f)?.context("truth without depth")).collect::<Result<Vec<_>>>()?;
     let n = frames.len();
@@ -67,7 +68,7 @@ fn covisibility(scene: &Scene) -> Result<Vec<Vec<f64>>> {
             let seen = samples
                 .iter()
                 .filter(|p| {
-                    let c = cams[j].world_to_cam().transform_point3(**p);
+                    let c = to_cam[j].transform_point3(**p);
                     let (u, v) = cams[j].intrinsics.project(c);
                     let (u, v) = (u.round(), v.round());
                     c.z > 0.0 && u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h && {
@@ -83,7 +84,7 @@ fn covisibility(scene: &Scene) -> Result<Vec<Vec<f64>>> {
 }
 
 /// Precision (picked pairs truly co-visible) and recall (co-visible pairs picked) of `pairs`
-/// over views named in `order` (the files' order), co-visible meaning 10% either way.
+/// (truth frame indices), co-visible meaning 10% either way.
 fn pair_quality(pairs: &[(usize, usize)], covis: &[Vec<f64>]) -> (f64, f64) {
     let n = covis.len();
     let covisible = |i: usize, j: usize| covis[i][j].max(covis[j][i]) >= 0.1;

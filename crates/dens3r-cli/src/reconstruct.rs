@@ -10,7 +10,7 @@ use dens3r_align::matching::MatchOptions;
 use dens3r_align::{AlignOptions, PairGraph};
 use dens3r_backbone::Precision;
 use dens3r_recon::oracle::SceneOracle;
-use dens3r_recon::predictor::weights_id;
+use dens3r_recon::predictor::network_cache_id;
 use dens3r_recon::{
     begin_outputs, list_images, load_images, reconstruct, write_outputs_into, Cameras, KeypointOptions,
     NetworkPredictor, OutputOptions, OutputSummary, PairCache, ReconOptions, Reconstruction, Stage, TrackOptions,
@@ -203,11 +203,7 @@ pub(crate) fn network_id(
         Precision::F32 => String::new(),
         p => format!(" {p}"),
     };
-    let id = match cache.dir() {
-        Some(dir) => weights_id(weights, config, Some(&dir.join(".file-hashes.json")))?,
-        None => "uncached".into(),
-    };
-    Ok(format!("{id} size {}{precision}", m.size))
+    Ok(network_cache_id(weights, config, cache, m.size, &precision)?)
 }
 
 /// The pair graph of `a`, after refusing options that cannot work.

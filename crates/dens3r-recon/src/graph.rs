@@ -7,7 +7,7 @@ use crate::input::InputImage;
 use crate::pipeline::Stage;
 use crate::predictor::PairPredictor;
 use crate::ReconError;
-use dens3r_align::retrieval::{looks_ordered, retrieval_pairs, similarity};
+use dens3r_align::retrieval::{retrieval_graph, similarity};
 use dens3r_align::{make_pairs, PairGraph};
 use std::time::Instant;
 
@@ -80,8 +80,7 @@ pub fn plan_pairs(
         progress(Stage::Retrieve, i + 1, n);
     }
     let sim = similarity(&desc);
-    let pairs = retrieval_pairs(&sim, keys, neighbours, ORDERED_WINDOW);
-    let ordered = looks_ordered(&sim, neighbours);
+    let (pairs, ordered) = retrieval_graph(&sim, keys, neighbours, ORDERED_WINDOW);
     Ok((pairs.clone(), info(images, graph, pairs, ordered, t.elapsed().as_secs_f64())))
 }
 

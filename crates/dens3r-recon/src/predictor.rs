@@ -212,6 +212,25 @@ fn image_key(im: &InputImage) -> ImageKey {
     (im.hash, im.prep.info.crop, im.prep.info.rotated)
 }
 
+/// The network's id in `cache` ([`NetworkPredictor::new`]'s): its files' content
+/// ([`weights_id`], remembered in the cache folder), its input size and, where not f32, its
+/// precision (`precision`: "" or " f16" ...), since another size or precision gives other
+/// outputs; "uncached" without a folder. The CLI and the Python module key alike, so one
+/// cache serves both.
+pub fn network_cache_id(
+    weights: &std::path::Path,
+    config: Option<&std::path::Path>,
+    cache: &crate::PairCache,
+    size: u32,
+    precision: &str,
+) -> Result<String, dens3r_io::IoError> {
+    let id = match cache.dir() {
+        Some(dir) => weights_id(weights, config, Some(&dir.join(".file-hashes.json")))?,
+        None => "uncached".into(),
+    };
+    Ok(format!("{id} size {size}{precision}"))
+}
+
 /// Identifies a network in the pair cache by content: hashes of the weights, the config that
 /// sets its head counts and the encoder `.onnx` a DINOv2-encoder network reads beside them,
 /// so weights edited in place (whatever their modification time) or another config never
