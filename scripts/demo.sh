@@ -9,6 +9,7 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 out="${1:-out}"
 start=$(date +%s)
+bash scripts/build-viewer.sh || echo "warning: no npm: the pages (index.html) will have no 3-D view"
 cargo build --release --locked -p dens3r-cli
 bash scripts/fetch-data.sh model
 B=target/release/dens3r

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Reproduces a segmentation row of the README's "Heads on scenes they never saw": a DPT head and
+# Reproduces a segmentation row of the docs/heads.md's "Heads on scenes they never saw": a DPT head and
 # the linear probe, trained the same way on DINOv2-S features of ROOMS rendered rooms for EPOCHS
 # epochs, scored on rooms never trained on (seed 97001, 64 rooms; seeds 95001 + 96001, 32 rooms,
 # as the second check). Rooms: `dens3r synth --kind rooms --size 320x240 --views 6`, training

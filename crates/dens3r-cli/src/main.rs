@@ -26,6 +26,7 @@ mod synth;
 mod train;
 mod train_head;
 mod verify;
+mod view;
 
 use clap::{Parser, Subcommand};
 
@@ -111,6 +112,9 @@ enum Command {
     /// One shard of a reconstruction's network runs into a pair cache (`--shard I/N`), for
     /// spreading them over machines; `reconstruct --cache DIR` then runs no network.
     Pairs(pairs::PairsArgs),
+    /// Serve an output folder's page (index.html: the 3-D view, cameras, pictures) on
+    /// 127.0.0.1, for browsers that refuse to open it from the file system.
+    View(view::ViewArgs),
     /// The full command-line reference as Markdown (docs/cli.md).
     #[command(hide = true)]
     CliReference,
@@ -177,6 +181,7 @@ fn main() {
         Command::Fuse(a) => fuse::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),
         Command::Pairs(a) => pairs::run(a),
+        Command::View(a) => view::run(a),
         Command::CliReference => {
             use clap::CommandFactory;
             print!("{}", cli_reference::markdown(&Cli::command()));

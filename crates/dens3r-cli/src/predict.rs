@@ -184,8 +184,14 @@ pub fn run(a: PredictArgs) -> Result<()> {
         predict_one(&a, &nets, writer.as_mut(), &root, input)?;
         bar.inc(1);
     }
+    let mut page = None;
     if let Some(w) = writer {
         w.finish()?;
+        let title = a.output.file_name().map_or_else(|| "predict".into(), |n| n.to_string_lossy().into_owned());
+        let summary = serde_json::json!({ "photos": inputs.len(), "maps": if a.original_size { "photo size" } else { "network size" } });
+        let opts = dens3r_viewer::PageOptions::default();
+        dens3r_viewer::scene_views::write_scene_page(&root, "", &title, Some(summary), true, &opts)?;
+        page = Some(a.output.join("index.html"));
     }
     out.finish()?;
     bar.finish_and_clear();
@@ -201,6 +207,9 @@ pub fn run(a: PredictArgs) -> Result<()> {
         if a.original_size { "original" } else { "network" },
         if nets.net.is_some() { ", normals in the OpenCV camera frame" } else { "" }
     );
+    if let Some(p) = page {
+        println!("page: {} (open it in a browser, or `dens3r view {}`)", p.display(), a.output.display());
+    }
     Ok(())
 }
 
@@ -298,6 +307,9 @@ fn load_inputs(a: &PredictArgs, nets: &Networks) -> Result<Vec<Input>> {
 /// The files predict writes for its frames (relative to OUTPUT), checked free before it runs.
 fn planned_outputs(inputs: &[Input], nets: &Networks) -> Vec<String> {
     let mut files = vec!["cameras.json".to_string()];
+    if nets.net.is_some() {
+        files.extend(dens3r_viewer::PAGE_FILES.iter().map(|f| f.to_string()));
+    }
     for (name, ..) in inputs {
         if nets.net.is_some() {
             for f in ["images/{}.png", "depth/{}.npy", "normals/{}.npy", "conf/{}.npy", "pointmaps/{}.ply"] {

@@ -408,6 +408,9 @@ fn report(
         summary.colmap.display(),
         t0.elapsed().as_secs_f64()
     );
+    if let Some(p) = &summary.page {
+        println!("page: {} (open it in a browser, or `dens3r view {}`)", p.display(), a.output.display());
+    }
 }
 
 /// The cameras' lines of a run on the dense path.

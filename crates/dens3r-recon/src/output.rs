@@ -8,6 +8,7 @@
 //! out/colmap/           cameras.txt, images.txt, points3D.txt (image names relative to out/scene)
 //! out/matches/<a>-<b>.png     match pictures
 //! out/mesh.glb          TSDF mesh of the aligned depth
+//! out/index.html        the page that shows it all (dens3r-viewer; viewer/ beside it)
 //! ```
 
 use crate::pipeline::Reconstruction;
@@ -16,8 +17,10 @@ use crate::ReconError;
 use dens3r_fusion::scene::{fuse_frames, FusionFrame, SceneFusion, SceneFusionError};
 use dens3r_fusion::{extract_mesh, ExtractOptions, FusionError, TsdfParams};
 use dens3r_io::output::OutputDir;
+use dens3r_mesh::TriMesh;
 use dens3r_scene::export::{write_colmap_binary, write_colmap_text, write_transforms_json};
 use dens3r_scene::{Frame, Layer, Scene, SceneWriter};
+use dens3r_viewer::{write_page, MatchPicture, Page, View};
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -45,6 +48,8 @@ pub struct OutputOptions {
     pub match_lines: usize,
     /// Recorded in `cameras.json` as `generator`.
     pub generator: String,
+    /// Write `index.html`, the page that shows the result (`None`: no page).
+    pub page: Option<dens3r_viewer::PageOptions>,
 }
 
 impl Default for OutputOptions {
@@ -60,6 +65,7 @@ impl Default for OutputOptions {
             match_pictures: 20,
             match_lines: 150,
             generator: "dens3r reconstruct".into(),
+            page: Some(dens3r_viewer::PageOptions::default()),
         }
     }
 }
@@ -83,6 +89,8 @@ pub struct OutputSummary {
     pub gpu_adapter: Option<String>,
     /// Things the user should know.
     pub warnings: Vec<String>,
+    /// The page (`index.html`), where written.
+    pub page: Option<PathBuf>,
 }
 
 /// Starts the output folder `out` of a reconstruction: its lock taken (a second run into it is
@@ -149,24 +157,59 @@ pub fn write_outputs_into(
 
     let mut ranked: Vec<&(usize, usize, Vec<_>)> = rec.matches.iter().filter(|m| !m.2.is_empty()).collect();
     ranked.sort_by_key(|m| std::cmp::Reverse(m.2.len()));
+    let mut pictures = Vec::new();
     for (a, b, ms) in ranked.into_iter().take(opts.match_pictures) {
         let img = match_picture(&rec.rgb[*a], &rec.rgb[*b], ms, opts.match_lines);
-        let path = out.join("matches").join(format!("{}-{}.png", rec.names[*a], rec.names[*b]));
-        dens3r_scene::write_rgb_png(&path, &img)?;
+        let file = format!("matches/{}-{}.png", rec.names[*a], rec.names[*b]);
+        dens3r_scene::write_rgb_png(&out.join(&file), &img)?;
+        pictures.push(MatchPicture { a: rec.names[*a].clone(), b: rec.names[*b].clone(), path: file });
     }
 
     let dest = dir.dest();
     let mut summary = OutputSummary { scene: dest.join("scene"), colmap: dest.join("colmap"), ..Default::default() };
     let _ = colmap;
+    let mut mesh = None;
     if opts.mesh {
-        fuse(rec, out, opts, &mut summary, &mut fuse_progress)?;
+        mesh = fuse(rec, out, opts, &mut summary, &mut fuse_progress)?;
         summary.mesh = summary.mesh.map(|_| dest.join("mesh.glb"));
     }
     let write_seconds = t_write.elapsed().as_secs_f64() - summary.fuse_seconds;
     let json = run_summary(rec, &summary, write_seconds);
     let text = serde_json::to_string_pretty(&json).expect("plain JSON values");
     dens3r_io::write_atomic(&out.join("summary.json"), |w| std::io::Write::write_all(w, text.as_bytes()))?;
+    if let Some(page_opts) = &opts.page {
+        let page = Page {
+            title: dest.file_name().map_or_else(|| dest.display().to_string(), |n| n.to_string_lossy().into_owned()),
+            views: page_views(rec, &scene),
+            mesh: mesh.as_ref(),
+            summary: Some(json),
+            scores: None,
+            matches: pictures,
+            min_conf: opts.min_conf,
+        };
+        write_page(out, &page, page_opts)?;
+        summary.page = Some(dest.join("index.html"));
+    }
     Ok(summary)
+}
+
+/// The reconstruction's views as the page shows them (photos from the scene folder).
+fn page_views<'a>(rec: &'a Reconstruction, scene: &Scene) -> Vec<View<'a>> {
+    rec.alignment
+        .views
+        .iter()
+        .enumerate()
+        .map(|(k, v)| View {
+            name: &rec.names[k],
+            camera: v.camera,
+            rgb: &rec.rgb[k],
+            depth: &v.depth,
+            conf: Some(&v.conf),
+            normals: rec.normals[k].as_ref(),
+            mask: rec.masks.get(k).and_then(Option::as_ref),
+            photo: scene.frames().get(k).map(|f| format!("scene/{}", f.image)),
+        })
+        .collect()
 }
 
 /// `OUT/summary.json`: what the run did and how long each stage took (seconds), for tools
@@ -236,11 +279,11 @@ fn fuse(
     opts: &OutputOptions,
     summary: &mut OutputSummary,
     progress: &mut impl FnMut(usize, usize),
-) -> Result<(), ReconError> {
+) -> Result<Option<TriMesh>, ReconError> {
     let t = Instant::now();
     let Some(mut voxel) = opts.voxel.or_else(|| auto_voxel(rec)) else {
         summary.warnings.push("no valid aligned depth: no mesh".into());
-        return Ok(());
+        return Ok(None);
     };
     if !(voxel.is_finite() && voxel > 0.0) {
         return Err(ReconError::Other(format!("voxel {voxel} must be positive")));
@@ -285,11 +328,11 @@ fn fuse(
             "the fused volume has no surface at voxel {voxel} (confidence below {} everywhere, or too few views agree); lower --min-conf or set --voxel",
             opts.min_conf
         ));
-        return Ok(());
+        return Ok(None);
     }
     let path = out.join("mesh.glb");
     dens3r_mesh::write_mesh(&path, &mesh).map_err(|e| ReconError::Other(e.to_string()))?;
     summary.triangles = mesh.indices.len();
     summary.mesh = Some(path);
-    Ok(())
+    Ok(Some(mesh))
 }

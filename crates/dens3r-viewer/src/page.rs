@@ -1,0 +1,262 @@
+//! Writing the page: `index.html`, its script and data under `viewer/`, each file atomic (the
+//! callers write it inside their output transaction, so a failed run leaves none of it).
+
+use crate::cloud::{bounds, cloud};
+use crate::decimate::decimate;
+use crate::pictures::{conf_viz, fit, jpeg_data_url};
+use crate::{assets, VIEWER_BUNDLED};
+use base64::Engine;
+use dens3r_geom::{PinholeCamera, Raster};
+use dens3r_io::{write_atomic, IoError};
+use dens3r_mesh::TriMesh;
+use dens3r_scene::viz::{depth_viz, normal_viz};
+use glam::Vec3;
+use image::RgbImage;
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+
+/// One view: its camera (OpenCV, camera-to-world) and maps at the maps' size.
+#[derive(Debug, Clone)]
+pub struct View<'a> {
+    /// Frame name.
+    pub name: &'a str,
+    /// Camera of the maps' pixels.
+    pub camera: PinholeCamera,
+    /// Colours at the maps' size.
+    pub rgb: &'a RgbImage,
+    /// z-depth (<= 0 or NaN: none).
+    pub depth: &'a Raster<f32>,
+    /// Confidence, where the network gave one.
+    pub conf: Option<&'a Raster<f32>>,
+    /// Normals, OpenCV camera frame, facing the camera.
+    pub normals: Option<&'a Raster<Vec3>>,
+    /// Object mask: only its pixels go into the point cloud.
+    pub mask: Option<&'a Raster<bool>>,
+    /// The photo as the output holds it, relative to the page; `None`: the page keeps a copy.
+    pub photo: Option<String>,
+}
+
+/// A match picture the output holds (path relative to the page).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatchPicture {
+    /// First view's name.
+    pub a: String,
+    /// Second view's name.
+    pub b: String,
+    /// The picture, relative to the page.
+    pub path: String,
+}
+
+/// What the page shows.
+#[derive(Debug, Clone, Default)]
+pub struct Page<'a> {
+    /// Heading (the output folder's name, say).
+    pub title: String,
+    /// Views with cameras and maps.
+    pub views: Vec<View<'a>>,
+    /// The fused mesh, decimated for the page.
+    pub mesh: Option<&'a TriMesh>,
+    /// The run's summary (`summary.json`), shown as a table.
+    pub summary: Option<Value>,
+    /// Scores against a ground truth, where known.
+    pub scores: Option<Value>,
+    /// Match pictures.
+    pub matches: Vec<MatchPicture>,
+    /// The confidence threshold the slider starts at (the fusion's).
+    pub min_conf: f32,
+}
+
+/// Sizes of what goes into the page.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PageOptions {
+    /// Points in the cloud at most.
+    pub max_points: usize,
+    /// Mesh triangles at most (vertex clustering above).
+    pub max_triangles: usize,
+    /// Longer side of the frustums' photo thumbnails, pixels.
+    pub thumb_px: u32,
+    /// Longer side of the per-view pictures, pixels.
+    pub picture_px: u32,
+}
+
+impl Default for PageOptions {
+    fn default() -> Self {
+        Self { max_points: 300_000, max_triangles: 250_000, thumb_px: 192, picture_px: 384 }
+    }
+}
+
+/// What was written.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PageSummary {
+    /// `index.html` where it was written.
+    pub index: PathBuf,
+    /// Points in the page's cloud.
+    pub points: usize,
+    /// Triangles of the page's mesh.
+    pub triangles: usize,
+    /// Whether the 3-D view is in this build.
+    pub bundled: bool,
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> IoError + '_ {
+    move |e| IoError::new(path, e.to_string())
+}
+
+fn write_text(path: &Path, text: &str) -> Result<(), IoError> {
+    write_atomic(path, |w| std::io::Write::write_all(w, text.as_bytes()))
+}
+
+fn write_png(path: &Path, img: &RgbImage) -> Result<(), IoError> {
+    use image::ImageEncoder;
+    write_atomic(path, |w| {
+        image::codecs::png::PngEncoder::new(w)
+            .write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8)
+            .map_err(std::io::Error::other)
+    })
+}
+
+fn b64<T: Copy>(v: &[T], bytes: impl Fn(&T) -> Vec<u8>) -> String {
+    base64::engine::general_purpose::STANDARD.encode(v.iter().flat_map(bytes).collect::<Vec<u8>>())
+}
+
+fn f32s(v: &[Vec3]) -> String {
+    b64(v, |p| p.to_array().iter().flat_map(|x| x.to_le_bytes()).collect())
+}
+
+/// Writes the page into `dir` (`index.html` and `viewer/`).
+pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSummary, IoError> {
+    let viewer = dir.join("viewer");
+    std::fs::create_dir_all(viewer.join("views")).map_err(io(&viewer))?;
+    let mut views = Vec::with_capacity(page.views.len());
+    for (k, v) in page.views.iter().enumerate() {
+        views.push(view_json(&viewer, k, v, opts)?);
+    }
+    let pts = cloud(&page.views, opts.max_points);
+    let centres: Vec<_> = page.views.iter().map(|v| v.camera.center()).collect();
+    let (centre, radius) = bounds(&pts.positions, &centres);
+    let mesh = page.mesh.map(|m| decimate(m, opts.max_triangles));
+    let points = json!({
+        "count": pts.positions.len(),
+        "positions": f32s(&pts.positions),
+        "colors": b64(&pts.colors, |c| c.to_vec()),
+        "conf": b64(&pts.conf, |c| c.to_le_bytes().to_vec()),
+        "point_size": point_size(&page.views, &pts.positions, radius),
+    });
+    let mesh_json = mesh.as_ref().map(|m| {
+        json!({
+            "vertices": m.positions.len(),
+            "triangles": m.indices.len(),
+            "positions": f32s(&m.positions),
+            "indices": b64(&m.indices, |t| t.iter().flat_map(|i| i.to_le_bytes()).collect()),
+            "colors": m.colors.as_ref().map(|c| b64(c, |c| c.to_vec())),
+        })
+    });
+    let data = json!({
+        "title": page.title,
+        "views": views,
+        "points": points,
+        "mesh": mesh_json,
+        "summary": page.summary,
+        "scores": page.scores,
+        "matches": page.matches.iter().map(|m| json!({"a": m.a, "b": m.b, "path": url_path(&m.path)})).collect::<Vec<_>>(),
+        "min_conf": page.min_conf,
+        "bounds": {"center": centre.to_array(), "radius": radius},
+        "frustum_depth": frustum_depth(&centres, radius),
+    });
+    let script = format!("window.DENS3R_SCENE = {};\n", serde_json::to_string(&data).expect("plain JSON values"));
+    write_text(&viewer.join("scene.js"), &script)?;
+    write_text(&viewer.join("app.js"), assets::APP_JS)?;
+    write_text(&viewer.join("THREE-LICENSE.txt"), assets::THREE_LICENSE)?;
+    let html = assets::INDEX_HTML
+        .replace("<title>dens3r</title>", &format!("<title>{} - dens3r</title>", escape(&page.title)));
+    let index = dir.join("index.html");
+    write_text(&index, &html)?;
+    Ok(PageSummary {
+        index,
+        points: pts.positions.len(),
+        triangles: mesh.map_or(0, |m| m.indices.len()),
+        bundled: VIEWER_BUNDLED,
+    })
+}
+
+/// One view's camera and pictures (written under `viewer/views/`, numbered: names may hold
+/// characters a URL would need escaped).
+fn view_json(viewer: &Path, k: usize, v: &View, opts: &PageOptions) -> Result<Value, IoError> {
+    let mut pictures = serde_json::Map::new();
+    if let Some(p) = &v.photo {
+        pictures.insert("photo".into(), json!(url_path(p)));
+    }
+    let mut put = |kind: &str, img: RgbImage| -> Result<(), IoError> {
+        let file = format!("{k:04}_{kind}.png");
+        write_png(&viewer.join("views").join(&file), &fit(&img, opts.picture_px))?;
+        pictures.insert(kind.into(), json!(format!("viewer/views/{file}")));
+        Ok(())
+    };
+    if v.photo.is_none() {
+        put("photo", v.rgb.clone())?;
+    }
+    put("depth", depth_viz(v.depth))?;
+    if let Some(n) = v.normals {
+        put("normals", normal_viz(n))?;
+    }
+    if let Some(c) = v.conf {
+        put("conf", conf_viz(c))?;
+    }
+    let k_ = &v.camera.intrinsics;
+    let m = v.camera.cam_to_world;
+    let rows: Vec<f64> = (0..4).flat_map(|r| (0..4).map(move |c| m.col(c)[r])).collect();
+    Ok(json!({
+        "name": v.name,
+        "width": v.camera.width, "height": v.camera.height,
+        "fx": k_.fx, "fy": k_.fy, "cx": k_.cx, "cy": k_.cy,
+        "c2w": rows,
+        "thumb": jpeg_data_url(&fit(v.rgb, opts.thumb_px), 80),
+        "pictures": pictures,
+    }))
+}
+
+/// Frustum depth: a third of the median distance between neighbouring cameras, capped at a
+/// tenth of the scene's radius.
+fn frustum_depth(centres: &[glam::DVec3], radius: f32) -> f32 {
+    let mut nearest: Vec<f64> = centres
+        .iter()
+        .enumerate()
+        .filter_map(|(i, a)| {
+            centres.iter().enumerate().filter(|(j, _)| *j != i).map(|(_, b)| a.distance(*b)).min_by(f64::total_cmp)
+        })
+        .filter(|d| *d > 0.0)
+        .collect();
+    nearest.sort_by(f64::total_cmp);
+    let cap = radius * 0.1;
+    nearest.get(nearest.len() / 2).map_or(cap, |d| ((*d / 3.0) as f32).min(cap))
+}
+
+/// Point size in world units: about the spacing of the sampled pixels at the median depth.
+fn point_size(views: &[View], points: &[Vec3], radius: f32) -> f32 {
+    let Some(v) = views.first() else { return radius * 0.005 };
+    let c = v.camera.center().as_vec3();
+    let mut d: Vec<f32> = points.iter().step_by(97).map(|p| p.distance(c)).collect();
+    d.sort_by(f32::total_cmp);
+    let median = d.get(d.len() / 2).copied().unwrap_or(radius);
+    let total: usize = views.iter().map(|v| v.depth.data().len()).sum();
+    let stride = (total as f32 / points.len().max(1) as f32).sqrt();
+    (median / v.camera.intrinsics.fx as f32 * stride * 1.5).max(radius * 1e-4)
+}
+
+fn escape(s: &str) -> String {
+    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+}
+
+/// A relative path as a URL path: bytes other than letters, digits, `-._~/` percent-encoded
+/// (a `#` or `?` in a photo's name would otherwise end the path).
+pub fn url_path(p: &str) -> String {
+    let mut out = String::with_capacity(p.len());
+    for b in p.bytes() {
+        if b.is_ascii_alphanumeric() || b"-._~/".contains(&b) {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
+}

@@ -1,0 +1,183 @@
+//! The page's geometry against analytic scenes, the files it writes, and the server's paths.
+
+use dens3r_geom::{look_at, Intrinsics, PinholeCamera, Raster};
+use dens3r_mesh::primitives::icosphere;
+use dens3r_viewer::cloud::{cloud, stride_for};
+use dens3r_viewer::decimate::decimate;
+use dens3r_viewer::serve::resolve;
+use dens3r_viewer::{write_page, MatchPicture, Page, PageOptions, View};
+use glam::{DVec3, Vec3};
+use image::RgbImage;
+
+/// A camera at `eye` looking at the origin, 64 x 48, 60 degrees across.
+fn camera(eye: DVec3) -> PinholeCamera {
+    PinholeCamera {
+        intrinsics: Intrinsics::from_hfov(64, 48, 60.0),
+        width: 64,
+        height: 48,
+        cam_to_world: look_at(eye, DVec3::ZERO, DVec3::new(0.0, -1.0, 0.0)).unwrap(),
+    }
+}
+
+/// The exact depth of the unit sphere seen by `cam` (0 where a ray misses it).
+fn sphere_depth(cam: &PinholeCamera) -> Raster<f32> {
+    let c = cam.center();
+    Raster::from_fn(cam.width, cam.height, |x, y| {
+        let ray = cam.intrinsics.unproject(x as f64, y as f64); // camera frame, z = 1
+        let dir = cam.cam_to_world.transform_vector3(ray);
+        // |c + t dir|^2 = 1, nearest root; depth is t (z = 1 along the ray).
+        let (a, b, cc) = (dir.length_squared(), 2.0 * c.dot(dir), c.length_squared() - 1.0);
+        let disc = b * b - 4.0 * a * cc;
+        if disc < 0.0 {
+            0.0
+        } else {
+            ((-b - disc.sqrt()) / (2.0 * a)) as f32
+        }
+    })
+}
+
+#[test]
+fn the_cloud_lies_on_the_surface_the_depth_maps_saw_and_keeps_the_budget() {
+    let cams = [camera(DVec3::new(0.0, 0.0, -3.0)), camera(DVec3::new(3.0, 0.0, 0.0))];
+    let depths: Vec<_> = cams.iter().map(sphere_depth).collect();
+    let conf: Vec<Raster<f32>> =
+        cams.iter().enumerate().map(|(k, c)| Raster::filled(c.width, c.height, 1.0 + k as f32)).collect();
+    let rgb = RgbImage::new(64, 48);
+    let views: Vec<View> = (0..2)
+        .map(|k| View {
+            name: "v",
+            camera: cams[k],
+            rgb: &rgb,
+            depth: &depths[k],
+            conf: Some(&conf[k]),
+            normals: None,
+            mask: None,
+            photo: None,
+        })
+        .collect();
+    let all = cloud(&views, usize::MAX);
+    let valid: usize = depths.iter().map(|d| d.data().iter().filter(|z| **z > 0.0).count()).sum();
+    assert_eq!(all.positions.len(), valid);
+    for p in &all.positions {
+        assert!((p.length() - 1.0).abs() < 1e-4, "{p} is not on the unit sphere");
+    }
+    // Sorted by confidence: the second view's points (confidence 2) first.
+    assert!(all.conf.windows(2).all(|w| w[0] >= w[1]));
+    assert_eq!(all.conf[0], 2.0);
+    let few = cloud(&views, 300);
+    assert!(few.positions.len() <= 300 && few.positions.len() > 300 / 4, "{}", few.positions.len());
+    assert_eq!(stride_for(1000, 1000), 1);
+    assert_eq!(stride_for(1001, 1000), 2);
+    assert_eq!(stride_for(4001, 1000), 3);
+}
+
+#[test]
+fn decimation_keeps_the_budget_and_the_shape() {
+    let sphere = icosphere(1.0, 5); // 20 * 4^5 = 20480 triangles
+    assert_eq!(sphere.indices.len(), 20480);
+    let small = decimate(&sphere, 2000);
+    assert!(small.indices.len() <= 2000 && small.indices.len() > 200, "{}", small.indices.len());
+    small.validate().unwrap();
+    // Cluster means of points on the unit sphere lie just inside it.
+    for p in &small.positions {
+        assert!(p.length() > 0.95 && p.length() <= 1.0 + 1e-5, "{}", p.length());
+    }
+    // Every vertex is used, and the surface still encloses about the sphere's volume.
+    let mut used = vec![false; small.positions.len()];
+    small.indices.iter().flatten().for_each(|&i| used[i as usize] = true);
+    assert!(used.iter().all(|u| *u));
+    let volume: f32 = small
+        .indices
+        .iter()
+        .map(|t| {
+            small.positions[t[0] as usize].dot(small.positions[t[1] as usize].cross(small.positions[t[2] as usize]))
+                / 6.0
+        })
+        .sum();
+    let exact = 4.0 / 3.0 * std::f32::consts::PI;
+    assert!((volume.abs() - exact).abs() / exact < 0.05, "volume {volume} against {exact}");
+    // Small meshes pass through unchanged.
+    assert_eq!(decimate(&sphere, 1 << 20), sphere);
+}
+
+#[test]
+fn the_page_holds_the_views_the_geometry_and_the_pictures() {
+    let dir = tempfile::tempdir().unwrap();
+    let cam = camera(DVec3::new(0.0, 0.0, -3.0));
+    let depth = sphere_depth(&cam);
+    let conf = Raster::filled(64, 48, 3.0f32);
+    let normals = Raster::filled(64, 48, Vec3::new(0.0, 0.0, -1.0));
+    let rgb = RgbImage::from_pixel(64, 48, image::Rgb([200, 10, 10]));
+    let mesh = icosphere(1.0, 2);
+    let page = Page {
+        title: "a <test>".into(),
+        views: vec![View {
+            name: "f#1",
+            camera: cam,
+            rgb: &rgb,
+            depth: &depth,
+            conf: Some(&conf),
+            normals: Some(&normals),
+            mask: None,
+            photo: Some("scene/images/f#1.png".into()),
+        }],
+        mesh: Some(&mesh),
+        summary: Some(serde_json::json!({"photos": 1})),
+        scores: None,
+        matches: vec![MatchPicture { a: "f#1".into(), b: "g".into(), path: "matches/f#1-g.png".into() }],
+        min_conf: 1.5,
+    };
+    let s = write_page(dir.path(), &page, &PageOptions::default()).unwrap();
+    assert_eq!(s.triangles, mesh.indices.len());
+    let html = std::fs::read_to_string(dir.path().join("index.html")).unwrap();
+    assert!(html.contains("<title>a &lt;test&gt; - dens3r</title>"));
+    assert!(
+        html.contains(r#"<script src="viewer/scene.js"></script>"#)
+            && html.contains(r#"<script src="viewer/app.js"></script>"#)
+    );
+    assert!(!html.contains("https://"), "the page loads nothing from the network");
+    let script = std::fs::read_to_string(dir.path().join("viewer/scene.js")).unwrap();
+    let json = script.strip_prefix("window.DENS3R_SCENE = ").unwrap().trim_end().strip_suffix(';').unwrap();
+    let data: serde_json::Value = serde_json::from_str(json).unwrap();
+    let v = &data["views"][0];
+    assert_eq!(v["name"], "f#1");
+    // The pose as rows: the camera centre in the last column.
+    assert!((v["c2w"][11].as_f64().unwrap() + 3.0).abs() < 1e-12);
+    assert_eq!(v["pictures"]["photo"], "scene/images/f%231.png", "a '#' in a name is escaped");
+    for kind in ["depth", "normals", "conf"] {
+        let p = v["pictures"][kind].as_str().unwrap();
+        let img = image::open(dir.path().join(p)).unwrap();
+        assert_eq!((img.width(), img.height()), (64, 48), "{kind}");
+    }
+    // A camera-facing normal in the official colours.
+    let n = image::open(dir.path().join(v["pictures"]["normals"].as_str().unwrap())).unwrap().to_rgb8();
+    assert_eq!(n.get_pixel(10, 10).0, [127, 127, 255]);
+    assert!(v["thumb"].as_str().unwrap().starts_with("data:image/jpeg;base64,"));
+    assert_eq!(data["matches"][0]["path"], "matches/f%231-g.png");
+    assert_eq!(data["mesh"]["triangles"], mesh.indices.len());
+    let count = data["points"]["count"].as_u64().unwrap() as usize;
+    assert_eq!(count, depth.data().iter().filter(|z| **z > 0.0).count());
+    use base64::Engine;
+    let bytes =
+        base64::engine::general_purpose::STANDARD.decode(data["points"]["positions"].as_str().unwrap()).unwrap();
+    assert_eq!(bytes.len(), count * 12);
+    let radius = data["bounds"]["radius"].as_f64().unwrap();
+    assert!(radius > 0.5 && radius < 1.8, "{radius}");
+    assert!(dir.path().join("viewer/app.js").is_file() && dir.path().join("viewer/THREE-LICENSE.txt").is_file());
+    let licence = std::fs::read_to_string(dir.path().join("viewer/THREE-LICENSE.txt")).unwrap();
+    assert!(licence.contains("MIT") || licence.contains("Permission is hereby granted"));
+}
+
+#[test]
+fn the_server_serves_only_files_under_its_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir_all(dir.path().join("viewer")).unwrap();
+    std::fs::write(dir.path().join("index.html"), "x").unwrap();
+    let root = dir.path();
+    assert_eq!(resolve(root, "/"), Some(root.join("index.html")));
+    assert_eq!(resolve(root, "/viewer/app.js?x=1"), Some(root.join("viewer/app.js")));
+    assert_eq!(resolve(root, "/scene/images/f%231.png"), Some(root.join("scene/images/f#1.png")));
+    assert_eq!(resolve(root, "/../secret"), None);
+    assert_eq!(resolve(root, "/viewer/%2e%2e/%2e%2e/etc/passwd"), None);
+    assert_eq!(resolve(root, "/%zz"), None);
+}
