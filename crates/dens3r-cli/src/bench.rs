@@ -312,19 +312,38 @@ fn backbone(a: BackboneArgs) -> Result<()> {
     let dir = a.peer.workdir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
     std::fs::create_dir_all(&dir)?;
     let exe = std::env::current_exe()?;
-    let BenchWeights { weights, heads, what, dinov2 } = bench_weights(&a, &dir, &exe)?;
+    let bw = bench_weights(&a, &dir, &exe)?;
     let heads_json = dir.join("bench_heads.json");
-    std::fs::write(&heads_json, serde_json::json!({"enc_num_heads": heads.0, "dec_num_heads": heads.1}).to_string())?;
+    let heads = serde_json::json!({"enc_num_heads": bw.heads.0, "dec_num_heads": bw.heads.1});
+    std::fs::write(&heads_json, heads.to_string())?;
     let python = bench_python(a.peer.python.clone());
-    // With --gpu the peer must see CUDA, not merely import torch.
+    let torch_ok = torch_peer_ready(&a, &python, bw.dinov2.is_some());
+    print_backbone_header(&a, &bw.what, threads);
+    let mut profiles = Vec::new();
+    let mut gpu_names = Vec::new();
+    let ctx = BackboneRun { a: &a, exe: &exe, dir: &dir, weights: &bw, heads_json: &heads_json, threads };
+    for (w, h) in sizes {
+        for &precision in &a.precision {
+            let peer = torch_ok.then_some(python.as_path());
+            profiles.push(backbone_row(&ctx, (w, h), precision, peer, &mut gpu_names)?);
+        }
+    }
+    print_backbone_notes(&a, gpu_names);
+    for (size, rust, torch) in profiles {
+        print_profile(&size, &rust, &torch, a.gpu);
+    }
+    Ok(())
+}
+
+/// Whether the PyTorch peer can run (with --gpu: sees CUDA); says why not in one note.
+fn torch_peer_ready(a: &BackboneArgs, python: &Path, dinov2: bool) -> bool {
     let probe = if a.gpu {
         "import torch, safetensors, numpy; assert torch.cuda.is_available()"
     } else {
         "import torch, safetensors, numpy"
     };
-    let torch_ok =
-        dinov2.is_none() && Command::new(&python).args(["-c", probe]).output().is_ok_and(|o| o.status.success());
-    if dinov2.is_some() {
+    let torch_ok = !dinov2 && Command::new(python).args(["-c", probe]).output().is_ok_and(|o| o.status.success());
+    if dinov2 {
         eprintln!("note: bench/torch_dens3r.py has no DINOv2 encoder: Rust only for this network");
     } else if !torch_ok && a.gpu {
         eprintln!("note: {}'s torch sees no CUDA device: Rust only (no GPU peer to compare with)", python.display());
@@ -334,6 +353,10 @@ fn backbone(a: BackboneArgs) -> Result<()> {
             python.display()
         );
     }
+    torch_ok
+}
+
+fn print_backbone_header(a: &BackboneArgs, what: &str, threads: usize) {
     let mem = if a.gpu { "dev MB" } else { "MB" };
     println!(
         "{what}, fastest of {}, {}",
@@ -362,55 +385,79 @@ fn backbone(a: BackboneArgs) -> Result<()> {
         format!("torch {mem}"),
         "max |diff|"
     );
-    let mut profiles = Vec::new();
-    let mut gpu_names = Vec::new();
-    for (w, h) in sizes {
-        for &precision in &a.precision {
-            let r = child_json(
-                Command::new(&exe)
-                    .args(["bench", "run-rust"])
-                    .arg(&weights)
-                    .args([w.to_string(), h.to_string()])
-                    .arg(&dir)
-                    .arg(a.repeat.to_string())
-                    .arg("--config")
-                    .arg(&heads_json)
-                    .args(["--precision", &precision.to_string()])
-                    .args(a.gpu.then_some("--gpu"))
-                    .envs(dinov2.iter().map(|p| (dens3r_backbone::verify::DINOV2_ENV, p)))
-                    .env("RAYON_NUM_THREADS", threads.to_string()),
-                "Rust",
-            )?;
-            let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
-            let (rs, mono) = (num(&r["seconds"]), num(&r["mono_seconds"]));
-            let rm = num(if a.gpu { &r["device_mb"] } else { &r["peak_rss_mb"] });
-            if let Some(n) = r["device_name"].as_str() {
-                gpu_names.push(format!("ours: {n}"));
-            }
-            let peer = TorchRun { size: (w, h), threads, heads, repeat: a.repeat, gpu: a.gpu, precision };
-            let t = if torch_ok { Some(torch_forward(&python, &weights, &peer, &dir)?) } else { None };
-            let tn = |k: &str| t.as_ref().map_or(f64::NAN, |t| num(&t[k]));
-            let ts = tn("seconds");
-            if let Some(n) = t.as_ref().and_then(|t| t["device_name"].as_str()) {
-                gpu_names.push(format!("PyTorch: {n}"));
-            }
-            println!(
-                "{:<10} {:>5} {:>9} {:>9} {:>11} {:>9} {:>9} {:>10} {:>10} {:>11}",
-                format!("{w}x{h}"),
-                precision.to_string(),
-                cell(rs, 2),
-                cell(ts, 2),
-                ratio(ts / rs),
-                cell(mono, 2),
-                ratio(ts / mono),
-                cell(rm, 0),
-                cell(tn(if a.gpu { "peak_device_mb" } else { "peak_rss_mb" }), 0),
-                sci(tn("max_abs_diff_pts3d"))
-            );
-            let tp = t.as_ref().map_or(serde_json::Value::Null, |t| t["profile"].clone());
-            profiles.push((format!("{w}x{h} {precision}"), r["stages"].clone(), tp));
-        }
+}
+
+/// What every row of `bench backbone` shares.
+struct BackboneRun<'a> {
+    a: &'a BackboneArgs,
+    exe: &'a Path,
+    dir: &'a Path,
+    weights: &'a BenchWeights,
+    heads_json: &'a Path,
+    threads: usize,
+}
+
+/// One size and precision: ours in a child process, then the PyTorch peer (when `python`),
+/// printed as a row; returns the two stage profiles.
+fn backbone_row(
+    ctx: &BackboneRun,
+    (w, h): (usize, usize),
+    precision: Precision,
+    python: Option<&Path>,
+    gpu_names: &mut Vec<String>,
+) -> Result<(String, serde_json::Value, serde_json::Value)> {
+    let (a, bw) = (ctx.a, ctx.weights);
+    let r = child_json(
+        Command::new(ctx.exe)
+            .args(["bench", "run-rust"])
+            .arg(&bw.weights)
+            .args([w.to_string(), h.to_string()])
+            .arg(ctx.dir)
+            .arg(a.repeat.to_string())
+            .arg("--config")
+            .arg(ctx.heads_json)
+            .args(["--precision", &precision.to_string()])
+            .args(a.gpu.then_some("--gpu"))
+            .envs(bw.dinov2.iter().map(|p| (dens3r_backbone::verify::DINOV2_ENV, p)))
+            .env("RAYON_NUM_THREADS", ctx.threads.to_string()),
+        "Rust",
+    )?;
+    let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
+    let (rs, mono) = (num(&r["seconds"]), num(&r["mono_seconds"]));
+    let rm = num(if a.gpu { &r["device_mb"] } else { &r["peak_rss_mb"] });
+    if let Some(n) = r["device_name"].as_str() {
+        gpu_names.push(format!("ours: {n}"));
     }
+    let peer =
+        TorchRun { size: (w, h), threads: ctx.threads, heads: bw.heads, repeat: a.repeat, gpu: a.gpu, precision };
+    let t = match python {
+        Some(py) => Some(torch_forward(py, &bw.weights, &peer, ctx.dir)?),
+        None => None,
+    };
+    let tn = |k: &str| t.as_ref().map_or(f64::NAN, |t| num(&t[k]));
+    let ts = tn("seconds");
+    if let Some(n) = t.as_ref().and_then(|t| t["device_name"].as_str()) {
+        gpu_names.push(format!("PyTorch: {n}"));
+    }
+    println!(
+        "{:<10} {:>5} {:>9} {:>9} {:>11} {:>9} {:>9} {:>10} {:>10} {:>11}",
+        format!("{w}x{h}"),
+        precision.to_string(),
+        cell(rs, 2),
+        cell(ts, 2),
+        ratio(ts / rs),
+        cell(mono, 2),
+        ratio(ts / mono),
+        cell(rm, 0),
+        cell(tn(if a.gpu { "peak_device_mb" } else { "peak_rss_mb" }), 0),
+        sci(tn("max_abs_diff_pts3d"))
+    );
+    let tp = t.as_ref().map_or(serde_json::Value::Null, |t| t["profile"].clone());
+    Ok((format!("{w}x{h} {precision}"), r["stages"].clone(), tp))
+}
+
+/// What the table's reader needs to know: bf16 on this CPU, the GPUs, lavapipe.
+fn print_backbone_notes(a: &BackboneArgs, mut gpu_names: Vec<String>) {
     if !a.gpu && a.precision.contains(&Precision::BF16) {
         let how = if dens3r_backbone::cpu::bf16::native() {
             "on this CPU's AVX-512 BF16 (VDPBF16PS)"
@@ -431,10 +478,6 @@ fn backbone(a: BackboneArgs) -> Result<()> {
     if gpu_names.iter().any(|n| n.contains("llvmpipe")) {
         println!("  note: llvmpipe is lavapipe, Mesa's Vulkan driver on the CPU: these timings are not a GPU's speed");
     }
-    for (size, rust, torch) in profiles {
-        print_profile(&size, &rust, &torch, a.gpu);
-    }
-    Ok(())
 }
 
 /// The per-stage table: FLOPs (counted on the PyTorch side, 2 per multiply-add of matmuls,
