@@ -31,7 +31,8 @@ rm -rf "$out/recon"
 $B reconstruct "$out/orbit/images" -o "$out/recon" --graph swin --window 3 --cyclic --masks "$out/orbit/masks"
 # 3. How close it came: cameras (relative rotation over all pairs, focal), depth (up to scale),
 #    normals, and the mesh (placed on the true one by the cameras; thresholds in the object's
-#    units, about 2 across) against the render's ground truth.
+#    units, about 2 across) against the render's ground truth; each adds its scores to the
+#    reconstruction's page, out/recon/index.html.
 $B eval cameras "$out/recon/scene" "$out/orbit"
 $B eval depth "$out/recon/scene" "$out/orbit" --align median
 $B eval normals "$out/recon/scene" "$out/orbit"
@@ -50,6 +51,9 @@ fi
 cat <<EOF
 
 == dens3r demo: done in $(( $(date +%s) - start )) s ==
+look     $out/recon/index.html   the reconstruction, cameras, pictures and scores: open it in a browser
+         $out/photos/index.html  the two photos' depth, normals and point clouds
+         (or: target/release/dens3r view $out/recon, for a browser that refuses file:// pages)
 photos   $out/photos/viz/        depth and normal pictures of data-samples/photos/*.png
          $out/photos/            scene folder: depth/, normals/, confidence, cameras.json (predicted focal)
 orbit    $mesh

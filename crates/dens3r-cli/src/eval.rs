@@ -191,6 +191,7 @@ fn cameras(a: CameraArgs) -> Result<()> {
         "translation_median_deg": cam_median(&m.translation_deg),
         "focal_median_rel": cam_median(&m.focal_rel), "focal_max_rel": m.focal_rel.iter().cloned().fold(0.0, f64::max),
     });
+    to_page(&a.pred, "cameras", &a.gt, &j)?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&j)?);
         return Ok(());
@@ -311,6 +312,17 @@ fn warn_missing(missing: &[String], total: usize, what: &str, pred: &std::path::
     );
 }
 
+/// Adds these scores to the page that shows `pred` (an output folder's `index.html`), where
+/// there is one; says so on stderr (stdout may be `--json`).
+fn to_page(pred: &std::path::Path, kind: &str, truth: &std::path::Path, scores: &serde_json::Value) -> Result<()> {
+    let mut s = scores.clone();
+    s["truth"] = json!(truth.display().to_string());
+    if let Some(page) = dens3r_viewer::add_scores(pred, kind, s)? {
+        eprintln!("scores added to {}", page.display());
+    }
+    Ok(())
+}
+
 fn depth(a: DepthArgs) -> Result<()> {
     let align = depth_align(a.align);
     // A scene folder, or a folder of depth .npy files named by frame.
@@ -341,6 +353,10 @@ fn depth(a: DepthArgs) -> Result<()> {
         let frames: Vec<_> = rows.iter().map(|(n, m)| json!({"name": n, "abs_rel": m.abs_rel, "rmse": m.rmse, "delta": m.delta, "scale": m.scale, "shift": m.shift, "pixels": m.count, "coverage": m.coverage})).collect();
         let s = json!({"frames": rows.len(), "frames_total": total, "missing": missing, "coverage": coverage, "abs_rel": summary[0], "rmse": summary[1], "delta1": summary[2], "delta2": summary[3], "delta3": summary[4], "per_frame": frames});
         println!("{}", serde_json::to_string_pretty(&s)?);
+    }
+    let s = json!({"frames": rows.len(), "align": a.align.to_possible_value().map(|v| v.get_name().to_string()), "abs_rel": summary[0], "rmse": summary[1], "delta1": summary[2]});
+    to_page(&a.common.pred, "depth", &a.common.gt, &s)?;
+    if a.common.json {
         return Ok(());
     }
     println!("{:<12} {:>9} {:>9} {:>8} {:>8} {:>8}", "frame", "AbsRel", "RMSE", "d<1.25", "d<1.25^2", "d<1.25^3");
@@ -410,6 +426,11 @@ fn normals(a: NormalArgs) -> Result<()> {
         let frames: Vec<_> = rows.iter().map(|(n, m)| json!({"name": n, "mean": m.mean, "median": m.median, "rmse": m.rmse, "within_11_25": m.within[0], "within_22_5": m.within[1], "within_30": m.within[2], "pixels": m.count})).collect();
         let j = json!({"frames": rows.len(), "mean": s[0], "median": s[1], "rmse": s[2], "within_11_25": s[3], "within_22_5": s[4], "within_30": s[5], "per_frame": frames});
         println!("{}", serde_json::to_string_pretty(&j)?);
+    }
+    let j =
+        json!({"frames": rows.len(), "mean_deg": s[0], "median_deg": s[1], "within_11_25": s[3], "within_30": s[5]});
+    to_page(&a.common.pred, "normals", &a.common.gt, &j)?;
+    if a.common.json {
         return Ok(());
     }
     println!("{:<12} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}", "frame", "mean", "median", "rmse", "<11.25", "<22.5", "<30");
@@ -454,6 +475,11 @@ fn mesh(a: MeshArgs) -> Result<()> {
     }
     let opts = MeshMetricsOptions { samples: a.samples, thresholds: a.thresholds, seed: a.seed };
     let m = mesh_metrics(&pred, &gt, &opts).map_err(anyhow::Error::msg)?;
+    let mut shown = json!({"chamfer_l1": m.chamfer_l1, "normal_consistency": m.normal_consistency});
+    for f in &m.fscores {
+        shown[format!("fscore_at_{}", f.threshold)] = json!(f.fscore);
+    }
+    to_page(&a.pred, "mesh", &a.gt, &shown)?;
     if a.json {
         let f: Vec<_> = m
             .fscores

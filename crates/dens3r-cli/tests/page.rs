@@ -52,8 +52,8 @@ fn check_page(index: &Path) -> serde_json::Value {
 /// Issue 69's browser test: a small reconstruction (6 views circling the bundled object, the
 /// bundled model) opened by file:// in headless Chromium: no console error and every file
 /// loaded, the 3-D canvas draws the mesh and the points over a part of it (not background),
-/// moving the confidence slider changes what is drawn, and the per-view pictures and match
-/// pictures load.
+/// moving the confidence slider changes what is drawn, the per-view pictures and match
+/// pictures load, and the scores `eval cameras` added are shown.
 #[test]
 fn the_page_shows_a_reconstruction_in_a_browser() {
     let model = root().join("data-samples/models/dens3r-s");
@@ -76,6 +76,15 @@ fn the_page_shows_a_reconstruction_in_a_browser() {
     let out = ok(&["reconstruct", orbit.join("images").to_str().unwrap(), "-o", recon.to_str().unwrap(),
         "--graph", "swin", "--window", "2", "--cyclic", "--masks", orbit.join("masks").to_str().unwrap()]);
     assert!(out.contains(&format!("page: {}", recon.join("index.html").display())), "{out}");
+    // `eval` adds its scores to the page that shows the scene it scored.
+    let scene = recon.join("scene");
+    let eval = Command::new(env!("CARGO_BIN_EXE_dens3r"))
+        .args(["eval", "cameras", scene.to_str().unwrap(), orbit.to_str().unwrap(), "--json"])
+        .output()
+        .unwrap();
+    assert!(eval.status.success());
+    let scored: serde_json::Value = serde_json::from_slice(&eval.stdout).expect("--json output stays JSON");
+    assert!(String::from_utf8_lossy(&eval.stderr).contains("scores added to"));
     let app = std::fs::read_to_string(recon.join("viewer/app.js")).unwrap();
     assert!(!app.contains("built without its 3-D viewer"), "the viewer was not bundled: run scripts/build-viewer.sh");
     let r = check_page(&recon.join("index.html"));
@@ -92,6 +101,10 @@ fn the_page_shows_a_reconstruction_in_a_browser() {
     assert_eq!(r["pictures"].as_u64(), Some(views));
     assert_eq!(r["pictures_loaded"].as_u64(), Some(views), "every picture decodes");
     assert!(r["summary_rows"].as_u64().unwrap() >= 8 && r["match_pictures"].as_u64().unwrap() >= 1, "{r}");
+    assert_eq!(r["score_tables"].as_u64(), Some(1), "the cameras' scores are shown: {r}");
+    let page_scores = std::fs::read_to_string(recon.join("viewer/scores.js")).unwrap();
+    let median = scored["rotation_median_deg"].as_f64().unwrap();
+    assert!(page_scores.contains(&format!("\"rotation_median_deg\":{median}")), "{page_scores}");
 }
 
 /// `dens3r view` serves the folder on 127.0.0.1: the page, its script and a picture, and

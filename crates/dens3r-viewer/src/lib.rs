@@ -5,6 +5,7 @@
 //! OUT/index.html               opens by double-click: no network, no server
 //! OUT/viewer/app.js            three.js and the page's code, bundled at build time (build.rs)
 //! OUT/viewer/scene.js          the page's data: cameras, decimated point cloud and mesh (base64)
+//! OUT/viewer/scores.js         scores against a ground truth (`dens3r eval` adds them)
 //! OUT/viewer/views/*.png       per view: depth, normals, confidence pictures (and a photo copy)
 //! OUT/viewer/THREE-LICENSE.txt three.js's licence
 //! ```
@@ -21,7 +22,7 @@ pub mod pictures;
 pub mod scene_views;
 pub mod serve;
 
-pub use page::{write_page, MatchPicture, Page, PageOptions, PageSummary, View};
+pub use page::{add_scores, page_of, write_page, MatchPicture, Page, PageOptions, PageSummary, View};
 
 mod assets {
     include!(concat!(env!("OUT_DIR"), "/bundled.rs"));
@@ -34,7 +35,8 @@ mod assets {
 }
 
 /// The page's files that do not depend on the views (a file of the user's there is refused).
-pub const PAGE_FILES: [&str; 4] = ["index.html", "viewer/app.js", "viewer/scene.js", "viewer/THREE-LICENSE.txt"];
+pub const PAGE_FILES: [&str; 5] =
+    ["index.html", "viewer/app.js", "viewer/scene.js", "viewer/scores.js", "viewer/THREE-LICENSE.txt"];
 
 /// Whether this build carries the 3-D viewer (three.js was bundled; see `scripts/build-viewer.sh`).
 pub const VIEWER_BUNDLED: bool = assets::BUNDLED;

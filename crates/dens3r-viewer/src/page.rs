@@ -58,7 +58,8 @@ pub struct Page<'a> {
     pub mesh: Option<&'a TriMesh>,
     /// The run's summary (`summary.json`), shown as a table.
     pub summary: Option<Value>,
-    /// Scores against a ground truth, where known.
+    /// Scores against a ground truth, where known, by kind (`dens3r eval` adds them later
+    /// through [`add_scores`]).
     pub scores: Option<Value>,
     /// Match pictures.
     pub matches: Vec<MatchPicture>,
@@ -157,7 +158,6 @@ pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSum
         "points": points,
         "mesh": mesh_json,
         "summary": page.summary,
-        "scores": page.scores,
         "matches": page.matches.iter().map(|m| json!({"a": m.a, "b": m.b, "path": url_path(&m.path)})).collect::<Vec<_>>(),
         "min_conf": page.min_conf,
         "bounds": {"center": centre.to_array(), "radius": radius},
@@ -165,6 +165,7 @@ pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSum
     });
     let script = format!("window.DENS3R_SCENE = {};\n", serde_json::to_string(&data).expect("plain JSON values"));
     write_text(&viewer.join("scene.js"), &script)?;
+    write_text(&dir.join(SCORES_JS), &scores_script(page.scores.as_ref().unwrap_or(&Value::Null)))?;
     write_text(&viewer.join("app.js"), assets::APP_JS)?;
     write_text(&viewer.join("THREE-LICENSE.txt"), assets::THREE_LICENSE)?;
     let html = assets::INDEX_HTML
@@ -259,4 +260,44 @@ pub fn url_path(p: &str) -> String {
         }
     }
     out
+}
+
+/// The page that shows `pred` (a scene folder or a mesh an output folder holds): the folder
+/// itself or its parent, where dens3r wrote a page (its list of outputs names the scores
+/// file, so a file of anyone else's is never touched).
+pub fn page_of(pred: &Path) -> Option<PathBuf> {
+    let dir = if pred.is_dir() { Some(pred) } else { None };
+    let ours = |d: &Path| {
+        dens3r_io::output::Manifest::read(d).ok().flatten().is_some_and(|m| m.files.contains(SCORES_JS))
+            && d.join(SCORES_JS).is_file()
+    };
+    dir.into_iter()
+        .chain(pred.parent())
+        .map(|d| if d.as_os_str().is_empty() { Path::new(".") } else { d })
+        .find(|d| ours(d))
+        .map(Path::to_path_buf)
+}
+
+/// Adds `scores` under `kind` (e.g. `"cameras"`) to the page that shows `pred`, if there is
+/// one (`viewer/scores.js`, rewritten atomically; the other kinds kept); returns the page.
+pub fn add_scores(pred: &Path, kind: &str, scores: Value) -> Result<Option<PathBuf>, IoError> {
+    let Some(dir) = page_of(pred) else { return Ok(None) };
+    let path = dir.join(SCORES_JS);
+    let old = std::fs::read_to_string(&path).map_err(io(&path))?;
+    let mut all = old
+        .trim()
+        .strip_prefix(SCORES_PREFIX)
+        .and_then(|s| serde_json::from_str::<Value>(s.trim_end_matches(';')).ok())
+        .filter(Value::is_object)
+        .unwrap_or_else(|| json!({}));
+    all[kind] = scores;
+    write_text(&path, &scores_script(&all))?;
+    Ok(Some(dir.join("index.html")))
+}
+
+const SCORES_JS: &str = "viewer/scores.js";
+const SCORES_PREFIX: &str = "window.DENS3R_SCORES = ";
+
+fn scores_script(scores: &Value) -> String {
+    format!("{SCORES_PREFIX}{};\n", serde_json::to_string(scores).expect("plain JSON values"))
 }

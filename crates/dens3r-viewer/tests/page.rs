@@ -181,3 +181,38 @@ fn the_server_serves_only_files_under_its_folder() {
     assert_eq!(resolve(root, "/viewer/%2e%2e/%2e%2e/etc/passwd"), None);
     assert_eq!(resolve(root, "/%zz"), None);
 }
+
+#[test]
+fn eval_scores_join_the_page_that_shows_the_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    std::fs::create_dir_all(out.join("scene")).unwrap();
+    // The page as an output transaction writes it: staged, then moved in with dens3r's list.
+    let o = dens3r_io::output::OutputDir::begin(&out).unwrap();
+    write_page(o.root(), &Page { title: "t".into(), ..Default::default() }, &PageOptions::default()).unwrap();
+    o.finish().unwrap();
+    assert_eq!(std::fs::read_to_string(out.join("viewer/scores.js")).unwrap(), "window.DENS3R_SCORES = null;\n");
+    // A scene folder inside the output, and a mesh file beside the page, both find it.
+    let page =
+        dens3r_viewer::add_scores(&out.join("scene"), "cameras", serde_json::json!({"rotation_median_deg": 0.5}));
+    assert_eq!(page.unwrap(), Some(out.join("index.html")));
+    dens3r_viewer::add_scores(&out.join("mesh.glb"), "mesh", serde_json::json!({"chamfer_l1": 0.01})).unwrap();
+    dens3r_viewer::add_scores(&out.join("scene"), "cameras", serde_json::json!({"rotation_median_deg": 0.25})).unwrap();
+    let text = std::fs::read_to_string(out.join("viewer/scores.js")).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(text.strip_prefix("window.DENS3R_SCORES = ").unwrap().trim_end().trim_end_matches(';'))
+            .unwrap();
+    assert_eq!(json, serde_json::json!({"cameras": {"rotation_median_deg": 0.25}, "mesh": {"chamfer_l1": 0.01}}));
+    // A page dens3r did not write (no list of its outputs names it): left alone.
+    let theirs = dir.path().join("theirs");
+    std::fs::create_dir_all(theirs.join("viewer")).unwrap();
+    std::fs::write(theirs.join("index.html"), "mine").unwrap();
+    std::fs::write(theirs.join("viewer/scores.js"), "mine").unwrap();
+    assert_eq!(dens3r_viewer::add_scores(&theirs, "cameras", serde_json::json!({})).unwrap(), None);
+    assert_eq!(std::fs::read_to_string(theirs.join("viewer/scores.js")).unwrap(), "mine");
+    // A folder no page shows: nothing written.
+    let elsewhere = dir.path().join("elsewhere");
+    std::fs::create_dir_all(&elsewhere).unwrap();
+    assert_eq!(dens3r_viewer::add_scores(&elsewhere, "cameras", serde_json::json!({})).unwrap(), None);
+    assert!(!elsewhere.join("viewer").exists());
+}

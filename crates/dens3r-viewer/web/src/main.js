@@ -339,12 +339,14 @@ function buildSummary(data) {
   const warn = document.getElementById('warnings');
   warn.replaceChildren(...(s.warnings || []).map((w) => el('li', {}, w)));
   const scores = document.getElementById('scores');
-  if (data.scores) {
-    scores.replaceChildren(
-      el('h2', {}, 'scores'),
-      el('table', {}, ...Object.entries(data.scores).map(([k, v]) => el('tr', {}, el('th', {}, k), el('td', {}, fmt(v))))),
-    );
-  }
+  // Added by `dens3r eval` (viewer/scores.js): one table per kind of score.
+  const all = window.DENS3R_SCORES || {};
+  scores.replaceChildren(
+    ...Object.entries(all).flatMap(([kind, s]) => [
+      el('h2', {}, `scores: ${kind}`),
+      el('table', {}, ...Object.entries(s).map(([k, v]) => el('tr', {}, el('th', {}, k.replaceAll('_', ' ')), el('td', {}, fmt(v))))),
+    ]),
+  );
 }
 
 function buildMatches(data) {

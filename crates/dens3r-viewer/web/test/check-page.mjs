@@ -76,6 +76,7 @@ try {
   report.pictures_loaded = await page.$$eval('#gallery img', (is) => Promise.all(is.map((i) => i.decode().then(() => true, () => false))).then((r) => r.filter(Boolean).length));
   report.summary_rows = await page.$$eval('#summary tr', (r) => r.length);
   report.match_pictures = await page.$$eval('#matches img', (is) => is.length);
+  report.score_tables = await page.$$eval('#scores table', (t) => t.length);
   const shot = opt('--screenshot');
   if (shot) {
     await page.locator('#conf').fill(String(await page.evaluate(() => window.dens3rViewer.startSlider)));
