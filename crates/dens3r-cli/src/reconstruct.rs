@@ -148,6 +148,9 @@ pub struct ReconstructArgs {
     /// Skip the mesh (scene folder and exports only).
     #[arg(long)]
     no_mesh: bool,
+    /// Skip the page (OUTPUT/index.html and OUTPUT/viewer/).
+    #[arg(long)]
+    no_page: bool,
     /// Do not keep network outputs in OUTPUT/cache/ (kept by default so re-runs skip the
     /// network).
     #[arg(long)]
@@ -344,6 +347,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         gpu: a.gpu,
         mesh: !a.no_mesh,
         match_pictures: a.match_pictures,
+        page: (!a.no_page).then(dens3r_viewer::PageOptions::default),
         ..Default::default()
     };
     let fbar = bar("fuse", images.len(), "frames");
@@ -409,7 +413,12 @@ fn report(
         t0.elapsed().as_secs_f64()
     );
     if let Some(p) = &summary.page {
-        println!("page: {} (open it in a browser, or `dens3r view {}`)", p.display(), a.output.display());
+        println!(
+            "page: {} in {:.1}s (open it in a browser, or `dens3r view {}`)",
+            p.display(),
+            summary.page_seconds,
+            a.output.display()
+        );
     }
 }
 

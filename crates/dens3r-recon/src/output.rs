@@ -91,6 +91,8 @@ pub struct OutputSummary {
     pub warnings: Vec<String>,
     /// The page (`index.html`), where written.
     pub page: Option<PathBuf>,
+    /// Seconds writing the page.
+    pub page_seconds: f64,
 }
 
 /// Starts the output folder `out` of a reconstruction: its lock taken (a second run into it is
@@ -178,6 +180,7 @@ pub fn write_outputs_into(
     let text = serde_json::to_string_pretty(&json).expect("plain JSON values");
     dens3r_io::write_atomic(&out.join("summary.json"), |w| std::io::Write::write_all(w, text.as_bytes()))?;
     if let Some(page_opts) = &opts.page {
+        let t_page = Instant::now();
         let page = Page {
             title: dest.file_name().map_or_else(|| dest.display().to_string(), |n| n.to_string_lossy().into_owned()),
             views: page_views(rec, &scene),
@@ -189,6 +192,7 @@ pub fn write_outputs_into(
         };
         write_page(out, &page, page_opts)?;
         summary.page = Some(dest.join("index.html"));
+        summary.page_seconds = t_page.elapsed().as_secs_f64();
     }
     Ok(summary)
 }

@@ -7,6 +7,17 @@ use dens3r_scene::{Scene, SceneError};
 use glam::{DVec3, Vec3};
 use image::RgbImage;
 
+/// The longest side of the maps a page is made from.
+pub const MAX_SIDE: usize = 512;
+
+/// Every `step`-th pixel of `r` both ways, starting at `step / 2` (the block's centre pixel).
+fn every<T: Clone>(r: &Raster<T>, step: usize) -> Raster<T> {
+    if step <= 1 {
+        return r.clone();
+    }
+    Raster::from_fn(r.width() / step, r.height() / step, |x, y| r.get(x * step + step / 2, y * step + step / 2).clone())
+}
+
 /// A scene folder's frames read into memory.
 #[derive(Debug, Clone, Default)]
 pub struct SceneViews {
@@ -27,27 +38,37 @@ pub struct SceneViews {
 }
 
 impl SceneViews {
-    /// Reads the frames of `scene` that have depth; `prefix` is the scene folder's path from
+    /// Reads the frames of `scene` that have depth, each map kept at most [`MAX_SIDE`] pixels
+    /// long (every s-th pixel, the camera to match: a page needs no more, and a hundred
+    /// 12-megapixel frames would not fit in memory); `prefix` is the scene folder's path from
     /// the page (`""` when the page is in the scene folder, `"scene/"` beside it).
     pub fn read(scene: &Scene, prefix: &str) -> Result<SceneViews, SceneError> {
         let mut s = SceneViews::default();
         for f in scene.frames() {
             let Some(depth) = scene.depth(f)? else { continue };
+            let (w, h) = (depth.width(), depth.height());
             let mut rgb = scene.image(f)?;
-            if (rgb.width() as usize, rgb.height() as usize) != (depth.width(), depth.height()) {
-                rgb = image::imageops::resize(
-                    &rgb,
-                    depth.width() as u32,
-                    depth.height() as u32,
-                    image::imageops::FilterType::Triangle,
-                );
+            if (rgb.width() as usize, rgb.height() as usize) != (w, h) {
+                rgb = image::imageops::resize(&rgb, w as u32, h as u32, image::imageops::FilterType::Triangle);
             }
+            let step = w.max(h).div_ceil(MAX_SIDE).max(1);
+            let mut camera = f.camera();
+            if step > 1 {
+                // Pixel x' of the result is pixel x' s + s / 2 of the frame (centres at integers).
+                let (k, s_, half) = (&mut camera.intrinsics, step as f64, (step / 2) as f64);
+                (k.fx, k.fy, k.cx, k.cy) = (k.fx / s_, k.fy / s_, (k.cx - half) / s_, (k.cy - half) / s_);
+                (camera.width, camera.height) = (w / step, h / step);
+            }
+            let rgb = Raster::from_fn(w, h, |x, y| rgb.get_pixel(x as u32, y as u32).0);
+            let rgb = every(&rgb, step);
             s.names.push(f.name.clone());
-            s.cameras.push(f.camera());
-            s.rgb.push(rgb);
-            s.conf.push(scene.conf(f)?);
-            s.normals.push(scene.normals(f)?);
-            s.depth.push(depth);
+            s.cameras.push(camera);
+            s.rgb.push(RgbImage::from_fn(rgb.width() as u32, rgb.height() as u32, |x, y| {
+                image::Rgb(*rgb.get(x as usize, y as usize))
+            }));
+            s.conf.push(scene.conf(f)?.map(|c| every(&c, step)));
+            s.normals.push(scene.normals(f)?.map(|n| every(&n, step)));
+            s.depth.push(every(&depth, step));
             s.photos.push(format!("{prefix}{}", f.image));
         }
         Ok(s)

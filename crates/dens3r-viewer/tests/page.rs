@@ -216,3 +216,39 @@ fn eval_scores_join_the_page_that_shows_the_scene() {
     assert_eq!(dens3r_viewer::add_scores(&elsewhere, "cameras", serde_json::json!({})).unwrap(), None);
     assert!(!elsewhere.join("viewer").exists());
 }
+
+/// Large frames are read every s-th pixel with the camera scaled to match: the points still
+/// lie where the full-size depth puts them (a slanted plane seen by an identity camera).
+#[test]
+fn large_frames_are_read_subsampled_with_their_camera() {
+    use dens3r_viewer::scene_views::{SceneViews, MAX_SIDE};
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (1300usize, 900usize);
+    let cam = PinholeCamera {
+        intrinsics: Intrinsics { fx: 1000.0, fy: 1000.0, cx: 650.0, cy: 450.0 },
+        width: w,
+        height: h,
+        cam_to_world: glam::DMat4::IDENTITY,
+    };
+    // The plane z = 2 + 0.5 x (camera frame): depth d at pixel u solves d = 2 + 0.5 d (u - cx) / fx.
+    let depth = Raster::from_fn(w, h, |x, _| (2.0 / (1.0 - 0.5 * (x as f64 - 650.0) / 1000.0)) as f32);
+    let mut sw = dens3r_scene::SceneWriter::create(&dir.path().join("scene")).unwrap();
+    sw.add_frame(dens3r_scene::Frame::new("big", &cam), &RgbImage::new(w as u32, h as u32)).unwrap();
+    sw.write_depth("big", &depth).unwrap();
+    sw.finish().unwrap();
+    let scene = dens3r_scene::Scene::open(&dir.path().join("scene")).unwrap();
+    let views = SceneViews::read(&scene, "scene/").unwrap();
+    let (d, c) = (&views.depth[0], &views.cameras[0]);
+    assert!(d.width().max(d.height()) <= MAX_SIDE && d.width() >= MAX_SIDE / 2, "{}x{}", d.width(), d.height());
+    assert_eq!((c.width, c.height), (d.width(), d.height()));
+    let pts = cloud(&views.views(), usize::MAX);
+    assert_eq!(pts.positions.len(), d.width() * d.height());
+    for p in &pts.positions {
+        assert!((p.z - (2.0 + 0.5 * p.x)).abs() < 1e-4, "{p} is off the plane");
+    }
+    // The subsampled image spans the full one's field of view.
+    let xs = pts.positions.iter().map(|p| p.x / p.z);
+    let (lo, hi) = xs.fold((f32::MAX, f32::MIN), |(l, h), x| (l.min(x), h.max(x)));
+    assert!((lo + 0.65).abs() < 0.01 && (hi - 0.65).abs() < 0.01, "{lo} {hi}");
+    assert_eq!(views.photos[0], "scene/images/big.png");
+}

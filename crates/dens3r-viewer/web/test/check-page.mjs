@@ -33,8 +33,10 @@ try {
   page.on('console', (m) => { if (m.type() === 'error') errors.push(m.text()); });
   page.on('pageerror', (e) => errors.push(String(e)));
   page.on('requestfailed', (r) => errors.push(`failed to load ${r.url()}`));
+  const t0 = Date.now();
   await page.goto(pathToFileURL(path.resolve(index)).href);
-  await page.waitForFunction(() => window.dens3rViewer && window.dens3rViewer.ready, null, { timeout: 60000 });
+  await page.waitForFunction(() => window.dens3rViewer && window.dens3rViewer.ready, null, { timeout: 120000 });
+  const readySeconds = (Date.now() - t0) / 1000;
   const grab = async () => {
     const p = await page.evaluate(() => window.dens3rViewer.pixels());
     return { ...p, rgba: Buffer.from(p.rgba, 'base64') };
@@ -54,7 +56,7 @@ try {
     return n / (a.rgba.length / 4);
   };
   const modes = await page.$$eval('#mode option', (os) => os.map((o) => o.value));
-  const report = { errors, modes, viewer: await page.evaluate(() => !document.getElementById('status').textContent) };
+  const report = { ready_seconds: readySeconds, errors, modes, viewer: await page.evaluate(() => !document.getElementById('status').textContent) };
   const startMode = await page.inputValue('#mode');
   if (modes.includes('mesh')) {
     await page.selectOption('#mode', 'mesh');
@@ -73,7 +75,9 @@ try {
     report.changed_by_slider = differing(low, high);
   }
   report.pictures = await page.$$eval('#gallery img', (is) => is.length);
-  report.pictures_loaded = await page.$$eval('#gallery img', (is) => Promise.all(is.map((i) => i.decode().then(() => true, () => false))).then((r) => r.filter(Boolean).length));
+  // Pictures load lazily as they scroll into view: ask for them all now.
+  report.pictures_loaded = await page.$$eval('#gallery img', (is) =>
+    Promise.all(is.map((i) => { i.loading = 'eager'; return i.decode().then(() => true, () => false); })).then((r) => r.filter(Boolean).length));
   report.summary_rows = await page.$$eval('#summary tr', (r) => r.length);
   report.match_pictures = await page.$$eval('#matches img', (is) => is.length);
   report.score_tables = await page.$$eval('#scores table', (t) => t.length);
