@@ -88,8 +88,9 @@ def reconstruct(
     everything after are then computed here from the cache, as a single-process run computes
     them. Needs ``pip install 'dens3r[ray]'``.
 
-    Returns :func:`read_scene` of ``OUTPUT/scene`` plus ``output``, ``mesh`` (vertices, faces,
-    normals, colours; None without one) and ``summary``.
+    Returns :func:`read_scene` of ``OUTPUT/scene`` plus ``output``, ``page`` (``OUTPUT/index.html``,
+    the page that shows it all: open it in a browser), ``mesh`` (vertices, faces, normals,
+    colours; None without one) and ``summary``.
     """
     if isinstance(photos, (str, os.PathLike)):
         photos = [photos]

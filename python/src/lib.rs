@@ -800,6 +800,7 @@ fn reconstruct<'py>(
     })?;
     let d = read_scene(py, summary.scene.clone())?;
     d.set_item("output", output)?;
+    d.set_item("page", summary.page.as_ref().map(|p| p.display().to_string()))?;
     d.set_item("mesh", summary.mesh.map(|p| read_mesh(py, p)).transpose()?)?;
     let json = py.import("json")?;
     d.set_item("summary", json.call_method1("loads", (rec_stats.to_string(),))?)?;

@@ -197,6 +197,9 @@ def test_reconstruct_equals_cli(model, tmp_path):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
     assert {st for st, _, _ in seen} >= {"predict", "align", "fuse"}
     assert rec["mesh"] is not None and len(rec["mesh"]["faces"]) == rec["summary"]["triangles"] > 0
+    # The page, as the CLI writes it, with its data beside it.
+    assert rec["page"] is not None and os.path.isfile(rec["page"])
+    assert os.path.isfile(os.path.join(os.path.dirname(rec["page"]), "viewer", "scene.js"))
     ref_mesh = dens3r.read_mesh(tmp_path / "cli" / "mesh.glb")
     assert abs(len(ref_mesh["faces"]) - len(rec["mesh"]["faces"])) <= 0.01 * len(ref_mesh["faces"])
     assert (tmp_path / "py" / "colmap" / "cameras.txt").is_file()

@@ -316,6 +316,9 @@ fn warn_missing(missing: &[String], total: usize, what: &str, pred: &std::path::
 /// there is one; says so on stderr (stdout may be `--json`).
 fn to_page(pred: &std::path::Path, kind: &str, truth: &std::path::Path, scores: &serde_json::Value) -> Result<()> {
     let mut s = scores.clone();
+    if let Some(o) = s.as_object_mut() {
+        o.retain(|_, v| *v != json!([]));
+    }
     s["truth"] = json!(truth.display().to_string());
     if let Some(page) = dens3r_viewer::add_scores(pred, kind, s)? {
         eprintln!("scores added to {}", page.display());
