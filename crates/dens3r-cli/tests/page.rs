@@ -52,7 +52,8 @@ fn check_page(index: &Path) -> serde_json::Value {
 /// Issue 69's browser test: a small reconstruction (6 views circling the bundled object, the
 /// bundled model) opened by file:// in headless Chromium: no console error and every file
 /// loaded, the 3-D canvas draws the mesh and the points over a part of it (not background),
-/// moving the confidence slider changes what is drawn, the per-view pictures and match
+/// moving the confidence slider changes what is drawn, clicking a view's picture moves the
+/// 3-D view to its camera, the per-view pictures and match
 /// pictures load, and the scores `eval cameras` added are shown.
 #[test]
 fn the_page_shows_a_reconstruction_in_a_browser() {
@@ -97,6 +98,7 @@ fn the_page_shows_a_reconstruction_in_a_browser() {
     assert!(frac("points_drawn") > 0.03, "{r}");
     assert!(frac("changed_by_slider") > 0.005, "the slider changed nothing: {r}");
     assert!(frac("points_drawn_high") < frac("points_drawn"), "{r}");
+    assert!(frac("changed_by_view_click") > 0.01, "clicking a view's picture moved nothing: {r}");
     let views = dens3r_scene::Scene::open(&recon.join("scene")).unwrap().frames().len() as u64;
     assert_eq!(r["pictures"].as_u64(), Some(views));
     assert_eq!(r["pictures_loaded"].as_u64(), Some(views), "every picture decodes");

@@ -154,6 +154,13 @@ function main() {
   });
   applyThreshold();
   applyMode();
+  // Point size: the page's guess (the sampled pixels' spacing) times 2^value.
+  const psize = document.getElementById('psize');
+  psize.disabled = !points;
+  psize.addEventListener('input', () => {
+    if (points) points.object.material.size = data.points.point_size * 2 ** Number(psize.value);
+    requestRender();
+  });
   const showCams = document.getElementById('cameras');
   showCams.addEventListener('change', () => {
     frustums.visible = showCams.checked;

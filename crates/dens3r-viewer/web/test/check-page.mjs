@@ -74,6 +74,13 @@ try {
     report.label_high = await page.textContent('#conf-label');
     report.changed_by_slider = differing(low, high);
   }
+  // Clicking a view's picture looks from that camera.
+  const cards = await page.$$('#gallery figure');
+  if (cards.length > 1) {
+    const before = await grab();
+    await cards[Math.floor(cards.length / 2)].click();
+    report.changed_by_view_click = differing(before, await grab());
+  }
   report.pictures = await page.$$eval('#gallery img', (is) => is.length);
   // Pictures load lazily as they scroll into view: ask for them all now.
   report.pictures_loaded = await page.$$eval('#gallery img', (is) =>
@@ -83,6 +90,8 @@ try {
   report.score_tables = await page.$$eval('#scores table', (t) => t.length);
   const shot = opt('--screenshot');
   if (shot) {
+    await page.click('#home');
+    await page.evaluate(() => { document.getElementById('gallery').scrollLeft = 0; });
     await page.locator('#conf').fill(String(await page.evaluate(() => window.dens3rViewer.startSlider)));
     await page.selectOption('#mode', startMode);
     await page.screenshot({ path: shot });
