@@ -116,12 +116,18 @@ fn write_png(path: &Path, img: &RgbImage) -> Result<(), IoError> {
     })
 }
 
-fn b64<T: Copy>(v: &[T], bytes: impl Fn(&T) -> Vec<u8>) -> String {
-    base64::engine::general_purpose::STANDARD.encode(v.iter().flat_map(bytes).collect::<Vec<u8>>())
+/// Base64 of the little-endian bytes of `values` (each `N` bytes), gathered in one buffer.
+fn b64<T, const N: usize>(values: &[T], bytes: impl Fn(&T) -> [u8; N]) -> String {
+    let mut buf = Vec::with_capacity(values.len() * N);
+    values.iter().for_each(|v| buf.extend_from_slice(&bytes(v)));
+    base64::engine::general_purpose::STANDARD.encode(buf)
 }
 
 fn f32s(v: &[Vec3]) -> String {
-    b64(v, |p| p.to_array().iter().flat_map(|x| x.to_le_bytes()).collect())
+    b64(v, |p| {
+        let [x, y, z] = p.to_array().map(f32::to_le_bytes);
+        [x[0], x[1], x[2], x[3], y[0], y[1], y[2], y[3], z[0], z[1], z[2], z[3]]
+    })
 }
 
 /// Writes the page into `dir` (`index.html` and `viewer/`).
@@ -139,8 +145,8 @@ pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSum
     let points = json!({
         "count": pts.positions.len(),
         "positions": f32s(&pts.positions),
-        "colors": b64(&pts.colors, |c| c.to_vec()),
-        "conf": b64(&pts.conf, |c| c.to_le_bytes().to_vec()),
+        "colors": b64(&pts.colors, |c| *c),
+        "conf": b64(&pts.conf, |c| c.to_le_bytes()),
         "point_size": point_size(&page.views, &pts.positions, radius),
     });
     let mesh_json = mesh.as_ref().map(|m| {
@@ -148,8 +154,11 @@ pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSum
             "vertices": m.positions.len(),
             "triangles": m.indices.len(),
             "positions": f32s(&m.positions),
-            "indices": b64(&m.indices, |t| t.iter().flat_map(|i| i.to_le_bytes()).collect()),
-            "colors": m.colors.as_ref().map(|c| b64(c, |c| c.to_vec())),
+            "indices": b64(&m.indices, |t| {
+                let [a, b, c] = t.map(u32::to_le_bytes);
+                [a[0], a[1], a[2], a[3], b[0], b[1], b[2], b[3], c[0], c[1], c[2], c[3]]
+            }),
+            "colors": m.colors.as_ref().map(|c| b64(c, |c| *c)),
         })
     });
     let data = json!({
