@@ -14,6 +14,9 @@ pub struct Cloud {
     pub colors: Vec<[u8; 3]>,
     /// Confidence (the network's; 1 where a view has none), descending.
     pub conf: Vec<f32>,
+    /// The median distance between neighbouring samples on the surface (world units): the
+    /// footprint of `stride` pixels at each point's depth in its own view.
+    pub spacing: f32,
 }
 
 /// The pixel stride that keeps at most `max_points` of `valid` pixels.
@@ -38,6 +41,7 @@ pub fn cloud(views: &[View], max_points: usize) -> Cloud {
     let valid: usize = views.iter().map(|v| (0..v.depth.data().len()).filter(|&i| valid_at(v, i)).count()).sum();
     let s = stride_for(valid, max_points);
     let mut pts: Vec<(Vec3, [u8; 3], f32)> = Vec::new();
+    let mut footprint: Vec<f32> = Vec::new();
     for v in views {
         let (w, h) = (v.depth.width(), v.depth.height());
         let k = &v.camera.intrinsics;
@@ -56,6 +60,7 @@ pub fn cloud(views: &[View], max_points: usize) -> Cloud {
                 let c = if rgb_ok { v.rgb.get_pixel(x as u32, y as u32).0 } else { [200, 200, 200] };
                 let conf = v.conf.map_or(1.0, |c| c.data()[i]);
                 pts.push((p.as_vec3(), c, if conf.is_finite() { conf } else { 0.0 }));
+                footprint.push((d / k.fx * s as f64) as f32);
             }
         }
     }
@@ -64,21 +69,37 @@ pub fn cloud(views: &[View], max_points: usize) -> Cloud {
         positions: pts.iter().map(|p| p.0).collect(),
         colors: pts.iter().map(|p| p.1).collect(),
         conf: pts.iter().map(|p| p.2).collect(),
+        spacing: median(&mut footprint).unwrap_or(0.0),
     }
+}
+
+/// The median of `v` (reordered), `None` when empty.
+fn median(v: &mut [f32]) -> Option<f32> {
+    if v.is_empty() {
+        return None;
+    }
+    let mid = v.len() / 2;
+    Some(*v.select_nth_unstable_by(mid, f32::total_cmp).1)
 }
 
 /// Centre and radius holding most of `points` (the 2nd-98th percentile box per axis), so a
 /// few stray points do not set the view; falls back to the camera centres.
 pub fn bounds(points: &[Vec3], centres: &[DVec3]) -> (Vec3, f32) {
-    let pts: Vec<Vec3> =
-        if points.len() >= 8 { points.to_vec() } else { centres.iter().map(|c| c.as_vec3()).collect() };
+    let from_centres: Vec<Vec3>;
+    let pts = if points.len() >= 8 {
+        points
+    } else {
+        from_centres = centres.iter().map(|c| c.as_vec3()).collect();
+        &from_centres
+    };
     if pts.is_empty() {
         return (Vec3::ZERO, 1.0);
     }
-    let q = |axis: usize, p: f32| {
-        let mut v: Vec<f32> = pts.iter().map(|x| x[axis]).collect();
-        v.sort_by(f32::total_cmp);
-        v[((v.len() - 1) as f32 * p) as usize]
+    let mut v = vec![0.0f32; pts.len()];
+    let mut q = |axis: usize, p: f32| {
+        v.iter_mut().zip(pts).for_each(|(x, pt)| *x = pt[axis]);
+        let k = ((v.len() - 1) as f32 * p) as usize;
+        *v.select_nth_unstable_by(k, f32::total_cmp).1
     };
     let lo = Vec3::new(q(0, 0.02), q(1, 0.02), q(2, 0.02));
     let hi = Vec3::new(q(0, 0.98), q(1, 0.98), q(2, 0.98));

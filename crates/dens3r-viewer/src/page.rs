@@ -12,6 +12,7 @@ use dens3r_mesh::TriMesh;
 use dens3r_scene::viz::{depth_viz, normal_viz};
 use glam::Vec3;
 use image::RgbImage;
+use rayon::prelude::*;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
@@ -134,10 +135,9 @@ fn f32s(v: &[Vec3]) -> String {
 pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSummary, IoError> {
     let viewer = dir.join("viewer");
     std::fs::create_dir_all(viewer.join("views")).map_err(io(&viewer))?;
-    let mut views = Vec::with_capacity(page.views.len());
-    for (k, v) in page.views.iter().enumerate() {
-        views.push(view_json(&viewer, k, v, opts)?);
-    }
+    // Each view's pictures are independent (and most of the page's time).
+    let views: Vec<Value> =
+        page.views.par_iter().enumerate().map(|(k, v)| view_json(&viewer, k, v, opts)).collect::<Result<_, _>>()?;
     let pts = cloud(&page.views, opts.max_points);
     let centres: Vec<_> = page.views.iter().map(|v| v.camera.center()).collect();
     let (centre, radius) = bounds(&pts.positions, &centres);
@@ -147,7 +147,8 @@ pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSum
         "positions": f32s(&pts.positions),
         "colors": b64(&pts.colors, |c| *c),
         "conf": b64(&pts.conf, |c| c.to_le_bytes()),
-        "point_size": point_size(&page.views, &pts.positions, radius),
+        // About the samples' spacing, so the surface reads as closed; never zero.
+        "point_size": (pts.spacing * 1.5).max(radius * 1e-4),
     });
     let mesh_json = mesh.as_ref().map(|m| {
         json!({
@@ -239,18 +240,6 @@ fn frustum_depth(centres: &[glam::DVec3], radius: f32) -> f32 {
     nearest.sort_by(f64::total_cmp);
     let cap = radius * 0.1;
     nearest.get(nearest.len() / 2).map_or(cap, |d| ((*d / 3.0) as f32).min(cap))
-}
-
-/// Point size in world units: about the spacing of the sampled pixels at the median depth.
-fn point_size(views: &[View], points: &[Vec3], radius: f32) -> f32 {
-    let Some(v) = views.first() else { return radius * 0.005 };
-    let c = v.camera.center().as_vec3();
-    let mut d: Vec<f32> = points.iter().step_by(97).map(|p| p.distance(c)).collect();
-    d.sort_by(f32::total_cmp);
-    let median = d.get(d.len() / 2).copied().unwrap_or(radius);
-    let total: usize = views.iter().map(|v| v.depth.data().len()).sum();
-    let stride = (total as f32 / points.len().max(1) as f32).sqrt();
-    (median / v.camera.intrinsics.fx as f32 * stride * 1.5).max(radius * 1e-4)
 }
 
 fn escape(s: &str) -> String {

@@ -59,13 +59,14 @@ impl SceneViews {
                 (k.fx, k.fy, k.cx, k.cy) = (k.fx / s_, k.fy / s_, (k.cx - half) / s_, (k.cy - half) / s_);
                 (camera.width, camera.height) = (w / step, h / step);
             }
-            let rgb = Raster::from_fn(w, h, |x, y| rgb.get_pixel(x as u32, y as u32).0);
-            let rgb = every(&rgb, step);
+            // The same pixels as the maps' (see `every`).
+            let (st, half) = (step as u32, (step / 2) as u32);
+            let rgb = RgbImage::from_fn((w / step) as u32, (h / step) as u32, |x, y| {
+                *rgb.get_pixel(x * st + half, y * st + half)
+            });
             s.names.push(f.name.clone());
             s.cameras.push(camera);
-            s.rgb.push(RgbImage::from_fn(rgb.width() as u32, rgb.height() as u32, |x, y| {
-                image::Rgb(*rgb.get(x as usize, y as usize))
-            }));
+            s.rgb.push(rgb);
             s.conf.push(scene.conf(f)?.map(|c| every(&c, step)));
             s.normals.push(scene.normals(f)?.map(|n| every(&n, step)));
             s.depth.push(every(&depth, step));

@@ -66,6 +66,15 @@ fn the_cloud_lies_on_the_surface_the_depth_maps_saw_and_keeps_the_budget() {
     assert_eq!(all.conf[0], 2.0);
     let few = cloud(&views, 300);
     assert!(few.positions.len() <= 300 && few.positions.len() > 300 / 4, "{}", few.positions.len());
+    // The spacing the page sizes points by is the distance between neighbouring samples.
+    let mut nearest: Vec<f32> = few
+        .positions
+        .iter()
+        .map(|p| few.positions.iter().filter(|q| *q != p).map(|q| q.distance(*p)).fold(f32::MAX, f32::min))
+        .collect();
+    nearest.sort_by(f32::total_cmp);
+    let measured = nearest[nearest.len() / 2];
+    assert!(few.spacing > 0.6 * measured && few.spacing < 1.6 * measured, "{} against {measured}", few.spacing);
     assert_eq!(stride_for(1000, 1000), 1);
     assert_eq!(stride_for(1001, 1000), 2);
     assert_eq!(stride_for(4001, 1000), 3);
