@@ -11,7 +11,6 @@ fn main() {
     let licence = dir.join("web/node_modules/three/LICENSE");
     println!("cargo:rerun-if-changed={}", bundle.display());
     println!("cargo:rerun-if-changed={}", licence.display());
-    println!("cargo:rerun-if-changed=web/index.html");
     let (app, bundled) = match std::fs::read_to_string(&bundle) {
         Ok(s) => (s, true),
         Err(_) => {

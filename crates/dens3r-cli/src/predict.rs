@@ -187,7 +187,7 @@ pub fn run(a: PredictArgs) -> Result<()> {
     let mut page = None;
     if let Some(w) = writer {
         w.finish()?;
-        let title = a.output.file_name().map_or_else(|| "predict".into(), |n| n.to_string_lossy().into_owned());
+        let title = dens3r_viewer::title_of(&a.output);
         let summary = serde_json::json!({ "photos": inputs.len(), "maps": if a.original_size { "photo size" } else { "network size" } });
         let opts = dens3r_viewer::PageOptions::default();
         dens3r_viewer::scene_views::write_scene_page(&root, "", &title, Some(summary), true, &opts)?;

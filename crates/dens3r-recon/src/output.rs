@@ -182,7 +182,7 @@ pub fn write_outputs_into(
     if let Some(page_opts) = &opts.page {
         let t_page = Instant::now();
         let page = Page {
-            title: dest.file_name().map_or_else(|| dest.display().to_string(), |n| n.to_string_lossy().into_owned()),
+            title: dens3r_viewer::title_of(dest),
             views: page_views(rec, &scene),
             mesh: mesh.as_ref(),
             summary: Some(json),

@@ -22,7 +22,7 @@ pub mod pictures;
 pub mod scene_views;
 pub mod serve;
 
-pub use page::{add_scores, page_of, write_page, MatchPicture, Page, PageOptions, PageSummary, View};
+pub use page::{add_scores, page_of, title_of, write_page, MatchPicture, Page, PageOptions, PageSummary, View};
 
 mod assets {
     include!(concat!(env!("OUT_DIR"), "/bundled.rs"));
@@ -36,7 +36,7 @@ mod assets {
 
 /// The page's files that do not depend on the views (a file of the user's there is refused).
 pub const PAGE_FILES: [&str; 5] =
-    ["index.html", "viewer/app.js", "viewer/scene.js", "viewer/scores.js", "viewer/THREE-LICENSE.txt"];
+    [page::INDEX_HTML, page::APP_JS, page::SCENE_JS, page::SCORES_JS, page::THREE_LICENSE];
 
 /// Whether this build carries the 3-D viewer (three.js was bundled; see `scripts/build-viewer.sh`).
 pub const VIEWER_BUNDLED: bool = assets::BUNDLED;

@@ -3,13 +3,14 @@
 
 use crate::cloud::{bounds, cloud};
 use crate::decimate::decimate;
-use crate::pictures::{conf_viz, fit, jpeg_data_url};
+use crate::pictures::{fit, jpeg_data_url};
 use crate::{assets, VIEWER_BUNDLED};
 use base64::Engine;
 use dens3r_geom::{PinholeCamera, Raster};
 use dens3r_io::{write_atomic, IoError};
 use dens3r_mesh::TriMesh;
-use dens3r_scene::viz::{depth_viz, normal_viz};
+use dens3r_scene::viz::{conf_viz, depth_viz, normal_viz};
+use dens3r_scene::{write_rgb_png, SceneError};
 use glam::Vec3;
 use image::RgbImage;
 use rayon::prelude::*;
@@ -108,15 +109,6 @@ fn write_text(path: &Path, text: &str) -> Result<(), IoError> {
     write_atomic(path, |w| std::io::Write::write_all(w, text.as_bytes()))
 }
 
-fn write_png(path: &Path, img: &RgbImage) -> Result<(), IoError> {
-    use image::ImageEncoder;
-    write_atomic(path, |w| {
-        image::codecs::png::PngEncoder::new(w)
-            .write_image(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgb8)
-            .map_err(std::io::Error::other)
-    })
-}
-
 /// Base64 of the little-endian bytes of `values` (each `N` bytes), gathered in one buffer.
 fn b64<T, const N: usize>(values: &[T], bytes: impl Fn(&T) -> [u8; N]) -> String {
     let mut buf = Vec::with_capacity(values.len() * N);
@@ -132,7 +124,7 @@ fn f32s(v: &[Vec3]) -> String {
 }
 
 /// Writes the page into `dir` (`index.html` and `viewer/`).
-pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSummary, IoError> {
+pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSummary, SceneError> {
     let viewer = dir.join("viewer");
     std::fs::create_dir_all(viewer.join("views")).map_err(io(&viewer))?;
     // Each view's pictures are independent (and most of the page's time).
@@ -174,13 +166,13 @@ pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSum
         "frustum_depth": frustum_depth(&centres, radius),
     });
     let script = format!("window.DENS3R_SCENE = {};\n", serde_json::to_string(&data).expect("plain JSON values"));
-    write_text(&viewer.join("scene.js"), &script)?;
+    write_text(&dir.join(SCENE_JS), &script)?;
     write_text(&dir.join(SCORES_JS), &scores_script(page.scores.as_ref().unwrap_or(&Value::Null)))?;
-    write_text(&viewer.join("app.js"), assets::APP_JS)?;
-    write_text(&viewer.join("THREE-LICENSE.txt"), assets::THREE_LICENSE)?;
+    write_text(&dir.join(APP_JS), assets::APP_JS)?;
+    write_text(&dir.join(THREE_LICENSE), assets::THREE_LICENSE)?;
     let html = assets::INDEX_HTML
         .replace("<title>dens3r</title>", &format!("<title>{} - dens3r</title>", escape(&page.title)));
-    let index = dir.join("index.html");
+    let index = dir.join(INDEX_HTML);
     write_text(&index, &html)?;
     Ok(PageSummary {
         index,
@@ -192,14 +184,14 @@ pub fn write_page(dir: &Path, page: &Page, opts: &PageOptions) -> Result<PageSum
 
 /// One view's camera and pictures (written under `viewer/views/`, numbered: names may hold
 /// characters a URL would need escaped).
-fn view_json(viewer: &Path, k: usize, v: &View, opts: &PageOptions) -> Result<Value, IoError> {
+fn view_json(viewer: &Path, k: usize, v: &View, opts: &PageOptions) -> Result<Value, SceneError> {
     let mut pictures = serde_json::Map::new();
     if let Some(p) = &v.photo {
         pictures.insert("photo".into(), json!(url_path(p)));
     }
-    let mut put = |kind: &str, img: RgbImage| -> Result<(), IoError> {
+    let mut put = |kind: &str, img: RgbImage| -> Result<(), SceneError> {
         let file = format!("{k:04}_{kind}.png");
-        write_png(&viewer.join("views").join(&file), &fit(&img, opts.picture_px))?;
+        write_rgb_png(&viewer.join("views").join(&file), &fit(&img, opts.picture_px))?;
         pictures.insert(kind.into(), json!(format!("viewer/views/{file}")));
         Ok(())
     };
@@ -242,6 +234,11 @@ fn frustum_depth(centres: &[glam::DVec3], radius: f32) -> f32 {
     nearest.get(nearest.len() / 2).map_or(cap, |d| ((*d / 3.0) as f32).min(cap))
 }
 
+/// A page's heading for the output folder `dest`: its name.
+pub fn title_of(dest: &Path) -> String {
+    dest.file_name().map_or_else(|| dest.display().to_string(), |n| n.to_string_lossy().into_owned())
+}
+
 fn escape(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
 }
@@ -249,15 +246,10 @@ fn escape(s: &str) -> String {
 /// A relative path as a URL path: bytes other than letters, digits, `-._~/` percent-encoded
 /// (a `#` or `?` in a photo's name would otherwise end the path).
 pub fn url_path(p: &str) -> String {
-    let mut out = String::with_capacity(p.len());
-    for b in p.bytes() {
-        if b.is_ascii_alphanumeric() || b"-._~/".contains(&b) {
-            out.push(b as char);
-        } else {
-            out.push_str(&format!("%{b:02X}"));
-        }
-    }
-    out
+    use percent_encoding::{utf8_percent_encode, NON_ALPHANUMERIC};
+    const KEEP: &percent_encoding::AsciiSet =
+        &NON_ALPHANUMERIC.remove(b'-').remove(b'.').remove(b'_').remove(b'~').remove(b'/');
+    utf8_percent_encode(p, KEEP).to_string()
 }
 
 /// The page that shows `pred` (a scene folder or a mesh an output folder holds): the folder
@@ -290,10 +282,19 @@ pub fn add_scores(pred: &Path, kind: &str, scores: Value) -> Result<Option<PathB
         .unwrap_or_else(|| json!({}));
     all[kind] = scores;
     write_text(&path, &scores_script(&all))?;
-    Ok(Some(dir.join("index.html")))
+    Ok(Some(dir.join(INDEX_HTML)))
 }
 
-const SCORES_JS: &str = "viewer/scores.js";
+/// The page, in its folder.
+pub const INDEX_HTML: &str = "index.html";
+/// The bundled viewer.
+pub const APP_JS: &str = "viewer/app.js";
+/// The page's data.
+pub const SCENE_JS: &str = "viewer/scene.js";
+/// Scores, rewritten by [`add_scores`].
+pub const SCORES_JS: &str = "viewer/scores.js";
+/// three.js's licence.
+pub const THREE_LICENSE: &str = "viewer/THREE-LICENSE.txt";
 const SCORES_PREFIX: &str = "window.DENS3R_SCORES = ";
 
 fn scores_script(scores: &Value) -> String {

@@ -4,7 +4,7 @@
 // changed. `--screenshot FILE` also saves the page. Used by the browser test and by
 // scripts/make-readme-images.sh.
 //   node check-page.mjs OUT/index.html [--screenshot FILE] [--width W --height H]
-import { chromium } from 'playwright-core';
+import { launch } from './browser.mjs';
 import { pathToFileURL } from 'node:url';
 import path from 'node:path';
 
@@ -20,13 +20,7 @@ if (!index) {
 }
 const BACKGROUND = [0x1d, 0x20, 0x24];
 
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-  args: [
-    '--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader', '--disable-quic',
-    '--no-first-run', '--disable-background-networking', '--disable-component-update', '--disable-sync',
-  ],
-});
+const browser = await launch();
 try {
   const page = await browser.newPage({ viewport: { width: Number(opt('--width', 1280)), height: Number(opt('--height', 800)) } });
   const errors = [];

@@ -1,7 +1,7 @@
 // Pictures side by side, each scaled to one height, saved as one PNG (headless Chromium draws
 // them): the README's pictures (scripts/make-readme-images.sh).
 //   node compose.mjs OUT.png HEIGHT IMG [IMG ...]
-import { chromium } from 'playwright-core';
+import { launch } from './browser.mjs';
 import { pathToFileURL } from 'node:url';
 import path from 'node:path';
 import fs from 'node:fs';
@@ -12,10 +12,7 @@ if (!out || !height || !images.length) {
   console.error('usage: node compose.mjs OUT.png HEIGHT IMG [IMG ...]');
   process.exit(2);
 }
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM || '/usr/bin/chromium',
-  args: ['--no-sandbox', '--disable-background-networking', '--disable-component-update', '--no-first-run'],
-});
+const browser = await launch();
 try {
   const page = await browser.newPage({ viewport: { width: 4000, height: Number(height) } });
   const tags = images.map((i) => `<img src="${pathToFileURL(path.resolve(i)).href}" style="height:${height}px;display:block">`).join('');
