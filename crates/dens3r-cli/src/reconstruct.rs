@@ -378,7 +378,7 @@ fn report(
     println!(
         "pair graph: {}, {} pairs{}",
         g.name,
-        g.pairs,
+        g.list.len(),
         if g.name.starts_with("retrieval") {
             format!(
                 " (photos compared by the encoder in {:.1}s{})",

@@ -28,8 +28,6 @@ pub fn resolve(graph: Option<PairGraph>, n: usize) -> PairGraph {
 pub struct GraphInfo {
     /// The graph, as `--graph` names it (`retrieval-20-10`, `complete`, ...).
     pub name: String,
-    /// Unordered pairs.
-    pub pairs: usize,
     /// A retrieval graph found the photos in capture order and added its sliding window.
     pub ordered: bool,
     /// Seconds computing image descriptors and similarities.
@@ -40,7 +38,8 @@ pub struct GraphInfo {
     pub names: Vec<String>,
 }
 
-/// The unordered pairs `(i, j)` of `graph` (None: [`resolve`]) over `images`; a retrieval graph
+/// The unordered pairs `(i, j)` of `graph` (None: [`resolve`]) over `images`, in
+/// [`GraphInfo::list`]; a retrieval graph
 /// asks `predictor` for every image's descriptor, through `cache` (progress as
 /// [`Stage::Retrieve`]).
 pub fn plan_pairs(
@@ -50,13 +49,12 @@ pub fn plan_pairs(
     graph: Option<PairGraph>,
     warnings: &mut Vec<String>,
     progress: &mut dyn FnMut(Stage, usize, usize),
-) -> Result<(Vec<(usize, usize)>, GraphInfo), ReconError> {
+) -> Result<GraphInfo, ReconError> {
     let n = images.len();
     let graph = resolve(graph, n);
     let t = Instant::now();
     let PairGraph::Retrieval { keys, neighbours } = graph else {
-        let pairs = make_pairs(n, graph, false);
-        return Ok((pairs.clone(), info(images, graph, pairs, false, 0.0)));
+        return Ok(info(images, graph, make_pairs(n, graph, false), false, 0.0));
     };
     let mut desc = Vec::with_capacity(n);
     progress(Stage::Retrieve, 0, n);
@@ -81,12 +79,12 @@ pub fn plan_pairs(
     }
     let sim = similarity(&desc);
     let (pairs, ordered) = retrieval_graph(&sim, keys, neighbours, ORDERED_WINDOW);
-    Ok((pairs.clone(), info(images, graph, pairs, ordered, t.elapsed().as_secs_f64())))
+    Ok(info(images, graph, pairs, ordered, t.elapsed().as_secs_f64()))
 }
 
 fn info(images: &[InputImage], graph: PairGraph, list: Vec<(usize, usize)>, ordered: bool, seconds: f64) -> GraphInfo {
     let names = images.iter().map(|im| im.name.clone()).collect();
-    GraphInfo { name: name(graph), pairs: list.len(), ordered, seconds, list, names }
+    GraphInfo { name: name(graph), ordered, seconds, list, names }
 }
 
 /// A graph's name as `--graph` takes it.

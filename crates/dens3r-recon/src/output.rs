@@ -228,7 +228,7 @@ fn run_summary(rec: &Reconstruction, out: &OutputSummary, write_seconds: f64) ->
         "unregistered": s.unregistered,
         "cameras": if s.sfm.is_some() { "sfm" } else { "dense" },
         "graph": {
-            "name": s.graph.name, "pairs": s.graph.pairs, "ordered": s.graph.ordered,
+            "name": s.graph.name, "pairs": s.graph.list.len(), "ordered": s.graph.ordered,
             "list": s.graph.list.iter().map(|&(i, j)| [&s.graph.names[i], &s.graph.names[j]]).collect::<Vec<_>>(),
         },
         "network_runs": s.pairs - s.cache_hits,

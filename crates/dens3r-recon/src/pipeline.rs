@@ -265,9 +265,8 @@ pub fn reconstruct_dense(
     // Every pair, each followed by its reverse (the set DUSt3R symmetrises to): a predictor
     // may reuse work between the two runs of one pair.
     let mut warnings = Vec::new();
-    let (unordered, graph) =
-        crate::graph::plan_pairs(images, predictor, cache, opts.graph, &mut warnings, &mut progress)?;
-    let order: Vec<(usize, usize)> = unordered.into_iter().flat_map(|(i, j)| [(i, j), (j, i)]).collect();
+    let graph = crate::graph::plan_pairs(images, predictor, cache, opts.graph, &mut warnings, &mut progress)?;
+    let order: Vec<(usize, usize)> = graph.list.iter().flat_map(|&(i, j)| [(i, j), (j, i)]).collect();
     let ordered: HashSet<(usize, usize)> = order.iter().copied().collect();
     let known_focals = images.iter().filter(|im| im.focal.is_some()).count();
     let mut stats =

@@ -159,14 +159,12 @@ pub fn reconstruct_sfm(
     stats.keypoint_seconds = t.elapsed().as_secs_f64();
     // Structure from motion needs no network: a focal not known starts at 1.2 times the
     // photo's long side (COLMAP's guess) and bundle adjustment finds it.
-    let (pairs, graph) =
-        crate::graph::plan_pairs(images, predictor, cache, opts.graph, &mut stats.warnings, &mut progress)?;
-    stats.graph = graph;
+    stats.graph = crate::graph::plan_pairs(images, predictor, cache, opts.graph, &mut stats.warnings, &mut progress)?;
+    let pairs = &stats.graph.list;
     progress(Stage::Align, 0, 1);
     let t = Instant::now();
     let guesses: Vec<f64> = sizes.iter().map(|&(w, h)| 1.2 * w.max(h) as f64).collect();
-    let input =
-        SfmInput { keypoints: &kps, sizes: &sizes, known_focals: &known_focals, focal_guess: &guesses, pairs: &pairs };
+    let input = SfmInput { keypoints: &kps, sizes: &sizes, known_focals: &known_focals, focal_guess: &guesses, pairs };
     let sfm = run(&input, &settings.sfm);
     // Only the keypoints' positions are read from here: their descriptors (half a GB at 300
     // photos) go before the network's maps come.

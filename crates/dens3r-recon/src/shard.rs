@@ -82,7 +82,7 @@ pub fn compute_shard(
             }
         }
         Cameras::Dense => {
-            let (pairs, _) = crate::graph::plan_pairs(images, predictor, cache, opts.graph, warnings, progress)?;
+            let pairs = crate::graph::plan_pairs(images, predictor, cache, opts.graph, warnings, progress)?.list;
             let order: Vec<(usize, usize)> = pairs.iter().flat_map(|&(i, j)| [(i, j), (j, i)]).collect();
             let ordered: HashSet<(usize, usize)> = order.iter().copied().collect();
             stats.total = order.len();
