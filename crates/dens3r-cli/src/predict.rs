@@ -99,8 +99,16 @@ pub struct PredictArgs {
 }
 
 /// The error for an output folder that already holds a scene, unless `--overwrite`: a scene
-/// is never rewritten silently (its images may be this run's inputs).
+/// is never rewritten silently (its images may be this run's inputs). A scene dens3r did not
+/// write (no list of its outputs: by hand, another tool) is refused even with `--overwrite`.
 pub fn refuse_existing_scene(out: &Path, overwrite: bool) -> Result<()> {
+    if overwrite && dens3r_scene::holds_scene(out) && matches!(dens3r_io::output::Manifest::read(out), Ok(None)) {
+        bail!(
+            "{}: holds a scene dens3r did not write (no {}), so --overwrite does not replace it; write to a new folder, or move its files out first",
+            out.display(),
+            dens3r_io::output::MANIFEST
+        );
+    }
     if !overwrite && dens3r_scene::holds_scene(out) {
         bail!(
             "{}: already holds a scene (cameras.json); write to a new folder, or pass --overwrite to replace it",

@@ -25,6 +25,7 @@ pub fn write_atomic(
     crate::cleanup::sweep_stale(parent);
     let mut tmp = tempfile::Builder::new()
         .prefix(&crate::cleanup::temp_prefix())
+        .rand_bytes(6)
         .tempfile_in(parent)
         .map_err(|e| IoError::new(path, format!("cannot create a temporary file beside it: {e}")))?;
     // Removed if the process is stopped before the rename.

@@ -106,9 +106,22 @@ pub(crate) fn alive(pid: u32) -> bool {
     }
 }
 
-/// Removes temporary files and staging folders in `dir` (names containing `.dens3r-tmp-PID-`,
-/// `.dens3r-stage-PID` or `.dens3r-old-PID`) left by processes that no longer run; each
-/// folder is swept once per process.
+/// The writer's pid when `name` is exactly a name dens3r gives its temporary files
+/// (`.dens3r-tmp-PID-XXXXXX`, six letters or digits) or staging folders (`.dens3r-stage-PID`);
+/// None for every other name, however much of one it contains.
+pub fn leftover_pid(name: &str) -> Option<u32> {
+    let digits = |s: &str| !s.is_empty() && s.len() <= 10 && s.bytes().all(|b| b.is_ascii_digit());
+    if let Some(rest) = name.strip_prefix(".dens3r-stage-") {
+        return digits(rest).then(|| rest.parse().ok()).flatten();
+    }
+    let rest = name.strip_prefix(".dens3r-tmp-")?;
+    let (pid, tail) = rest.split_once('-')?;
+    (digits(pid) && tail.len() == 6 && tail.bytes().all(|b| b.is_ascii_alphanumeric())).then(|| pid.parse().ok())?
+}
+
+/// Removes temporary files and staging folders in `dir` ([`leftover_pid`]'s exact names) left
+/// by processes that no longer run; each folder is swept once per process. A temporary name
+/// is a file and a staging name a folder: anything else under those names is left.
 pub fn sweep_stale(dir: &Path) {
     {
         let mut swept = SWEPT.lock().unwrap_or_else(|e| e.into_inner());
@@ -119,14 +132,17 @@ pub fn sweep_stale(dir: &Path) {
     let Ok(entries) = std::fs::read_dir(dir) else { return };
     for e in entries.flatten() {
         let name = e.file_name().to_string_lossy().into_owned();
-        let pid = ["dens3r-tmp-", "dens3r-stage-", "dens3r-old-"].iter().find_map(|m| {
-            let rest = &name[name.find(m)? + m.len()..];
-            rest.split(|c: char| !c.is_ascii_digit()).next()?.parse::<u32>().ok()
-        });
-        if pid.is_some_and(|p| p != std::process::id() && !alive(p)) {
-            let p = e.path();
-            let _ = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
+        let Some(pid) = leftover_pid(&name) else { continue };
+        if pid == std::process::id() || alive(pid) {
+            continue;
         }
+        let Ok(kind) = e.file_type() else { continue };
+        let p = e.path();
+        let _ = match (name.starts_with(".dens3r-stage-"), kind.is_dir(), kind.is_file()) {
+            (true, true, _) => std::fs::remove_dir_all(&p),
+            (false, _, true) => std::fs::remove_file(&p),
+            _ => Ok(()),
+        };
     }
 }
 
@@ -148,16 +164,34 @@ mod tests {
         assert!(!f.exists() && !d.exists() && kept.exists());
 
         // A dead writer's leftovers go, a live one's (ours) and other files stay.
-        let dead = dir.path().join(".dens3r-tmp-4000000000-abc");
-        let ours = dir.path().join(format!("{}xyz", temp_prefix()));
-        let stage_dir = dir.path().join(".s.dens3r-stage-4000000001");
+        let dead = dir.path().join(".dens3r-tmp-4000000000-abc123");
+        let ours = dir.path().join(format!("{}xyz789", temp_prefix()));
+        let stage_dir = dir.path().join(".dens3r-stage-4000000001");
         std::fs::write(&dead, b"").unwrap();
         std::fs::write(&ours, b"").unwrap();
         std::fs::create_dir(&stage_dir).unwrap();
+        // Issue 77, 3: names that only contain a marker are a user's (they used to go).
+        let users = [
+            "archive-dens3r-old-2024",
+            "x.dens3r-stage-4000000001",
+            ".dens3r-stage-4000000001-mine",
+            ".dens3r-tmp-4000000000-abc",
+            "notes-dens3r-tmp-4000000000-abc123",
+            ".dens3r-old-4000000002",
+        ];
+        for u in users {
+            std::fs::create_dir(dir.path().join(u)).unwrap();
+            std::fs::write(dir.path().join(u).join("keep.txt"), b"mine").unwrap();
+        }
         sweep_stale(dir.path());
         if cfg!(target_os = "linux") {
             assert!(!dead.exists() && !stage_dir.exists());
         }
         assert!(ours.exists() && kept.exists());
+        for u in users {
+            assert!(dir.path().join(u).join("keep.txt").is_file(), "{u} was swept");
+        }
+        assert_eq!(leftover_pid(".dens3r-stage-12"), Some(12));
+        assert_eq!(leftover_pid(&format!("{}aB3dE9", temp_prefix())), Some(std::process::id()));
     }
 }

@@ -43,16 +43,7 @@ pub fn file_hash(path: &Path, memo: Option<&Path>) -> std::io::Result<u64> {
     if let Some(h) = known.get(&key).and_then(|h| u64::from_str_radix(h, 16).ok()) {
         return Ok(h);
     }
-    let mut f = std::fs::File::open(path)?;
-    let mut buf = vec![0u8; 1 << 20];
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
-    loop {
-        let n = std::io::Read::read(&mut f, &mut buf)?;
-        if n == 0 {
-            break;
-        }
-        h = fnv1a_update(h, &buf[..n]);
-    }
+    let h = content_hash(path)?;
     if let Some(m) = memo {
         // Entries of the same path under older stamps are dropped.
         let prefix = format!("{} ", canon.display());
@@ -63,6 +54,20 @@ pub fn file_hash(path: &Path, memo: Option<&Path>) -> std::io::Result<u64> {
         }
     }
     Ok(h)
+}
+
+/// FNV-1a of a file's bytes, read in 1 MB pieces (no memo).
+pub fn content_hash(path: &Path) -> std::io::Result<u64> {
+    let mut f = std::fs::File::open(path)?;
+    let mut buf = vec![0u8; 1 << 20];
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    loop {
+        let n = std::io::Read::read(&mut f, &mut buf)?;
+        if n == 0 {
+            return Ok(h);
+        }
+        h = fnv1a_update(h, &buf[..n]);
+    }
 }
 
 #[cfg(test)]

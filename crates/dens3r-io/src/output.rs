@@ -12,16 +12,39 @@
 
 use crate::cleanup::Staged;
 use crate::IoError;
-use std::collections::BTreeSet;
-use std::path::{Path, PathBuf};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Component, Path, PathBuf};
 
 /// The manifest's file name: the files (and folders) dens3r wrote in a destination.
 pub const MANIFEST: &str = ".dens3r-outputs.json";
 /// The lock file's name: the process id of the run writing the destination.
 pub const LOCK: &str = ".dens3r-lock";
 
+/// A file as dens3r wrote it: its size and content hash (FNV-1a, hex). A file counts as
+/// dens3r's only while it still matches.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Stamp {
+    /// Bytes.
+    pub size: u64,
+    /// [`crate::hash::content_hash`], 16 hex digits.
+    pub hash: String,
+}
+
+impl Stamp {
+    /// The stamp of the regular file at `path` (None: absent, not a regular file, unreadable).
+    pub fn of(path: &Path) -> Option<Stamp> {
+        let m = path.symlink_metadata().ok().filter(|m| m.file_type().is_file())?;
+        let hash = crate::hash::content_hash(path).ok()?;
+        Some(Stamp { size: m.len(), hash: format!("{hash:016x}") })
+    }
+}
+
 /// What dens3r wrote in a folder: files and the folders it created for them, relative paths
 /// with `/` separators.
+///
+/// A manifest is read as untrusted input (an output folder may come from anyone): only plain
+/// relative paths below the folder are kept, and a file is dens3r's only where its recorded
+/// [`Stamp`] still matches ([`Manifest::owns`]).
 #[derive(Debug, Default, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Manifest {
     /// Files written.
@@ -29,10 +52,32 @@ pub struct Manifest {
     /// Folders created for them.
     #[serde(default)]
     pub dirs: BTreeSet<String>,
+    /// Each file's size and content hash when it was written.
+    #[serde(default)]
+    pub stamps: BTreeMap<String, Stamp>,
+    /// While a run moves its files in: the stamps of the earlier files it replaces (either
+    /// version is dens3r's until the move ends).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub replacing: BTreeMap<String, Stamp>,
+    /// Entries of the file on disk that are not plain relative paths below the folder: never
+    /// used, named in a warning.
+    #[serde(skip)]
+    pub refused: Vec<String>,
+}
+
+/// Whether `rel` is a plain relative path below a folder: no root, no `..` or `.`, no empty
+/// part, no backslash (a Windows separator).
+pub fn plain_relative(rel: &str) -> bool {
+    !rel.is_empty()
+        && !rel.contains('\\')
+        && !rel.contains('\0')
+        && rel.split('/').all(|c| !c.is_empty() && c != "." && c != "..")
+        && Path::new(rel).components().all(|c| matches!(c, Component::Normal(_)))
 }
 
 impl Manifest {
-    /// The manifest of `dest` (`None` when it has none; an unreadable one is an error).
+    /// The manifest of `dest` (`None` when it has none; an unreadable one is an error). Entries
+    /// that are not plain relative paths are set apart in `refused`.
     pub fn read(dest: &Path) -> Result<Option<Manifest>, IoError> {
         let path = dest.join(MANIFEST);
         let text = match std::fs::read_to_string(&path) {
@@ -40,15 +85,65 @@ impl Manifest {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(IoError::new(&path, format!("cannot read dens3r's list of its outputs: {e}"))),
         };
-        serde_json::from_str(&text).map(Some).map_err(|e| {
+        let mut m: Manifest = serde_json::from_str(&text).map_err(|e| {
             IoError::new(&path, format!("damaged list of dens3r's outputs ({e}); remove it to write here again"))
-        })
+        })?;
+        let mut refused = Vec::new();
+        for set in [&mut m.files, &mut m.dirs] {
+            refused.extend(set.iter().filter(|f| !plain_relative(f)).cloned());
+            set.retain(|f| plain_relative(f));
+        }
+        m.stamps.retain(|f, _| plain_relative(f));
+        m.replacing.retain(|f, _| plain_relative(f));
+        m.refused = refused;
+        Ok(Some(m))
     }
 
     /// Whether it lists no file.
     pub fn is_empty(&self) -> bool {
         self.files.is_empty()
     }
+
+    /// Whether `rel` in `dest` is still the file dens3r wrote: listed with a stamp, reached
+    /// through real folders (no symbolic link on the way), a regular file of the recorded size
+    /// and content.
+    pub fn owns(&self, dest: &Path, rel: &str) -> bool {
+        let known: Vec<&Stamp> = [self.stamps.get(rel), self.replacing.get(rel)].into_iter().flatten().collect();
+        if known.is_empty() || !self.files.contains(rel) || !plain_relative(rel) || !real_folders(dest, Path::new(rel))
+        {
+            return false;
+        }
+        let path = dest.join(rel);
+        path.symlink_metadata().is_ok_and(|m| m.file_type().is_file() && known.iter().any(|s| s.size == m.len()))
+            && Stamp::of(&path).is_some_and(|s| known.contains(&&s))
+    }
+}
+
+/// Whether every folder between `dest` and `dest/rel` is a real folder (not a symbolic link,
+/// not a file); folders that do not exist yet pass.
+fn real_folders(dest: &Path, rel: &Path) -> bool {
+    rel.ancestors()
+        .skip(1)
+        .filter(|a| !a.as_os_str().is_empty())
+        .all(|a| dest.join(a).symlink_metadata().map_or(true, |m| m.file_type().is_dir()))
+}
+
+/// Rewrites `rel`, a file dens3r wrote in `dest` and still listed there unchanged, with
+/// `bytes` (atomically), and records its new stamp in the manifest; returns false, writing
+/// nothing, when the file is not dens3r's.
+pub fn rewrite_own(dest: &Path, rel: &str, bytes: &[u8]) -> Result<bool, IoError> {
+    let Some(mut m) = Manifest::read(dest)? else { return Ok(false) };
+    if !m.owns(dest, rel) {
+        return Ok(false);
+    }
+    let path = dest.join(rel);
+    crate::write_atomic(&path, |w| std::io::Write::write_all(w, bytes))?;
+    let stamp = Stamp::of(&path).ok_or_else(|| IoError::new(&path, "cannot read this output back"))?;
+    m.stamps.insert(rel.to_string(), stamp);
+    m.replacing.remove(rel);
+    let text = serde_json::to_string_pretty(&m).expect("manifest serialises");
+    crate::write_atomic(&dest.join(MANIFEST), |w| std::io::Write::write_all(w, text.as_bytes()))?;
+    Ok(true)
 }
 
 /// Whether `dest` holds outputs of an earlier dens3r run (by its manifest).
@@ -60,17 +155,25 @@ pub fn holds_outputs(dest: &Path) -> bool {
 }
 
 /// Removes the folder `dir` when every file in it is one dens3r wrote (listed in its
-/// manifest); otherwise refuses, naming a file that is not, and removes nothing.
+/// manifest, unchanged since); otherwise refuses, naming a file that is not, and removes
+/// nothing.
 pub fn remove_own(dir: &Path) -> Result<(), IoError> {
     let m = Manifest::read(dir)?.ok_or_else(|| {
         IoError::new(dir, "was not written by dens3r (no list of its outputs), so it is not replaced; move it")
     })?;
     let mut files = Vec::new();
     walk(dir, Path::new(""), &mut files).map_err(|e| IoError::new(dir, format!("cannot list it: {e}")))?;
-    if let Some(f) = files.iter().find(|f| rel_string(f) != MANIFEST && !m.files.contains(&rel_string(f))) {
+    if let Some(f) = files.iter().find(|f| rel_string(f) != MANIFEST && !m.owns(dir, &rel_string(f))) {
         return Err(in_the_way(&dir.join(f)));
     }
     std::fs::remove_dir_all(dir).map_err(|e| IoError::new(dir, format!("cannot remove this earlier output: {e}")))
+}
+
+/// The start time of process `pid` (clock ticks since boot, `/proc/PID/stat`'s 22nd field):
+/// with the pid, it tells a live writer from a new process that reuses a dead writer's pid.
+fn start_time(pid: u32) -> Option<u64> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    stat[stat.rfind(')')? + 1..].split_whitespace().nth(19)?.parse().ok()
 }
 
 /// The lock a run holds on a destination while it writes there.
@@ -83,22 +186,37 @@ struct Lock {
 impl Lock {
     fn take(dest: &Path) -> Result<Lock, IoError> {
         let path = dest.join(LOCK);
+        let me = std::process::id();
         for _ in 0..3 {
             match std::fs::OpenOptions::new().write(true).create_new(true).open(&path) {
                 Ok(mut f) => {
                     let staged = crate::cleanup::stage(&path);
-                    std::io::Write::write_all(&mut f, std::process::id().to_string().as_bytes())
+                    let text = match start_time(me) {
+                        Some(t) => format!("{me} {t}"),
+                        None => me.to_string(),
+                    };
+                    std::io::Write::write_all(&mut f, text.as_bytes())
                         .map_err(|e| IoError::new(&path, format!("cannot write the lock file: {e}")))?;
                     return Ok(Lock { path, _staged: staged });
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let holder = std::fs::read_to_string(&path).ok().and_then(|s| s.trim().parse::<u32>().ok());
+                    // "PID" or "PID START": a holder whose pid now names a process started at
+                    // another time is gone (its pid reused).
+                    let text = std::fs::read_to_string(&path).ok();
+                    let mut parts = text.as_deref().unwrap_or("").split_whitespace();
+                    let holder = parts.next().and_then(|p| p.parse::<u32>().ok());
+                    let started = parts.next().and_then(|p| p.parse::<u64>().ok());
                     match holder {
-                        Some(pid) if pid != std::process::id() && crate::cleanup::alive(pid) => {
+                        Some(pid)
+                            if pid != me
+                                && crate::cleanup::alive(pid)
+                                && started.is_none_or(|t| start_time(pid).is_none_or(|now| now == t)) =>
+                        {
                             return Err(IoError::new(
                                 dest,
                                 format!(
-                                    "another dens3r run (process {pid}) is writing this folder; wait for it to finish, or write to another folder"
+                                    "another dens3r run (process {pid}) is writing this folder; wait for it to finish, or write to another folder (if no dens3r run is writing it, remove {})",
+                                    path.display()
                                 ),
                             ));
                         }
@@ -107,7 +225,8 @@ impl Lock {
                             if holder.is_none() {
                                 std::thread::sleep(std::time::Duration::from_millis(50));
                                 let again = std::fs::read_to_string(&path).ok();
-                                if again.as_deref().and_then(|s| s.trim().parse::<u32>().ok()).is_some() {
+                                let first = again.as_deref().and_then(|s| s.split_whitespace().next());
+                                if first.and_then(|s| s.parse::<u32>().ok()).is_some() {
                                     continue;
                                 }
                             }
@@ -135,9 +254,6 @@ impl Drop for Lock {
 pub struct OutputDir {
     dest: PathBuf,
     stage: PathBuf,
-    /// Files counted as dens3r's where the destination has no manifest (outputs of versions
-    /// before it).
-    legacy: Vec<String>,
     /// Folders this run created (the destination, its missing parents), outermost first.
     created: Vec<PathBuf>,
     _created_guards: Vec<Staged>,
@@ -196,7 +312,6 @@ impl OutputDir {
         Ok(OutputDir {
             dest: dest.to_path_buf(),
             stage,
-            legacy: Vec::new(),
             created: missing,
             _created_guards: created_guards,
             _stage_guard: stage_guard,
@@ -214,12 +329,6 @@ impl OutputDir {
         &self.dest
     }
 
-    /// Files (relative to the destination) counted as written by dens3r when the destination
-    /// has no manifest: what an earlier version wrote, recognised by the caller.
-    pub fn set_legacy(&mut self, files: Vec<String>) {
-        self.legacy = files;
-    }
-
     /// Whether the destination already held it before this run (it was not created now).
     pub fn existed(&self) -> bool {
         self.created.is_empty()
@@ -231,36 +340,52 @@ impl OutputDir {
         let old = self.earlier()?;
         for rel in files {
             let target = self.dest.join(rel);
-            if target.symlink_metadata().is_ok() && !old.files.contains(rel) {
+            if !real_folders(&self.dest, Path::new(rel)) {
+                return Err(in_the_way_folder(&self.dest, Path::new(rel)));
+            }
+            if target.symlink_metadata().is_ok() && !old.owns(&self.dest, rel) {
                 return Err(in_the_way(&target));
             }
         }
         Ok(())
     }
 
-    /// What earlier dens3r runs wrote in the destination: its manifest, else the files
-    /// recognised as an earlier version's.
+    /// What earlier dens3r runs wrote in the destination: its manifest (none: nothing there is
+    /// dens3r's).
     fn earlier(&self) -> Result<Manifest, IoError> {
-        Ok(match Manifest::read(&self.dest)? {
-            Some(m) => m,
-            None => {
-                let files: BTreeSet<String> = self.legacy.iter().cloned().collect();
-                let dirs = files
-                    .iter()
-                    .flat_map(|f| Path::new(f).ancestors().skip(1).map(rel_string).collect::<Vec<_>>())
-                    .filter(|d| !d.is_empty())
-                    .collect();
-                Manifest { files, dirs }
-            }
-        })
+        Ok(Manifest::read(&self.dest)?.unwrap_or_default())
+    }
+
+    /// [`OutputDir::finish_with_warnings`], its warnings printed on stderr.
+    pub fn finish(self) -> Result<PathBuf, IoError> {
+        let (dest, warnings) = self.finish_with_warnings()?;
+        for w in warnings {
+            eprintln!("warning: {w}");
+        }
+        Ok(dest)
     }
 
     /// Moves the staged outputs into the destination: files of an earlier dens3r run there
-    /// are replaced, those the new run does not write removed, every other file left alone. A
-    /// staged file whose place holds a file dens3r did not write is refused before anything
-    /// moves. Files named `cameras.json` move last, so a scene is complete when it appears.
-    pub fn finish(mut self) -> Result<PathBuf, IoError> {
+    /// are replaced, those the new run does not write removed, every other file left alone.
+    /// A file counts as an earlier run's only while the manifest lists it by a plain relative
+    /// path and it still has the size and content recorded there; anything else the manifest
+    /// lists is left where it is and named in the returned warnings. A staged file whose place
+    /// holds a file dens3r did not write is refused before anything moves. The earlier scene
+    /// index (`cameras.json`) goes before anything moves and the new one moves last, so a stop
+    /// in between leaves no scene that mixes two runs; the manifest written before the moves
+    /// lists both runs' files, so the next run still knows them.
+    pub fn finish_with_warnings(mut self) -> Result<(PathBuf, Vec<String>), IoError> {
         let old = self.earlier()?;
+        let mut warnings: Vec<String> = old
+            .refused
+            .iter()
+            .map(|f| {
+                format!(
+                    "{}: lists {f:?}, which is not a path inside the folder; ignored",
+                    self.dest.join(MANIFEST).display()
+                )
+            })
+            .collect();
         let mut new = Vec::new();
         walk(&self.stage, Path::new(""), &mut new)
             .map_err(|e| IoError::new(&self.stage, format!("cannot list the staged outputs: {e}")))?;
@@ -268,14 +393,8 @@ impl OutputDir {
         for f in &new {
             let rel = rel_string(f);
             let target = self.dest.join(f);
-            for anc in f.ancestors().skip(1).filter(|a| !a.as_os_str().is_empty()) {
-                let d = self.dest.join(anc);
-                if d.symlink_metadata().is_ok_and(|m| !m.is_dir()) {
-                    return Err(IoError::new(
-                        &d,
-                        "is in the way of an output folder and was not written by dens3r; move it, or write to another folder",
-                    ));
-                }
+            if !real_folders(&self.dest, f) {
+                return Err(in_the_way_folder(&self.dest, f));
             }
             match target.symlink_metadata() {
                 Ok(m) if m.is_dir() => {
@@ -284,21 +403,54 @@ impl OutputDir {
                         "is a folder where dens3r writes a file; move it, or write to another folder",
                     ))
                 }
-                Ok(_) if !old.files.contains(&rel) => return Err(in_the_way(&target)),
+                Ok(_) if !old.owns(&self.dest, &rel) => return Err(in_the_way(&target)),
                 _ => {}
             }
         }
-        let new_rel: BTreeSet<String> = new.iter().map(|f| rel_string(f)).collect();
-        // The earlier run's files the new one does not write: removed (a scene's cameras.json
-        // first, so no scene lists files that are gone).
-        let mut stale: Vec<&String> = old.files.iter().filter(|f| !new_rel.contains(*f)).collect();
-        stale.sort_by_key(|f| !f.ends_with("cameras.json"));
-        for f in stale {
-            let p = self.dest.join(f);
-            if p.symlink_metadata().is_ok_and(|m| !m.is_dir()) {
-                std::fs::remove_file(&p)
-                    .map_err(|e| IoError::new(&p, format!("cannot remove this earlier output of dens3r's: {e}")))?;
+        let mut stamps = BTreeMap::new();
+        for f in &new {
+            let staged = self.stage.join(f);
+            let stamp =
+                Stamp::of(&staged).ok_or_else(|| IoError::new(&staged, "cannot read this staged output back"))?;
+            stamps.insert(rel_string(f), stamp);
+        }
+        let new_rel: BTreeSet<String> = stamps.keys().cloned().collect();
+        // The earlier run's files the new one does not write, and those it replaces.
+        let stale: Vec<&String> = old.files.iter().filter(|f| !new_rel.contains(*f)).collect();
+        let owned_stale: Vec<&String> = stale.iter().copied().filter(|f| old.owns(&self.dest, f)).collect();
+        for f in stale.iter().filter(|f| !owned_stale.contains(f)) {
+            if self.dest.join(f).symlink_metadata().is_ok() {
+                warnings.push(format!(
+                    "{}: listed as an earlier output of dens3r's but changed since (or not a file dens3r wrote); left as it is",
+                    self.dest.join(f).display()
+                ));
             }
+        }
+        // The journal: both runs' files, so a stop during the moves leaves them known.
+        let mut journal = Manifest { files: old.files.clone(), dirs: old.dirs.clone(), ..Default::default() };
+        journal.files.extend(new_rel.iter().cloned());
+        journal.stamps =
+            old.stamps.iter().filter(|(f, _)| !new_rel.contains(*f)).map(|(f, s)| (f.clone(), s.clone())).collect();
+        journal.stamps.extend(stamps.iter().map(|(f, s)| (f.clone(), s.clone())));
+        journal.replacing =
+            old.stamps.iter().filter(|(f, _)| new_rel.contains(*f)).map(|(f, s)| (f.clone(), s.clone())).collect();
+        self.write_manifest(&journal)?;
+        // Scene indexes first (stale ones and those replaced), then the other stale files.
+        let replaced_index: Vec<&String> =
+            new_rel.iter().filter(|f| f.ends_with("cameras.json") && old.owns(&self.dest, f)).collect();
+        let mut removed = Vec::new();
+        let mut remove = |f: &String| -> Result<(), IoError> {
+            let p = self.dest.join(f);
+            std::fs::remove_file(&p)
+                .map_err(|e| IoError::new(&p, format!("cannot remove this earlier output of dens3r's: {e}")))?;
+            removed.push(f.clone());
+            Ok(())
+        };
+        for f in replaced_index.iter().chain(owned_stale.iter().filter(|f| f.ends_with("cameras.json"))) {
+            remove(f)?;
+        }
+        for f in owned_stale.iter().filter(|f| !f.ends_with("cameras.json")) {
+            remove(f)?;
         }
         // The new files, cameras.json last.
         new.sort_by_key(|f| (f.file_name().is_some_and(|n| n == "cameras.json"), f.components().count()));
@@ -308,7 +460,7 @@ impl OutputDir {
             for anc in f.ancestors().skip(1).filter(|a| !a.as_os_str().is_empty()).collect::<Vec<_>>().into_iter().rev()
             {
                 let d = self.dest.join(anc);
-                if !d.exists() {
+                if d.symlink_metadata().is_err() {
                     std::fs::create_dir(&d)
                         .map_err(|e| IoError::new(&d, format!("cannot create the output folder: {e}")))?;
                     dirs.insert(rel_string(anc));
@@ -317,21 +469,31 @@ impl OutputDir {
             std::fs::rename(self.stage.join(f), &target)
                 .map_err(|e| IoError::new(&target, format!("cannot move the finished output into place: {e}")))?;
         }
-        // Folders of earlier outputs now empty.
-        let mut by_depth: Vec<&String> = dirs.iter().collect();
-        by_depth.sort_by_key(|d| std::cmp::Reverse(d.matches('/').count()));
-        for d in by_depth {
-            let _ = std::fs::remove_dir(self.dest.join(d));
+        // Folders dens3r created that held a file removed now, once empty (deepest first).
+        let mut emptied: Vec<String> = removed
+            .iter()
+            .flat_map(|f| Path::new(f).ancestors().skip(1).map(rel_string).collect::<Vec<_>>())
+            .filter(|d| !d.is_empty() && dirs.contains(d))
+            .collect();
+        emptied.sort_by_key(|d| std::cmp::Reverse(d.matches('/').count()));
+        emptied.dedup();
+        for d in emptied {
+            if real_folders(&self.dest, Path::new(&format!("{d}/x"))) {
+                let _ = std::fs::remove_dir(self.dest.join(&d));
+            }
         }
-        dirs.retain(|d| self.dest.join(d).is_dir());
-        let manifest = Manifest { files: new_rel, dirs };
-        let text = serde_json::to_string_pretty(&manifest).expect("manifest serialises");
-        crate::write_atomic(&self.dest.join(MANIFEST), |w| std::io::Write::write_all(w, text.as_bytes()))?;
+        dirs.retain(|d| self.dest.join(d).symlink_metadata().is_ok_and(|m| m.is_dir()));
+        self.write_manifest(&Manifest { files: new_rel, dirs, stamps, ..Default::default() })?;
         let _ = std::fs::remove_dir_all(&self.stage);
         self.created.clear();
         self._created_guards.clear();
         self.lock.take();
-        Ok(self.dest.clone())
+        Ok((self.dest.clone(), warnings))
+    }
+
+    fn write_manifest(&self, m: &Manifest) -> Result<(), IoError> {
+        let text = serde_json::to_string_pretty(m).expect("manifest serialises");
+        crate::write_atomic(&self.dest.join(MANIFEST), |w| std::io::Write::write_all(w, text.as_bytes()))
     }
 }
 
@@ -355,6 +517,21 @@ fn in_the_way(target: &Path) -> IoError {
     IoError::new(
         target,
         "exists and was not written by dens3r, so it is not replaced; move it, or write to another folder",
+    )
+}
+
+/// The refusal of an output whose folder's place holds a file or a symbolic link.
+fn in_the_way_folder(dest: &Path, rel: &Path) -> IoError {
+    let bad = rel
+        .ancestors()
+        .skip(1)
+        .filter(|a| !a.as_os_str().is_empty())
+        .map(|a| dest.join(a))
+        .find(|d| d.symlink_metadata().is_ok_and(|m| !m.file_type().is_dir()))
+        .unwrap_or_else(|| dest.join(rel));
+    IoError::new(
+        &bad,
+        "is in the way of an output folder (a file, or a link to elsewhere) and was not written by dens3r; move it, or write to another folder",
     )
 }
 

@@ -36,4 +36,4 @@ pub use cameras::{CamerasFile, Frame, InvalidFrame, MAX_IMAGE_SIDE};
 pub use classes::{read_classes, write_classes};
 pub use error::SceneError;
 pub use reader::{Layer, Scene};
-pub use writer::{begin_output, holds_scene, legacy_outputs, write_id_png, write_rgb_png, SceneWriter};
+pub use writer::{begin_output, holds_scene, write_id_png, write_rgb_png, SceneWriter};

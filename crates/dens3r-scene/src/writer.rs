@@ -35,66 +35,11 @@ pub fn holds_scene(dir: &Path) -> bool {
     dir.join("cameras.json").is_file()
 }
 
-/// The files of scene folders in `dir` and its immediate subfolders that dens3r versions
-/// before the output manifest wrote (relative paths): each scene's `cameras.json`,
-/// `classes.json`, `gt_mesh.ply`, `transforms.json`, its frames' images and layers, their
-/// pictures under `viz/` and pointmaps under `pointmaps/`; beside a reconstruction's `scene/`,
-/// its COLMAP model, match pictures and mesh. What a later run may replace there.
-pub fn legacy_outputs(dir: &Path) -> Vec<String> {
-    let mut out = Vec::new();
-    let mut prefixes = vec![String::new()];
-    if let Ok(entries) = std::fs::read_dir(dir) {
-        for e in entries.flatten() {
-            if e.path().join("cameras.json").is_file() {
-                prefixes.push(format!("{}/", e.file_name().to_string_lossy()));
-            }
-        }
-    }
-    for p in prefixes {
-        let root = dir.join(&p);
-        let Ok(text) = std::fs::read_to_string(root.join("cameras.json")) else { continue };
-        let Ok(cams) = serde_json::from_str::<CamerasFile>(&text) else { continue };
-        for f in ["cameras.json", "classes.json", "gt_mesh.ply", "transforms.json"] {
-            out.push(format!("{p}{f}"));
-        }
-        for fr in &cams.frames {
-            out.push(format!("{p}{}", fr.image));
-            for l in Layer::ALL {
-                let (d, ext) = l.location();
-                out.push(format!("{p}{d}/{}.{ext}", fr.name));
-            }
-            out.push(format!("{p}viz/{}_depth.png", fr.name));
-            out.push(format!("{p}viz/{}_normal.png", fr.name));
-            out.push(format!("{p}pointmaps/{}.ply", fr.name));
-        }
-    }
-    // A reconstruction's other outputs, only beside its scene folder.
-    if !holds_scene(&dir.join("scene")) {
-        out.retain(|f| dir.join(f).is_file());
-        return out;
-    }
-    for f in ["colmap/cameras.txt", "colmap/images.txt", "colmap/points3D.txt", "mesh.glb"] {
-        out.push(f.to_string());
-    }
-    if let Ok(entries) = std::fs::read_dir(dir.join("matches")) {
-        for e in entries.flatten() {
-            let n = e.file_name().to_string_lossy().into_owned();
-            if n.ends_with(".png") && n.contains('-') {
-                out.push(format!("matches/{n}"));
-            }
-        }
-    }
-    out.retain(|f| dir.join(f).is_file());
-    out
-}
-
 /// Starts the output folder `dir` of a command that writes scenes there (its lock taken, its
-/// outputs staged; see [`OutputDir`]), counting the files of scenes written before the output
-/// manifest ([`legacy_outputs`]) as dens3r's.
+/// outputs staged; see [`OutputDir`]). Only files its manifest lists, unchanged since, are
+/// dens3r's: a scene written by hand or by another tool is never replaced.
 pub fn begin_output(dir: &Path) -> Result<OutputDir, SceneError> {
-    let mut out = OutputDir::begin(dir)?;
-    out.set_legacy(legacy_outputs(dir));
-    Ok(out)
+    Ok(OutputDir::begin(dir)?)
 }
 
 impl SceneWriter {

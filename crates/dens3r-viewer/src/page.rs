@@ -254,13 +254,10 @@ pub fn url_path(p: &str) -> String {
 
 /// The page that shows `pred` (a scene folder or a mesh an output folder holds): the folder
 /// itself or its parent, where dens3r wrote a page (its list of outputs names the scores
-/// file, so a file of anyone else's is never touched).
+/// file, unchanged since, so a file of anyone else's is never touched).
 pub fn page_of(pred: &Path) -> Option<PathBuf> {
     let dir = if pred.is_dir() { Some(pred) } else { None };
-    let ours = |d: &Path| {
-        dens3r_io::output::Manifest::read(d).ok().flatten().is_some_and(|m| m.files.contains(SCORES_JS))
-            && d.join(SCORES_JS).is_file()
-    };
+    let ours = |d: &Path| dens3r_io::output::Manifest::read(d).ok().flatten().is_some_and(|m| m.owns(d, SCORES_JS));
     dir.into_iter()
         .chain(pred.parent())
         .map(|d| if d.as_os_str().is_empty() { Path::new(".") } else { d })
@@ -269,7 +266,8 @@ pub fn page_of(pred: &Path) -> Option<PathBuf> {
 }
 
 /// Adds `scores` under `kind` (e.g. `"cameras"`) to the page that shows `pred`, if there is
-/// one (`viewer/scores.js`, rewritten atomically; the other kinds kept); returns the page.
+/// one (`viewer/scores.js`, rewritten atomically and its new content recorded in the output
+/// list, so a later run still knows it as dens3r's; the other kinds kept); returns the page.
 pub fn add_scores(pred: &Path, kind: &str, scores: Value) -> Result<Option<PathBuf>, IoError> {
     let Some(dir) = page_of(pred) else { return Ok(None) };
     let path = dir.join(SCORES_JS);
@@ -281,7 +279,9 @@ pub fn add_scores(pred: &Path, kind: &str, scores: Value) -> Result<Option<PathB
         .filter(Value::is_object)
         .unwrap_or_else(|| json!({}));
     all[kind] = scores;
-    write_text(&path, &scores_script(&all))?;
+    if !dens3r_io::output::rewrite_own(&dir, SCORES_JS, scores_script(&all).as_bytes())? {
+        return Ok(None);
+    }
     Ok(Some(dir.join(INDEX_HTML)))
 }
 
