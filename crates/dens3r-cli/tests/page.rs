@@ -118,7 +118,10 @@ fn view_serves_the_page_on_localhost() {
     std::fs::create_dir_all(out.join("viewer")).unwrap();
     std::fs::write(out.join("index.html"), "<!doctype html>page").unwrap();
     std::fs::write(out.join("viewer/app.js"), "x").unwrap();
+    // A large file, for a client that asks for it and never reads.
+    std::fs::write(out.join("viewer/big.js"), vec![b'y'; 64 << 20]).unwrap();
     std::fs::write(dir.path().join("secret.txt"), "SECRET-CONTENT").unwrap();
+    std::os::unix::fs::symlink(dir.path(), out.join("rootfs")).unwrap();
     let port = {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         l.local_addr().unwrap().port()
@@ -128,30 +131,54 @@ fn view_serves_the_page_on_localhost() {
         .stdout(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let get = |path: &str| -> Option<String> {
-        use std::io::{Read, Write};
+    let connect = || {
         for _ in 0..100 {
-            if let Ok(mut s) = std::net::TcpStream::connect(("127.0.0.1", port)) {
-                write!(s, "GET {path} HTTP/1.0\r\nHost: localhost\r\n\r\n").unwrap();
-                let mut text = String::new();
-                s.read_to_string(&mut text).unwrap();
-                return Some(text);
+            if let Ok(s) = std::net::TcpStream::connect(("127.0.0.1", port)) {
+                s.set_read_timeout(Some(std::time::Duration::from_secs(5))).unwrap();
+                return s;
             }
             std::thread::sleep(std::time::Duration::from_millis(50));
         }
-        None
+        panic!("the server does not answer");
     };
-    let page = get("/").expect("the server answers");
-    let script = get("/viewer/app.js").unwrap();
-    let outside = get("/../secret.txt").unwrap();
+    let get_as = |path: &str, host: &str| -> String {
+        use std::io::{Read, Write};
+        let mut s = connect();
+        write!(s, "GET {path} HTTP/1.0\r\nHost: {host}\r\n\r\n").unwrap();
+        let mut text = String::new();
+        s.read_to_string(&mut text).expect("an answer within 5 s");
+        text
+    };
+    let here = format!("127.0.0.1:{port}");
+    let get = |path: &str| get_as(path, &here);
+    let page = get("/");
+    // Issue 77, 4: a client that sends nothing, and one that asks for 64 MB and reads none of
+    // it, stall only themselves: the others are answered at once.
+    let idle = connect();
+    let mut hog = connect();
+    std::io::Write::write_all(&mut hog, format!("GET /viewer/big.js HTTP/1.0\r\nHost: {here}\r\n\r\n").as_bytes())
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    let t = std::time::Instant::now();
+    let script = get("/viewer/app.js");
+    let waited = t.elapsed();
+    let outside = get("/../secret.txt");
+    let through_link = get("/rootfs/secret.txt");
+    let rebound = get_as("/", &format!("attacker.example:{port}"));
+    let localhost = get_as("/viewer/app.js", &format!("localhost:{port}"));
+    drop((idle, hog));
     child.kill().unwrap();
     let _ = child.wait();
-    assert!(page.starts_with("HTTP/1.0 200") && page.contains("text/html") && page.ends_with("page"), "{page}");
+    assert!(page.starts_with("HTTP/1.1 200") && page.contains("text/html") && page.ends_with("page"), "{page}");
     assert!(
-        script.starts_with("HTTP/1.0 200") && script.contains("text/javascript") && script.ends_with('x'),
+        script.starts_with("HTTP/1.1 200") && script.contains("text/javascript") && script.ends_with('x'),
         "{script}"
     );
-    assert!(outside.starts_with("HTTP/1.0 404") && !outside.contains("SECRET-CONTENT"), "{outside}");
+    assert!(waited < std::time::Duration::from_secs(2), "a stalled client held the server {waited:?}");
+    assert!(outside.starts_with("HTTP/1.1 404") && !outside.contains("SECRET-CONTENT"), "{outside}");
+    assert!(through_link.starts_with("HTTP/1.1 404") && !through_link.contains("SECRET"), "{through_link}");
+    assert!(rebound.starts_with("HTTP/1.1 421") && !rebound.contains("page"), "{rebound}");
+    assert!(localhost.starts_with("HTTP/1.1 200") && localhost.ends_with('x'), "{localhost}");
     let bad = Command::new(env!("CARGO_BIN_EXE_dens3r")).args(["view", dir.path().to_str().unwrap()]).output().unwrap();
     let err = String::from_utf8_lossy(&bad.stderr);
     assert_eq!(bad.status.code(), Some(2));

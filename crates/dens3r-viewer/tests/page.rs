@@ -183,12 +183,34 @@ fn the_server_serves_only_files_under_its_folder() {
     std::fs::create_dir_all(dir.path().join("viewer")).unwrap();
     std::fs::write(dir.path().join("index.html"), "x").unwrap();
     let root = dir.path();
+    std::fs::create_dir_all(root.join("scene/images")).unwrap();
+    std::fs::write(root.join("viewer/app.js"), "x").unwrap();
+    std::fs::write(root.join("scene/images/f#1.png"), "x").unwrap();
     assert_eq!(resolve(root, "/"), Some(root.join("index.html")));
     assert_eq!(resolve(root, "/viewer/app.js?x=1"), Some(root.join("viewer/app.js")));
     assert_eq!(resolve(root, "/scene/images/f%231.png"), Some(root.join("scene/images/f#1.png")));
     assert_eq!(resolve(root, "/../secret"), None);
     assert_eq!(resolve(root, "/viewer/%2e%2e/%2e%2e/etc/passwd"), None);
     assert_eq!(resolve(root, "/%zz"), None);
+    assert_eq!(resolve(root, "/missing.js"), None);
+    // Issue 77, 4: symbolic links out of the folder served what they point at.
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::symlink("/", root.join("rootfs")).unwrap();
+        std::os::unix::fs::symlink("/etc/passwd", root.join("viewer/p.js")).unwrap();
+        std::os::unix::fs::symlink("app.js", root.join("viewer/inside.js")).unwrap();
+        assert_eq!(resolve(root, "/rootfs/etc/passwd"), None);
+        assert_eq!(resolve(root, "/viewer/p.js"), None);
+        assert_eq!(resolve(root, "/viewer/inside.js"), Some(root.join("viewer/inside.js")), "a link inside stays");
+    }
+    // Only requests for this machine (DNS rebinding sends the attacker's name).
+    use dens3r_viewer::serve::local_host;
+    for ok in ["127.0.0.1:8473", "localhost:8473", "LOCALHOST:8473", "[::1]:8473", "localhost"] {
+        assert!(local_host(ok, 8473), "{ok}");
+    }
+    for bad in ["evil.example:8473", "127.0.0.1.evil.example:8473", "localhost:80", "127.0.0.2:8473", "", "[::1]:1"] {
+        assert!(!local_host(bad, 8473), "{bad}");
+    }
 }
 
 #[test]
