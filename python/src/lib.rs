@@ -742,13 +742,15 @@ fn reconstruct<'py>(
     };
     let (summary, rec_stats) = py.detach(|| {
         use dens3r_recon::{list_images, load_images, write_outputs_into, NetworkPredictor, OutputOptions, PairCache};
-        let paths = list_images(&photos).map_err(err)?;
-        let mut images = load_images(&paths, model.size, model.keep_portrait).map_err(err)?;
+        let loaded = load_images(&list_images(&photos).map_err(err)?, model.size, model.keep_portrait).map_err(err)?;
+        let (mut images, left_out) = dens3r_recon::input::keep_scenes(loaded);
+        let paths: Vec<std::path::PathBuf> = images.iter().map(|im| im.path.clone()).collect();
         if focal.is_some() {
             images.iter_mut().for_each(|im| im.set_focal(focal));
         }
         if images.len() < 2 {
-            return Err(err(format!("reconstruction needs at least 2 photos, got {}", images.len())));
+            let why = if left_out.is_empty() { String::new() } else { format!(" ({})", left_out.join("; ")) };
+            return Err(err(format!("reconstruction needs at least 2 photos of a scene, got {}{why}", images.len())));
         }
         if let Some(dir) = &masks {
             dens3r_recon::attach_masks(&mut images, dir).map_err(err)?;
@@ -767,13 +769,14 @@ fn reconstruct<'py>(
             keypoints: Some(dens3r_recon::KeypointOptions::default()),
             drop_unplaced: true,
         };
-        let rec = dens3r_recon::reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
+        let mut rec = dens3r_recon::reconstruct(&images, &predictor, &cache, &opts, |stage, done, total| match stage {
             dens3r_recon::Stage::Predict => report("predict", done, total),
             dens3r_recon::Stage::Align => report("align", done, iterations.max(total)),
             dens3r_recon::Stage::Retrieve => report("retrieve", done, total),
             dens3r_recon::Stage::Keypoints => report("keypoints", done, total),
         })
         .map_err(err)?;
+        rec.stats.warnings.splice(0..0, left_out);
         let min_conf = min_conf.unwrap_or(model.min_conf);
         let out_opts = OutputOptions { voxel, min_conf, gpu, mesh, match_pictures, ..Default::default() };
         let summary = write_outputs_into(&rec, &paths, &out_dir, &out_opts, |done, total| report("fuse", done, total))
@@ -834,7 +837,8 @@ fn compute_shard<'py>(
     let stats = py.detach(|| {
         use dens3r_recon::{list_images, load_images, NetworkPredictor, PairCache};
         let paths = list_images(&photos).map_err(err)?;
-        let images = load_images(&paths, model.size, model.keep_portrait).map_err(err)?;
+        let (images, _) =
+            dens3r_recon::input::keep_scenes(load_images(&paths, model.size, model.keep_portrait).map_err(err)?);
         let cache = PairCache::new(Some(cache_dir));
         let predictor = NetworkPredictor::new(model.net.model(), model.cache_id(&cache).map_err(err)?);
         let opts = dens3r_recon::ReconOptions { cameras, graph, ..Default::default() };

@@ -206,9 +206,15 @@ fn cameras(a: CameraArgs) -> Result<()> {
         100.0 * under(5.0),
         100.0 * under(15.0)
     );
+    // Pairs whose true cameras share a centre have no direction to score (issue 77, 10: this
+    // printed "NaN deg").
+    let translation = if m.translation_deg.is_empty() {
+        "not scored (the truth's camera centres coincide)".to_string()
+    } else {
+        format!("{:.3} deg", cam_median(&m.translation_deg))
+    };
     println!(
-        "translation direction error median {:.3} deg; focal error median {:.2}%, max {:.2}%",
-        cam_median(&m.translation_deg),
+        "translation direction error median {translation}; focal error median {:.2}%, max {:.2}%",
         100.0 * cam_median(&m.focal_rel),
         100.0 * j["focal_max_rel"].as_f64().unwrap_or(f64::NAN)
     );

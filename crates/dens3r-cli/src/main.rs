@@ -59,7 +59,13 @@ static ALLOC: dens3r_backbone::cpu::alloc::BlockCache = dens3r_backbone::cpu::al
 /// block), exit status 2, like every other error.
 fn parse_args() -> Cli {
     use clap::error::ErrorKind;
-    match Cli::try_parse() {
+    use clap::{CommandFactory, FromArgMatches};
+    /// Negative numbers are values, not flags, in every command (`--focal -1` gets the
+    /// flag's own bounds message, not clap's `-- -1` tip).
+    fn negatives(c: clap::Command) -> clap::Command {
+        c.allow_negative_numbers(true).mut_subcommands(negatives)
+    }
+    match negatives(Cli::command()).try_get_matches().and_then(|m| Cli::from_arg_matches(&m)) {
         Ok(cli) => cli,
         Err(e) if matches!(e.kind(), ErrorKind::DisplayHelp | ErrorKind::DisplayVersion) => e.exit(),
         Err(e) if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),

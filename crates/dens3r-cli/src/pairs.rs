@@ -2,7 +2,7 @@
 //! scheduler (Slurm array jobs, Kubernetes jobs); `reconstruct --cache DIR` then reads it.
 
 use crate::reconstruct::{network_id, open_cache, Pairing};
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::Args;
 use dens3r_recon::{compute_shard, list_images, load_images, NetworkPredictor, ReconOptions, Shard, Stage};
 use std::path::PathBuf;
@@ -38,9 +38,8 @@ pub fn run(a: PairsArgs) -> Result<()> {
     let paths = list_images(&a.photos)?;
     let settings = dens3r_recon::model::model_settings(config.as_deref())?;
     let images = load_images(&paths, a.model.size, a.model.keep_portrait || settings.keep_portrait)?;
-    if images.len() < 2 {
-        bail!("reconstruction needs at least 2 photos, got {}", images.len());
-    }
+    // The same photos as the reconstruct that reads the cache.
+    let (images, _) = crate::reconstruct::scene_photos(images)?;
     let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu, a.model.precision)?;
     let cache = open_cache(Some(a.cache.clone()), None)?;
     let network = NetworkPredictor::new(&model, network_id(&a.model, &weights, config.as_deref(), &cache)?);

@@ -228,15 +228,16 @@ fn checked_graph(a: &ReconstructArgs) -> Result<Option<PairGraph>> {
     Ok(graph)
 }
 
-/// The photos of `a`, decoded and preprocessed for the network, with their focals and masks;
-/// their paths; the model's settings.
+/// The photos of `a` that show a scene, decoded and preprocessed for the network, with their
+/// focals and masks; their paths; the model's settings; the warnings naming photos left out.
 fn load_photos(
     a: &ReconstructArgs,
     config: Option<&std::path::Path>,
-) -> Result<(Vec<PathBuf>, Vec<dens3r_recon::InputImage>, dens3r_recon::model::ModelSettings)> {
-    let paths = list_images(&a.photos)?;
+) -> Result<(Vec<PathBuf>, Vec<dens3r_recon::InputImage>, dens3r_recon::model::ModelSettings, Vec<String>)> {
     let settings = dens3r_recon::model::model_settings(config)?;
-    let mut images = load_images(&paths, a.model.size, a.model.keep_portrait || settings.keep_portrait)?;
+    let images = load_images(&list_images(&a.photos)?, a.model.size, a.model.keep_portrait || settings.keep_portrait)?;
+    let (mut images, left_out) = scene_photos(images)?;
+    let paths = images.iter().map(|im| im.path.clone()).collect();
     for im in &mut images {
         match a.focal {
             Some(f) => {
@@ -247,13 +248,21 @@ fn load_photos(
             None => {}
         }
     }
-    if images.len() < 2 {
-        bail!("reconstruction needs at least 2 photos, got {}", images.len());
-    }
     if let Some(dir) = &a.masks {
         dens3r_recon::attach_masks(&mut images, dir)?;
     }
-    Ok((paths, images, settings))
+    Ok((paths, images, settings, left_out))
+}
+
+/// The photos that show a scene ([`dens3r_recon::input::keep_scenes`]) and warnings naming
+/// the others; fewer than two left is an error naming them.
+pub fn scene_photos(images: Vec<dens3r_recon::InputImage>) -> Result<(Vec<dens3r_recon::InputImage>, Vec<String>)> {
+    let (images, left_out) = dens3r_recon::input::keep_scenes(images);
+    if images.len() < 2 {
+        let why = if left_out.is_empty() { String::new() } else { format!(" ({})", left_out.join("; ")) };
+        bail!("reconstruction needs at least 2 photos of a scene, got {}{why}", images.len());
+    }
+    Ok((images, left_out))
 }
 
 /// The reconstruction settings `a` asks for.
@@ -323,7 +332,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let (weights, config) = a.model.resolve()?;
     let t0 = Instant::now();
     // Every photo is decoded before the model loads: a bad photo fails in a second.
-    let (paths, images, settings) = load_photos(&a, config.as_deref())?;
+    let (paths, images, settings, left_out) = load_photos(&a, config.as_deref())?;
     let min_conf = a.min_conf.unwrap_or(settings.min_conf);
     let model = crate::model_args::load_network(&weights, config.as_deref(), a.gpu, a.model.precision)?;
     // The output folder is locked (a second run into it is refused) and staged from here;
@@ -338,8 +347,9 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         None => &network,
     };
     let bars = StageBars::new(a.iterations);
-    let rec = reconstruct(&images, predictor, &cache, &recon_options(&a, graph), |s, d, t| bars.update(s, d, t))?;
+    let mut rec = reconstruct(&images, predictor, &cache, &recon_options(&a, graph), |s, d, t| bars.update(s, d, t))?;
     bars.finish();
+    rec.stats.warnings.splice(0..0, left_out);
     let out_opts = OutputOptions {
         voxel: a.voxel,
         min_conf,

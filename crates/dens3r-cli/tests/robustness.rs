@@ -457,3 +457,229 @@ fn no_command_touches_files_it_did_not_create() {
         }
     }
 }
+
+// Issue 77, the third reliability round: output folders someone else made. Each test below
+// failed on main 850b8c2.
+
+/// Renders a 2- or 3-view room into `out` (`--overwrite` when `again`).
+fn small_render(out: &Path, views: &str, again: bool) -> Output {
+    let mut args = vec!["render", "--procedural", "room", "--views", views, "--width", "32", "--height", "24"];
+    if again {
+        args.push("--overwrite");
+    }
+    args.extend(["-o", out.to_str().unwrap()]);
+    dens3r(&args)
+}
+
+/// Issue 77, 1 and 3: a received folder's manifest that lists files outside the folder (`..`,
+/// absolute, `scene/../../x`), folders anywhere, a user's file inside it, or files reached
+/// through a link out of the folder: a rerun removes none of them, and names what it left.
+/// Folders whose names only contain dens3r's temporary markers are the user's.
+#[test]
+fn a_received_manifest_removes_nothing_it_should_not() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("received");
+    let outside = dir.path().join("outside");
+    std::fs::create_dir_all(outside.join("empty")).unwrap();
+    for f in ["victim.txt", "deep.txt", "abs.txt"] {
+        std::fs::write(outside.join(f), format!("user's {f}")).unwrap();
+    }
+    assert!(small_render(&out, "3", false).status.success());
+    std::fs::write(out.join("notes.txt"), "my notes, edited after receiving").unwrap();
+    std::fs::create_dir_all(out.join("archive-dens3r-old-2024")).unwrap();
+    std::fs::write(out.join("archive-dens3r-old-2024/a.txt"), "old").unwrap();
+    std::fs::create_dir_all(out.join(".dens3r-stage-4000000001-mine")).unwrap();
+    std::fs::write(out.join(".dens3r-stage-4000000001-mine/b.txt"), "mine").unwrap();
+    // A link out of the folder, and a file through it that the manifest claims (with its
+    // stamp, as a forger could).
+    std::os::unix::fs::symlink(&outside, out.join("link")).unwrap();
+    let manifest_path = out.join(".dens3r-outputs.json");
+    let mut m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&manifest_path).unwrap()).unwrap();
+    let abs = outside.join("abs.txt").display().to_string();
+    let stamp = |p: &Path| {
+        let bytes = std::fs::read(p).unwrap();
+        let mut h = 0xcbf2_9ce4_8422_2325u64;
+        for b in bytes.iter() {
+            h ^= *b as u64;
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+        serde_json::json!({"size": bytes.len(), "hash": format!("{h:016x}")})
+    };
+    for f in ["../outside/victim.txt", abs.as_str(), "depth/../../outside/deep.txt", "notes.txt", "link/victim.txt"] {
+        m["files"].as_array_mut().unwrap().push(f.into());
+    }
+    m["stamps"]["link/victim.txt"] = stamp(&outside.join("victim.txt"));
+    m["stamps"]["../outside/victim.txt"] = stamp(&outside.join("victim.txt"));
+    m["stamps"]["notes.txt"] = serde_json::json!({"size": 3, "hash": "0000000000000000"});
+    m["dirs"].as_array_mut().unwrap().extend(["../outside/empty".into(), "link".into()]);
+    std::fs::write(&manifest_path, serde_json::to_string(&m).unwrap()).unwrap();
+    let kept_outside = snapshot(&outside);
+    let kept_notes = std::fs::read(out.join("notes.txt")).unwrap();
+
+    let rerun = small_render(&out, "2", true);
+    let err = String::from_utf8_lossy(&rerun.stderr);
+    assert!(rerun.status.success(), "{err}");
+    assert_eq!(snapshot(&outside), kept_outside, "a file outside the folder was touched");
+    assert!(outside.join("empty").is_dir());
+    assert_eq!(std::fs::read(out.join("notes.txt")).unwrap(), kept_notes);
+    assert!(
+        out.join("archive-dens3r-old-2024/a.txt").is_file()
+            && out.join(".dens3r-stage-4000000001-mine/b.txt").is_file()
+    );
+    assert!(out.join("link").symlink_metadata().unwrap().file_type().is_symlink());
+    assert!(err.contains("notes.txt") && err.contains("left as it is"), "{err}");
+    assert!(err.contains("../outside/victim.txt") && err.contains("ignored"), "{err}");
+    // dens3r's own stale frame did go, and the new manifest lists only plain paths.
+    assert!(out.join("depth/0001.npy").is_file() && !out.join("depth/0002.npy").exists());
+    let text = std::fs::read_to_string(&manifest_path).unwrap();
+    assert!(!text.contains("..") && !text.contains(&abs) && !text.contains("notes.txt"), "{text}");
+
+    // A user's edit of an output dens3r wrote makes it the user's: refused, not replaced.
+    std::fs::write(out.join("depth/0000.npy"), "edited by hand").unwrap();
+    let e = String::from_utf8_lossy(&small_render(&out, "2", true).stderr).to_string();
+    assert!(e.contains("depth/0000.npy") && e.contains("not written by dens3r"), "{e}");
+    assert_eq!(std::fs::read_to_string(out.join("depth/0000.npy")).unwrap(), "edited by hand");
+
+    // A folder of dens3r's outputs replaced by a link out of the folder: refused.
+    let out2 = dir.path().join("linked");
+    assert!(small_render(&out2, "2", false).status.success());
+    let moved = dir.path().join("moved-depth");
+    std::fs::rename(out2.join("depth"), &moved).unwrap();
+    std::os::unix::fs::symlink(&moved, out2.join("depth")).unwrap();
+    let before = snapshot(&moved);
+    let e = String::from_utf8_lossy(&small_render(&out2, "2", true).stderr).to_string();
+    assert!(e.contains("depth") && e.contains("not written by dens3r"), "{e}");
+    assert_eq!(snapshot(&moved), before);
+}
+
+/// Issue 77, 2: `predict --overwrite` into a scene written by hand or another tool (no
+/// manifest) deleted its ground truth, labels and masks. Refused in one line.
+#[test]
+fn overwrite_refuses_a_scene_dens3r_did_not_write() {
+    let a = parity(A);
+    let (w, c) = (a.join("weights.safetensors"), a.join("config.json"));
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("room");
+    let copy = |from: &Path, to: &Path| {
+        let status = Command::new("cp").arg("-r").arg(from).arg(to).status().unwrap();
+        assert!(status.success());
+    };
+    copy(&samples().join("room"), &scene);
+    let before = snapshot(&scene);
+    let img = scene.join("images/0000.png");
+    let args = predict_args(
+        w.to_str().unwrap(),
+        c.to_str().unwrap(),
+        &[img.to_str().unwrap()],
+        scene.to_str().unwrap(),
+        &["--overwrite"],
+    );
+    let e = fails(&args);
+    assert!(e.contains("did not write") && e.contains("new folder"), "{e}");
+    assert_eq!(snapshot(&scene), before);
+    // render --overwrite the same.
+    let e = String::from_utf8_lossy(&small_render(&scene, "2", true).stderr).to_string();
+    assert!(e.contains("did not write"), "{e}");
+    assert_eq!(snapshot(&scene), before);
+}
+
+/// Issue 77, 6: `dens3r pairs` with a cache it cannot store in said "N of N network runs",
+/// exit 0.
+#[test]
+fn pairs_fails_when_it_stores_nothing() {
+    let a = parity(A);
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("cache-is-a-file");
+    std::fs::write(&file, "x").unwrap();
+    let mut args: Vec<String> = vec!["pairs".into(), samples().join("photos").display().to_string()];
+    args.extend(["--cache".into(), file.display().to_string()]);
+    for (flag, path) in [("--weights", a.join("weights.safetensors")), ("--config", a.join("config.json"))] {
+        args.extend([flag.to_string(), path.display().to_string()]);
+    }
+    args.extend(["--size", "64"].map(String::from));
+    let e = fails(&args);
+    assert!(e.contains("cache-is-a-file") && e.contains("cache"), "{e}");
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "x");
+}
+
+/// Issue 77, 8: all-black, all-white, noise, 8x8 and 1x1 photos each gave cameras and a
+/// mesh. They are left out and named; with fewer than two photos of a scene, refused.
+#[test]
+fn photos_without_a_scene_are_left_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    image::RgbImage::new(200, 150).save(photos.join("black.png")).unwrap();
+    image::RgbImage::from_pixel(1, 1, image::Rgb([9, 9, 9])).save(photos.join("dot.png")).unwrap();
+    let mut seed = 7u64;
+    let noise = image::RgbImage::from_fn(200, 150, |_, _| {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        image::Rgb([(seed >> 56) as u8, (seed >> 48) as u8, (seed >> 40) as u8])
+    });
+    noise.save(photos.join("noise.png")).unwrap();
+    std::fs::copy(samples().join("photos/chelsea.png"), photos.join("cat.png")).unwrap();
+    let e = fails(&reconstruct_args(&photos, &dir.path().join("out"), &[]));
+    assert!(e.contains("at least 2 photos of a scene") && e.contains("black.png") && e.contains("noise"), "{e}");
+    assert!(!dir.path().join("out").exists());
+}
+
+/// Issue 77, 10: a reused pid in a leftover lock blocked the folder forever with no hint; a
+/// pipe or a device given as a photo got "no such file"; negative numbers got clap's `-- -1`
+/// tip; `eval cameras` printed "NaN deg" when the truth's cameras coincide.
+#[test]
+fn small_cases_of_the_third_round() {
+    let dir = tempfile::tempdir().unwrap();
+    // A lock left by a dead run whose pid now names another process (pid 1, started at
+    // another time): taken over. One whose writer is alive but unknown: refused with a hint.
+    let o = dir.path().join("locked");
+    std::fs::create_dir_all(&o).unwrap();
+    std::fs::write(o.join(".dens3r-lock"), "1 123456789012").unwrap();
+    assert!(small_render(&o, "2", false).status.success(), "a reused pid's stale lock blocked the folder");
+    std::fs::write(o.join(".dens3r-lock"), "1").unwrap();
+    let e = fails(&[
+        "render",
+        "--procedural",
+        "room",
+        "--views",
+        "2",
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--overwrite",
+        "-o",
+        o.to_str().unwrap(),
+    ]);
+    assert!(e.contains("another dens3r run") && e.contains("remove") && e.contains(".dens3r-lock"), "{e}");
+
+    // A pipe and a device as photos.
+    let fifo = dir.path().join("fifo.png");
+    assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+    let photo = samples().join("photos/chelsea.png");
+    for odd in [fifo.as_path(), Path::new("/dev/zero")] {
+        let mut args = reconstruct_args(&photo, &dir.path().join("x"), &[]);
+        args.insert(1, odd.display().to_string());
+        let e = fails(&args);
+        assert!(e.contains("not a regular file") && e.contains(&odd.display().to_string()), "{e}");
+    }
+
+    // Negative numbers are values: the flag's own bounds answer.
+    let room = samples().join("room");
+    let mesh = dir.path().join("m.ply");
+    let e = fails(&["fuse", room.to_str().unwrap(), "-o", mesh.to_str().unwrap(), "--voxel", "-1"]);
+    assert!(e.contains("voxel size -1") && !e.contains("-- -1"), "{e}");
+
+    // eval cameras against a truth whose cameras share one centre.
+    let gt = dir.path().join("gt");
+    assert!(Command::new("cp").arg("-r").arg(&room).arg(&gt).status().unwrap().success());
+    let mut cams: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(room.join("cameras.json")).unwrap()).unwrap();
+    for f in cams["frames"].as_array_mut().unwrap() {
+        for row in 0..3 {
+            f["cam_to_world"][row][3] = 0.5.into();
+        }
+    }
+    std::fs::write(gt.join("cameras.json"), serde_json::to_string(&cams).unwrap()).unwrap();
+    let out = ok(&["eval", "cameras", room.to_str().unwrap(), gt.to_str().unwrap()]);
+    assert!(!out.contains("NaN") && out.contains("not scored"), "{out}");
+}

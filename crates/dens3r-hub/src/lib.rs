@@ -13,7 +13,7 @@ pub mod download;
 pub use catalogue::{find, Known, Source, KNOWN};
 pub use download::{download, Fetched, Progress};
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 dens3r_io::file_or_setting_error! {
     /// Why a checkpoint could not be found or fetched: one line naming the file or address and
@@ -102,8 +102,29 @@ pub fn fetch_model(k: &Known, progress: &mut dyn FnMut(&str, Progress)) -> Resul
         }
     };
     let dir = model_dir(k);
+    // The folders created here go again if nothing is downloaded into them (a refused or cut
+    // download leaves no empty model folder that looks like a cached model).
+    let created: Vec<PathBuf> = dir.ancestors().take_while(|d| !d.exists()).map(Path::to_path_buf).collect();
     std::fs::create_dir_all(&dir)
         .map_err(|e| HubError::file(&dir, format!("cannot create the cache folder ({e}); set ${HOME_ENV}")))?;
+    let result = fetch_files(k, repo, &dir, progress);
+    if result.is_err() {
+        for d in &created {
+            if std::fs::remove_dir(d).is_err() {
+                break;
+            }
+        }
+    }
+    result
+}
+
+/// The hub files of `k` into `dir` ([`fetch_model`]).
+fn fetch_files(
+    k: &Known,
+    repo: &str,
+    dir: &Path,
+    progress: &mut dyn FnMut(&str, Progress),
+) -> Result<PathBuf, HubError> {
     let base = endpoint();
     for file in catalogue::HUB_FILES {
         let dest = dir.join(file);
@@ -134,5 +155,5 @@ pub fn fetch_model(k: &Known, progress: &mut dyn FnMut(&str, Progress)) -> Resul
         let side = dir.join(format!("{file}.sha256"));
         dens3r_io::write_atomic(&side, |w| std::io::Write::write_all(w, record.as_bytes()))?;
     }
-    Ok(dir)
+    Ok(dir.to_path_buf())
 }

@@ -82,6 +82,8 @@ fn cut_downloads_resume_damaged_ones_are_refused_and_names_resolve() {
     std::env::set_var(dens3r_hub::ENDPOINT_ENV, "http://127.0.0.1:9");
     let e = dens3r_hub::fetch_model(dens3r_hub::find("mast3r-512-metric").unwrap(), &mut |_, _| {}).unwrap_err();
     assert!(e.to_string().contains("DENS3R_HUB_ENDPOINT"), "{e}");
+    // Issue 77, 10: a refused download left an empty model folder behind.
+    assert!(!dens3r_hub::model_dir(dens3r_hub::find("mast3r-512-metric").unwrap()).exists());
 
     // Issue 66, 3: poisoned downloads. A hub answering an HTML page (200, no checksum) for
     // every file: refused, nothing cached, and a later good hub downloads the real files.
@@ -93,6 +95,7 @@ fn cut_downloads_resume_damaged_ones_are_refused_and_names_resolve() {
     assert!(e.contains("model.safetensors") && e.contains("HTML") && !e.contains('\n'), "{e}");
     assert!(!folder.join("model.safetensors").exists() && !part_path(&folder.join("model.safetensors")).exists());
     assert!(!dens3r_hub::is_cached(k));
+    assert!(!folder.exists(), "an empty model folder was left");
     // A body with no length announced that stops halfway: refused, not installed.
     hub.html.store(false, Ordering::SeqCst);
     hub.unsized_cut.store(true, Ordering::SeqCst);
@@ -109,6 +112,7 @@ fn cut_downloads_resume_damaged_ones_are_refused_and_names_resolve() {
     assert!(!hub.log.lock().unwrap().iter().any(|l| l.starts_with("GET")), "fetched anyway");
     // An older dens3r's poisoned cache entry (an HTML page with its download record) is not
     // "cached" and is fetched again; a damaged file placed by hand is named and left alone.
+    std::fs::create_dir_all(&folder).unwrap();
     std::fs::write(folder.join("model.safetensors"), b"<!DOCTYPE html><html>502</html>").unwrap();
     std::fs::write(folder.join("model.safetensors.sha256"), "00  none  x\n").unwrap();
     std::fs::write(folder.join("config.json"), br#"{"enc_num_heads": 2, "dec_num_heads": 2}"#).unwrap();

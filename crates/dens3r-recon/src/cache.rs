@@ -7,8 +7,9 @@
 //!
 //! Entries are compact: half-precision floats, normals in two numbers (octahedral), a pair's
 //! pointmaps as they are, a photo's depth as one number a pixel; 1.6 MB a photo at 512 x 384.
-//! Each is written to a temporary file and renamed (a crash leaves no half entry) and ends in a
-//! checksum of its bytes: a damaged entry is a miss, recomputed. With a budget
+//! Each is written to a temporary file and renamed (a crash leaves no half entry), holds its own
+//! key in its header and ends in a checksum of its bytes: a damaged entry, one found under
+//! another entry's name, or one holding NaN or infinite values is a miss, recomputed. With a budget
 //! ([`PairCache::with_budget`]) the least recently used entries are removed to stay within it.
 
 use crate::input::{fnv1a, InputImage};
@@ -22,7 +23,8 @@ use std::sync::Mutex;
 
 /// Entries' file name suffix (format 2; format 1 was a folder of `.npy` arrays).
 const EXT: &str = "d3c";
-const MAGIC: &[u8; 8] = b"dens3rC2";
+/// Format 3: the entry's key in its header (format 2 had none: two entries swapped were used).
+const MAGIC: &[u8; 8] = b"dens3rC3";
 
 /// Where network outputs are kept (None: memory only, nothing reused across runs).
 #[derive(Debug)]
@@ -30,6 +32,8 @@ pub struct PairCache {
     dir: Option<PathBuf>,
     /// Most bytes the entries may take, and the bytes they take now (None: not counted yet).
     budget: Option<(u64, Mutex<Option<u64>>)>,
+    /// Entries that could not be stored.
+    failed: std::sync::atomic::AtomicUsize,
 }
 
 /// A photo's own-frame depth (z), confidence and normals: one network pass of its self-pair.
@@ -46,12 +50,29 @@ pub struct MonoMaps {
 impl PairCache {
     /// A cache in `dir` (created on first store), or none.
     pub fn new(dir: Option<PathBuf>) -> Self {
-        Self { dir, budget: None }
+        Self { dir, budget: None, failed: Default::default() }
     }
 
     /// A cache in `dir` that removes its least recently used entries to stay within `bytes`.
     pub fn with_budget(dir: PathBuf, bytes: u64) -> Self {
-        Self { dir: Some(dir), budget: Some((bytes, Mutex::new(None))) }
+        Self { dir: Some(dir), budget: Some((bytes, Mutex::new(None))), failed: Default::default() }
+    }
+
+    /// How many entries this cache could not store (a folder that is a file, read-only, full).
+    pub fn failed_stores(&self) -> usize {
+        self.failed.load(std::sync::atomic::Ordering::SeqCst)
+    }
+
+    /// Refuses a folder entries cannot be stored in: created if missing, then a probe file
+    /// written and removed.
+    pub fn check_writable(&self) -> Result<(), IoError> {
+        let Some(root) = &self.dir else { return Ok(()) };
+        std::fs::create_dir_all(root).map_err(|e| IoError::new(root, format!("cannot create the pair cache ({e})")))?;
+        let probe = root.join(format!(".dens3r-probe-{}", std::process::id()));
+        dens3r_io::write_atomic(&probe, |w| std::io::Write::write_all(w, b"probe"))
+            .map_err(|e| IoError::new(root, format!("cannot store entries in the pair cache: {}", e.message)))?;
+        let _ = std::fs::remove_file(&probe);
+        Ok(())
     }
 
     /// The folder, if any.
@@ -82,7 +103,10 @@ impl PairCache {
     fn read(&self, key: &str) -> Option<Vec<Array>> {
         let path = self.path(key)?;
         let bytes = std::fs::read(&path).ok()?;
-        let arrays = decode(&bytes)?;
+        let arrays = decode(&bytes, key)?;
+        if arrays.iter().any(|a| a.data.iter().any(|v| !v.is_finite())) {
+            return None;
+        }
         if self.budget.is_some() {
             let _ = std::fs::File::options()
                 .append(true)
@@ -94,18 +118,19 @@ impl PairCache {
 
     /// Writes entry `key` (no-op without a folder), then evicts within the budget.
     fn write(&self, key: &str, arrays: &[Array]) -> Result<(), IoError> {
-        self.write_bytes(key, &encode(arrays))
+        self.write_bytes(key, &encode(key, arrays))
     }
 
     /// Encodes `arrays` as an entry, writes it under `key` and returns them as a later read
     /// will: in half precision. What a run uses is what a rerun reads from the cache, so a
     /// rerun gives the same result, with a cache or without.
     fn put(&self, key: &str, arrays: &[Array], warnings: &mut Vec<String>) -> Vec<Array> {
-        let bytes = encode(arrays);
+        let bytes = encode(key, arrays);
         if let Err(w) = self.write_bytes(key, &bytes) {
+            self.failed.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
             warnings.push(format!("pair cache not written: {w}"));
         }
-        decode(&bytes).expect("an entry just encoded decodes")
+        decode(&bytes, key).expect("an entry just encoded decodes")
     }
 
     fn write_bytes(&self, key: &str, bytes: &[u8]) -> Result<(), IoError> {
@@ -244,15 +269,15 @@ impl Array {
     }
 }
 
-/// Entry bytes: magic, header length (u32 LE), a JSON header listing the arrays (name,
-/// channels, width, height), every array's values as f16 LE in that order, and FNV-1a of all
-/// bytes before it (u64 LE).
-fn encode(arrays: &[Array]) -> Vec<u8> {
-    let header: Vec<serde_json::Value> = arrays
+/// Entry bytes: magic, header length (u32 LE), a JSON header holding the entry's key and
+/// listing the arrays (name, channels, width, height), every array's values as f16 LE in that
+/// order, and FNV-1a of all bytes before it (u64 LE).
+fn encode(key: &str, arrays: &[Array]) -> Vec<u8> {
+    let list: Vec<serde_json::Value> = arrays
         .iter()
         .map(|a| serde_json::json!({"name": a.name, "channels": a.channels, "w": a.w, "h": a.h}))
         .collect();
-    let header = serde_json::to_vec(&header).expect("plain JSON");
+    let header = serde_json::to_vec(&serde_json::json!({"key": key, "arrays": list})).expect("plain JSON");
     let values: usize = arrays.iter().map(|a| a.data.len()).sum();
     let mut out = Vec::with_capacity(12 + header.len() + 2 * values + 8);
     out.extend(MAGIC);
@@ -267,16 +292,20 @@ fn encode(arrays: &[Array]) -> Vec<u8> {
     out
 }
 
-fn decode(bytes: &[u8]) -> Option<Vec<Array>> {
+/// The arrays of an entry whose checksum holds and whose header names `key`.
+fn decode(bytes: &[u8], key: &str) -> Option<Vec<Array>> {
     let body = bytes.len().checked_sub(8)?;
     if bytes.get(..8)? != MAGIC || fnv1a(&bytes[..body], 0).to_le_bytes() != bytes[body..] {
         return None;
     }
     let hlen = u32::from_le_bytes(bytes.get(8..12)?.try_into().ok()?) as usize;
     let header: serde_json::Value = serde_json::from_slice(bytes.get(12..12usize.checked_add(hlen)?)?).ok()?;
+    if header["key"].as_str() != Some(key) {
+        return None;
+    }
     let mut at = 12 + hlen;
     let mut out = Vec::new();
-    for a in header.as_array()? {
+    for a in header["arrays"].as_array()? {
         let u = |k: &str| a[k].as_u64().map(|v| v as usize);
         let (channels, w, h) = (u("channels")?, u("w")?, u("h")?);
         let n = channels.checked_mul(w)?.checked_mul(h)?;
@@ -297,6 +326,10 @@ fn raster(a: &Array) -> Raster<f32> {
     Raster::from_vec(a.w, a.h, a.data.clone()).expect("checked size")
 }
 
+/// An invalid normal's two numbers: outside the octahedral square, finite (so an entry's
+/// non-finite values can all mean damage).
+const NO_NORMAL: [f32; 2] = [2.0, 2.0];
+
 /// Unit normals as two numbers each: the octahedral map (the sphere folded onto a square).
 fn normals_array(name: &str, n: &Raster<Vec3>) -> Array {
     let data = n
@@ -305,7 +338,7 @@ fn normals_array(name: &str, n: &Raster<Vec3>) -> Array {
         .flat_map(|v| {
             let l1 = v.x.abs() + v.y.abs() + v.z.abs();
             if !(l1 > 0.0 && l1.is_finite()) {
-                return [f32::NAN, f32::NAN];
+                return NO_NORMAL;
             }
             let (x, y) = (v.x / l1, v.y / l1);
             if v.z >= 0.0 {
@@ -324,6 +357,9 @@ fn normals_from(a: &Array) -> Raster<Vec3> {
         .chunks_exact(2)
         .map(|c| {
             let (x, y) = (c[0], c[1]);
+            if x.abs() > 1.5 || y.abs() > 1.5 {
+                return Vec3::ZERO;
+            }
             let z = 1.0 - x.abs() - y.abs();
             let (x, y) = if z >= 0.0 { (x, y) } else { ((1.0 - y.abs()) * x.signum(), (1.0 - x.abs()) * y.signum()) };
             Vec3::new(x, y, z).normalize_or_zero()
@@ -418,10 +454,49 @@ mod tests {
         assert!(cache.load("k", [(4, 3), (4, 3)]).is_none(), "a damaged entry is recomputed, not used");
     }
 
+    /// Issue 77, 5: two entries swapped on disk (same size) were used, each for the other's
+    /// photos; an entry holding NaN gave all-NaN depth with exit 0.
+    #[test]
+    fn entries_are_bound_to_their_key_and_a_nan_entry_is_a_miss() {
+        let dir = tempfile::tempdir().unwrap();
+        let cache = PairCache::new(Some(dir.path().to_path_buf()));
+        let mut other = view(4, 3);
+        other.conf = Raster::from_vec(4, 3, vec![5.0; 12]).unwrap();
+        cache.store("a", &[view(4, 3), view(4, 3)]).unwrap();
+        cache.store("b", &[other.clone(), other]).unwrap();
+        assert!(cache.load("a", [(4, 3); 2]).is_some() && cache.load("b", [(4, 3); 2]).is_some());
+        let (a, b, t) = (dir.path().join("a.d3c"), dir.path().join("b.d3c"), dir.path().join("t"));
+        assert_eq!(std::fs::metadata(&a).unwrap().len(), std::fs::metadata(&b).unwrap().len());
+        std::fs::rename(&a, &t).unwrap();
+        std::fs::rename(&b, &a).unwrap();
+        std::fs::rename(&t, &b).unwrap();
+        assert!(cache.load("a", [(4, 3); 2]).is_none(), "b's entry under a's name is a miss");
+        assert!(cache.load("b", [(4, 3); 2]).is_none(), "a's entry under b's name is a miss");
+
+        // A NaN entry is recomputed; an invalid normal (zero) is not damage.
+        let mut w = Vec::new();
+        let maps = |z: f32| MonoMaps {
+            depth: Raster::from_vec(2, 2, vec![z; 4]).unwrap(),
+            conf: Raster::from_vec(2, 2, vec![1.0; 4]).unwrap(),
+            normals: Some(Raster::from_vec(2, 2, vec![Vec3::ZERO, Vec3::Z, Vec3::Z, Vec3::Z]).unwrap()),
+        };
+        let (m, hit) = cache.mono_or("m", (2, 2), &mut w, || Ok::<_, ()>(maps(f32::NAN))).unwrap();
+        assert!(!hit && m.depth.data()[0].is_nan());
+        let (m, hit) = cache.mono_or("m", (2, 2), &mut w, || Ok::<_, ()>(maps(2.0))).unwrap();
+        assert!(!hit, "the NaN entry was used");
+        assert_eq!(m.depth.data()[0], 2.0);
+        let (m, hit) = cache.mono_or("m", (2, 2), &mut w, || Ok::<_, ()>(maps(3.0))).unwrap();
+        assert!(hit && m.depth.data()[0] == 2.0);
+        let n = m.normals.unwrap();
+        assert_eq!(n.data()[0], Vec3::ZERO);
+        assert!((n.data()[1] - Vec3::Z).length() < 1e-3);
+        assert!(w.is_empty(), "{w:?}");
+    }
+
     #[test]
     fn a_budget_keeps_the_most_recently_used_entries() {
         let dir = tempfile::tempdir().unwrap();
-        let one = encode(&view_arrays("v0", &view(8, 8))).len() as u64 * 2;
+        let one = encode("a", &view_arrays("v0", &view(8, 8))).len() as u64 * 2;
         let cache = PairCache::with_budget(dir.path().to_path_buf(), 3 * one);
         for k in ["a", "b", "c"] {
             cache.store(k, &[view(8, 8), view(8, 8)]).unwrap();

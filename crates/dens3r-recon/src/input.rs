@@ -24,8 +24,16 @@ pub struct InputImage {
     pub hash: u64,
     /// Focal length in pixels at [`size`](Self::size), when known: from the photo's EXIF 35 mm
     /// equivalent focal length ([`exif_focal_px`]), or given by [`set_focal`](Self::set_focal).
-    /// Reconstruction keeps a known focal fixed instead of estimating it.
+    /// Structure from motion keeps a focal the user gave fixed ([`focal_fixed`](Self::focal_fixed))
+    /// and refines an EXIF focal with it as a prior; the dense path keeps either fixed.
     pub focal: Option<f64>,
+    /// Whether `focal` was given by the user (kept fixed) rather than read from EXIF.
+    pub focal_fixed: bool,
+    /// What the user should know about this photo (an EXIF focal out of bounds, ignored).
+    pub warnings: Vec<String>,
+    /// Why the photo shows no scene ([`no_scene`]: too small, one flat colour, noise), where it
+    /// does not: [`keep_scenes`] leaves it out of a reconstruction.
+    pub no_scene: Option<String>,
     /// The object's pixels at [`size`](Self::size), when a mask was given
     /// ([`crate::masks::attach_masks`]): only these are fused into the mesh.
     pub mask: Option<dens3r_geom::Raster<bool>>,
@@ -47,6 +55,7 @@ impl InputImage {
     /// orientation, before resizing); `None` forgets it, so it is estimated.
     pub fn set_focal(&mut self, photo_px: Option<f64>) {
         self.focal = photo_px.filter(|f| f.is_finite() && *f > 0.0).map(|f| f * self.photo_to_map());
+        self.focal_fixed = self.focal.is_some();
     }
 
     /// Refuses a focal (pixels of the photo as read) that gives the photo a horizontal field
@@ -95,6 +104,11 @@ pub fn list_images(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, ReconError> {
             out.extend(files);
         } else if p.is_file() {
             out.push(p.clone());
+        } else if p.exists() {
+            return Err(ReconError::input(
+                p,
+                "is not a regular file (a pipe or a device?); give a photo file or a folder of photos",
+            ));
         } else {
             return Err(ReconError::input(p, "no such file or folder"));
         }
@@ -110,20 +124,92 @@ pub fn load_images(paths: &[PathBuf], size: u32, keep_portrait: bool) -> Result<
     for p in paths {
         let bytes = std::fs::read(p).map_err(|e| ReconError::input(p, format!("cannot read ({e})")))?;
         let img = decode_oriented(p, &bytes)?;
+        let no_scene = no_scene(&img);
         let prep = preprocess(&img, size, !keep_portrait).map_err(|e| ReconError::input(p, e.to_string()))?;
-        let focal = exif_focal_px(&bytes, (img.width(), img.height()));
+        let (focal, warnings) = match exif_focal(&bytes, (img.width(), img.height())) {
+            Ok(f) => (f, vec![]),
+            Err(w) => (None, vec![format!("{}: {w}", p.display())]),
+        };
         let mut im = InputImage {
             name: unique_name(p, &mut names),
             path: p.clone(),
             prep,
             hash: fnv1a(&bytes, 0),
             focal: None,
+            focal_fixed: false,
+            warnings,
+            no_scene,
             mask: None,
         };
         im.set_focal(focal);
+        im.focal_fixed = false;
         out.push(im);
     }
     Ok(out)
+}
+
+/// The smallest side, in pixels, of a photo that can show a scene.
+pub const MIN_PHOTO_SIDE: u32 = 16;
+
+/// Why `img` shows no scene a reconstruction could use, or None: smaller than
+/// [`MIN_PHOTO_SIDE`] on a side; one flat colour (grey levels with a standard deviation under
+/// 1.5 of 255: all black, all white, a blank frame); or noise (neighbouring pixels'
+/// grey levels correlate under 0.25, where photographs, even of grass or gravel, correlate
+/// above 0.5). Measured on at most about a million pixels, sampled on a grid.
+pub fn no_scene(img: &image::DynamicImage) -> Option<String> {
+    let (w, h) = (img.width(), img.height());
+    if w.min(h) < MIN_PHOTO_SIDE {
+        return Some(format!(
+            "is {w} x {h} pixels: too small to show a scene (at least {MIN_PHOTO_SIDE} on each side)"
+        ));
+    }
+    let grey = img.to_luma32f();
+    let step = ((w as f64 * h as f64 / 1e6).sqrt().ceil() as u32).max(1);
+    let at = |x: u32, y: u32| f64::from(grey.get_pixel(x, y).0[0]) * 255.0;
+    let (mut n, mut sum, mut sq) = (0.0, 0.0, 0.0);
+    let (mut pairs, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for y in (0..h - 1).step_by(step as usize) {
+        for x in (0..w - 1).step_by(step as usize) {
+            let v = at(x, y);
+            n += 1.0;
+            sum += v;
+            sq += v * v;
+            for u in [at(x + 1, y), at(x, y + 1)] {
+                pairs += 1.0;
+                (sa, sb, saa, sbb, sab) = (sa + v, sb + u, saa + v * v, sbb + u * u, sab + v * u);
+            }
+        }
+    }
+    let var = (sq / n - (sum / n).powi(2)).max(0.0);
+    if var.sqrt() < 1.5 {
+        return Some("is one flat colour (no detail to see a scene in)".into());
+    }
+    let (ma, mb) = (sa / pairs, sb / pairs);
+    let cov = sab / pairs - ma * mb;
+    let corr = cov / ((saa / pairs - ma * ma).max(1e-12) * (sbb / pairs - mb * mb).max(1e-12)).sqrt();
+    if corr < 0.25 {
+        return Some(format!(
+            "looks like noise, not a photograph (neighbouring pixels correlate {corr:.2}; photographs above 0.5)"
+        ));
+    }
+    None
+}
+
+/// The photos of `images` that show a scene, and a warning naming each one left out and why
+/// ([`InputImage::no_scene`]).
+pub fn keep_scenes(images: Vec<InputImage>) -> (Vec<InputImage>, Vec<String>) {
+    let mut warnings = Vec::new();
+    let kept = images
+        .into_iter()
+        .filter(|im| match &im.no_scene {
+            Some(why) => {
+                warnings.push(format!("{}: {why}; left out", im.path.display()));
+                false
+            }
+            None => true,
+        })
+        .collect();
+    (kept, warnings)
 }
 
 /// Diagonal of a 36 x 24 mm frame, mm: a 35 mm equivalent focal length gives the same field of
@@ -132,14 +218,30 @@ pub const FULL_FRAME_DIAGONAL_MM: f64 = 43.266_615;
 
 /// The focal length in pixels of a `(w, h)` photo from its EXIF `FocalLengthIn35mmFilm` tag
 /// (JPEG, PNG, TIFF or HEIF container): `f35 / 43.27 mm * diagonal`. `None` when the file has
-/// no EXIF, no such tag, or the value 0 ("unknown") or over 5000 mm (not a camera's).
-pub fn exif_focal_px(bytes: &[u8], (w, h): (u32, u32)) -> Option<f64> {
-    let exif = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(bytes)).ok()?;
-    let f35 = exif.get_field(exif::Tag::FocalLengthIn35mmFilm, exif::In::PRIMARY)?.value.get_uint(0)?;
-    if f35 == 0 || f35 > 5000 {
-        return None;
-    }
-    Some(f64::from(f35) / FULL_FRAME_DIAGONAL_MM * f64::from(w).hypot(f64::from(h)))
+/// no EXIF, no such tag, the value 0 ("unknown"), or a focal outside the bounds `--focal` has
+/// (fields of view of 1 to 170 degrees: [`exif_focal`] says why).
+pub fn exif_focal_px(bytes: &[u8], size: (u32, u32)) -> Option<f64> {
+    exif_focal(bytes, size).ok().flatten()
+}
+
+/// [`exif_focal_px`], with the reason a focal the EXIF gives is not used (outside fields of
+/// view of 1 to 170 degrees, as `--focal` is bounded: a damaged or edited tag) as the error.
+pub fn exif_focal(bytes: &[u8], (w, h): (u32, u32)) -> Result<Option<f64>, String> {
+    let Ok(exif) = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(bytes)) else { return Ok(None) };
+    let Some(f35) = exif
+        .get_field(exif::Tag::FocalLengthIn35mmFilm, exif::In::PRIMARY)
+        .and_then(|f| f.value.get_uint(0))
+        .filter(|f| *f > 0)
+    else {
+        return Ok(None);
+    };
+    let f = f64::from(f35) / FULL_FRAME_DIAGONAL_MM * f64::from(w).hypot(f64::from(h));
+    check_focal(f, f64::from(w), "EXIF 35 mm equivalent focal length").map_err(|_| {
+        format!(
+            "its EXIF focal length ({f35} mm, 35 mm equivalent: {f:.1} px) gives a field of view outside 1 to 170 degrees; ignored, the focal is estimated"
+        )
+    })?;
+    Ok(Some(f))
 }
 
 /// A frame name for `p` not yet in `taken` (the file stem, suffixed `_1`, `_2`, .. on clashes),
@@ -207,6 +309,14 @@ mod tests {
         // No EXIF, or "unknown" (0): no focal.
         assert_eq!(exif_focal_px(&jpeg_with_focal(400, 300, None), (400, 300)), None);
         assert_eq!(exif_focal_px(&jpeg_with_focal(400, 300, Some(0)), (400, 300)), None);
+        // Issue 77, 9: an EXIF focal of 1 mm (a 173 deg field of view here) was kept as a
+        // fixed focal of a few pixels, 3000 mm (0.7 deg) as a telescope's. Outside --focal's
+        // bounds (1 to 170 degrees): ignored, and said why.
+        for mm in [1, 3000] {
+            let e = exif_focal(&jpeg_with_focal(400, 300, Some(mm)), (400, 300)).unwrap_err();
+            assert!(e.contains(&format!("{mm} mm")) && e.contains("ignored"), "{e}");
+        }
+        assert!(exif_focal(&jpeg_with_focal(400, 300, Some(2)), (400, 300)).unwrap().is_some());
 
         // Loaded at long side 256 (0.64 of the photo), portrait or not: the focal follows the
         // resize, and the field of view stays.
@@ -221,13 +331,63 @@ mod tests {
             assert_eq!(w.max(h), 256);
             let dfov_map = 2.0 * ((w as f64).hypot(h as f64) / 2.0 / fm).atan().to_degrees();
             assert!((dfov_map - 79.5).abs() < 0.3, "{}: {dfov_map}", im.name);
+            assert!(!im.focal_fixed, "an EXIF focal is a prior, not fixed");
         }
         // `set_focal` overrides, in photo pixels; `None` forgets.
         let mut im = ims[0].clone();
         im.set_focal(Some(500.0));
-        assert!((im.focal.unwrap() - 320.0).abs() < 1e-9);
+        assert!((im.focal.unwrap() - 320.0).abs() < 1e-9 && im.focal_fixed);
         im.set_focal(None);
         assert_eq!(im.focal, None);
+    }
+
+    /// Issue 77, 8: all-black, all-white, noise, 8x8 and 1x1 photos each gave cameras and a
+    /// mesh. They are told apart from photographs (the bundled ones, and a dim, low-contrast
+    /// one) by what they hold, and left out with a reason.
+    #[test]
+    fn photos_without_a_scene_are_named() {
+        use image::{DynamicImage, Rgb, RgbImage};
+        let mut seed = 12345u64;
+        let mut rnd = move || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 56) as u8
+        };
+        let noise = RgbImage::from_fn(640, 480, |_, _| Rgb([rnd(), rnd(), rnd()]));
+        let cases = [
+            (RgbImage::new(640, 480), "flat"),
+            (RgbImage::from_pixel(640, 480, Rgb([255, 255, 255])), "flat"),
+            (noise, "noise"),
+            (RgbImage::from_pixel(8, 8, Rgb([10, 200, 30])), "small"),
+            (RgbImage::new(1, 1), "small"),
+        ];
+        for (img, kind) in cases {
+            let why = no_scene(&DynamicImage::ImageRgb8(img)).unwrap_or_else(|| panic!("{kind} not found"));
+            let word = match kind {
+                "flat" => "flat colour",
+                "noise" => "noise",
+                _ => "too small",
+            };
+            assert!(why.contains(word), "{kind}: {why}");
+        }
+        let photos = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/photos");
+        for name in ["chelsea.png", "coffee.png"] {
+            let img = image::open(photos.join(name)).unwrap();
+            assert_eq!(no_scene(&img), None, "{name}");
+            // Dim and low in contrast (a night shot): still a photograph.
+            let rgb = img.to_rgb8();
+            let dim =
+                RgbImage::from_fn(img.width(), img.height(), |x, y| Rgb(rgb.get_pixel(x, y).0.map(|c| 20 + c / 16)));
+            assert_eq!(no_scene(&DynamicImage::ImageRgb8(dim)), None, "{name} dimmed");
+        }
+        let tiny = |w, h| InputImage { no_scene: Some(format!("{w}x{h}")), ..load_one() };
+        let (kept, left) = keep_scenes(vec![load_one(), tiny(1, 1), load_one()]);
+        assert_eq!(kept.len(), 2);
+        assert!(left.len() == 1 && left[0].contains("1x1; left out"), "{left:?}");
+    }
+
+    fn load_one() -> InputImage {
+        let photos = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/photos");
+        load_images(&[photos.join("coffee.png")], 64, false).unwrap().remove(0)
     }
 
     /// A folder's PGM photos are listed (other files are not) and decode to grey RGB.

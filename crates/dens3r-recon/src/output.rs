@@ -6,7 +6,7 @@
 //! out/summary.json      what the run did, stage by stage (photos registered, pair graph, seconds)
 //! out/scene/transforms.json   nerfstudio (OpenGL poses, paths relative to out/scene)
 //! out/colmap/           cameras.txt, images.txt, points3D.txt (image names relative to out/scene)
-//! out/matches/<a>-<b>.png     match pictures
+//! out/matches/<a>-<b>.png     match pictures (`<a>-<b>-2.png` where two pairs' names join alike)
 //! out/mesh.glb          TSDF mesh of the aligned depth
 //! out/index.html        the page that shows it all (dens3r-viewer; viewer/ beside it)
 //! ```
@@ -95,9 +95,25 @@ pub struct OutputSummary {
     pub page_seconds: f64,
 }
 
+/// The match pictures' files of pairs of frame names, `matches/<a>-<b>.png`, each its own:
+/// names may hold '-' (`a-b` + `c` and `a` + `b-c` join alike), so a later pair whose file
+/// is taken gets `-2`, `-3`, ...
+pub fn match_picture_files<'a>(pairs: impl Iterator<Item = (&'a str, &'a str)>) -> Vec<String> {
+    let mut taken = std::collections::HashSet::new();
+    pairs
+        .map(|(a, b)| {
+            let stem = format!("matches/{a}-{b}");
+            (1..)
+                .map(|k| if k == 1 { format!("{stem}.png") } else { format!("{stem}-{k}.png") })
+                .find(|f| taken.insert(f.clone()))
+                .expect("a free name")
+        })
+        .collect()
+}
+
 /// Starts the output folder `out` of a reconstruction: its lock taken (a second run into it is
-/// refused), its outputs staged; the outputs of dens3r versions before the output manifest
-/// count as dens3r's (replaced, not refused).
+/// refused), its outputs staged; only files its output list names, unchanged since, are
+/// replaced.
 pub fn begin_outputs(out: &Path) -> Result<OutputDir, ReconError> {
     Ok(dens3r_scene::begin_output(out)?)
 }
@@ -160,9 +176,10 @@ pub fn write_outputs_into(
     let mut ranked: Vec<&(usize, usize, Vec<_>)> = rec.matches.iter().filter(|m| !m.2.is_empty()).collect();
     ranked.sort_by_key(|m| std::cmp::Reverse(m.2.len()));
     let mut pictures = Vec::new();
-    for (a, b, ms) in ranked.into_iter().take(opts.match_pictures) {
+    let ranked: Vec<_> = ranked.into_iter().take(opts.match_pictures).collect();
+    let files = match_picture_files(ranked.iter().map(|m| (rec.names[m.0].as_str(), rec.names[m.1].as_str())));
+    for ((a, b, ms), file) in ranked.into_iter().zip(files) {
         let img = match_picture(&rec.rgb[*a], &rec.rgb[*b], ms, opts.match_lines);
-        let file = format!("matches/{}-{}.png", rec.names[*a], rec.names[*b]);
         dens3r_scene::write_rgb_png(&out.join(&file), &img)?;
         pictures.push(MatchPicture { a: rec.names[*a].clone(), b: rec.names[*b].clone(), path: file });
     }
@@ -339,4 +356,14 @@ fn fuse(
     summary.triangles = mesh.indices.len();
     summary.mesh = Some(path);
     Ok(Some(mesh))
+}
+
+#[cfg(test)]
+mod tests {
+    /// Issue 77, 10: `a-b` + `c` and `a` + `b-c` both wrote `matches/a-b-c.png`.
+    #[test]
+    fn match_pictures_of_names_with_dashes_do_not_collide() {
+        let files = super::match_picture_files([("a-b", "c"), ("a", "b-c"), ("a-b-c", "2"), ("x", "y")].into_iter());
+        assert_eq!(files, ["matches/a-b-c.png", "matches/a-b-c-2.png", "matches/a-b-c-2-2.png", "matches/x-y.png"]);
+    }
 }

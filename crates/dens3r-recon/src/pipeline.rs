@@ -264,7 +264,7 @@ pub fn reconstruct_dense(
     let sizes: Vec<(usize, usize)> = images.iter().map(|im| im.size()).collect();
     // Every pair, each followed by its reverse (the set DUSt3R symmetrises to): a predictor
     // may reuse work between the two runs of one pair.
-    let mut warnings = Vec::new();
+    let mut warnings: Vec<String> = images.iter().flat_map(|im| im.warnings.iter().cloned()).collect();
     let graph = crate::graph::plan_pairs(images, predictor, cache, opts.graph, &mut warnings, &mut progress)?;
     let order: Vec<(usize, usize)> = graph.list.iter().flat_map(|&(i, j)| [(i, j), (j, i)]).collect();
     let ordered: HashSet<(usize, usize)> = order.iter().copied().collect();

@@ -133,8 +133,14 @@ pub fn reconstruct_sfm(
     let n = images.len();
     let sizes: Vec<(usize, usize)> = images.iter().map(|im| im.size()).collect();
     let rgb: Vec<RgbImage> = images.iter().map(|im| im.rgb()).collect();
-    let known_focals: Vec<Option<f64>> = images.iter().map(|im| im.focal).collect();
-    let mut stats = ReconStats { known_focals: known_focals.iter().flatten().count(), ..Default::default() };
+    // The user's focals are kept; EXIF focals are priors that bundle adjustment refines.
+    let known_focals: Vec<Option<f64>> = images.iter().map(|im| im.focal.filter(|_| im.focal_fixed)).collect();
+    let prior_focals: Vec<Option<f64>> = images.iter().map(|im| im.focal.filter(|_| !im.focal_fixed)).collect();
+    let mut stats = ReconStats {
+        known_focals: images.iter().filter(|im| im.focal.is_some()).count(),
+        warnings: images.iter().flat_map(|im| im.warnings.iter().cloned()).collect(),
+        ..Default::default()
+    };
     let t = Instant::now();
     // A panic inside the SIFT crate costs that photo its keypoints, not the run. Photos go in
     // groups (in parallel within each) so that progress is reported as they finish.
@@ -164,7 +170,14 @@ pub fn reconstruct_sfm(
     progress(Stage::Align, 0, 1);
     let t = Instant::now();
     let guesses: Vec<f64> = sizes.iter().map(|&(w, h)| 1.2 * w.max(h) as f64).collect();
-    let input = SfmInput { keypoints: &kps, sizes: &sizes, known_focals: &known_focals, focal_guess: &guesses, pairs };
+    let input = SfmInput {
+        keypoints: &kps,
+        sizes: &sizes,
+        known_focals: &known_focals,
+        prior_focals: &prior_focals,
+        focal_guess: &guesses,
+        pairs,
+    };
     let sfm = run(&input, &settings.sfm);
     // Only the keypoints' positions are read from here: their descriptors (half a GB at 300
     // photos) go before the network's maps come.
@@ -173,7 +186,30 @@ pub fn reconstruct_sfm(
     stats.align_seconds = t.elapsed().as_secs_f64();
     progress(Stage::Align, 1, 1);
     let registered: Vec<usize> = (0..n).filter(|&v| sfm.cameras[v].is_some()).collect();
-    if registered.len() < 3.max(n.div_ceil(2)) {
+    // Groups of photos that share verified matches among themselves but none with each other
+    // are separate scenes: never merged, by the dense path either.
+    let scenes: Vec<&Vec<usize>> = sfm.groups.iter().filter(|g| g.len() > 1).collect();
+    if registered.len() < 3.max(n.div_ceil(2)) && (scenes.len() < 2 || registered.len() < 2) {
+        if scenes.len() >= 2 {
+            // Several scenes, none registered: the dense path on the largest one alone.
+            let group = scenes[0].clone();
+            let subset: Vec<InputImage> = group.iter().map(|&v| images[v].clone()).collect();
+            let mut dense = reconstruct_dense(&subset, predictor, cache, opts, progress)?;
+            dense.inputs = dense.inputs.iter().map(|&k| group[k]).collect();
+            let left: Vec<&str> = (0..n).filter(|v| !group.contains(v)).map(|v| images[v].name.as_str()).collect();
+            dense.stats.warnings.insert(
+                0,
+                format!(
+                    "structure from motion registered {} of {n} photos, and they fall into {} groups that share no verified match: \
+                     only the largest ({} photos) is reconstructed, by the network's pairs and the dense alignment; groups are never merged; left out: {}",
+                    registered.len(),
+                    scenes.len(),
+                    group.len(),
+                    left.join(", ")
+                ),
+            );
+            return Ok(dense);
+        }
         let mut dense = reconstruct_dense(images, predictor, cache, opts, progress)?;
         dense.stats.warnings.insert(
             0,
@@ -266,7 +302,7 @@ pub fn reconstruct_sfm(
         .collect();
     stats.triangulated_points = points.len();
     stats.registered = registered.len();
-    stats.known_focals = registered.iter().filter(|&&v| known_focals[v].is_some()).count();
+    stats.known_focals = registered.iter().filter(|&&v| images[v].focal.is_some()).count();
     stats.unregistered = unregistered;
     stats.sfm = Some(sfm.stats.clone());
     let keep = |v: &usize| index[*v].is_some();

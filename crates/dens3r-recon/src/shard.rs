@@ -68,6 +68,8 @@ pub fn compute_shard(
     if cache.dir().is_none() {
         return Err(ReconError::Other("computing a shard needs a cache folder to put it in".into()));
     }
+    // A shard's only output is what it stores: a folder that takes nothing fails it up front.
+    cache.check_writable()?;
     let mut stats = ShardStats::default();
     match &opts.cameras {
         Cameras::Sfm(_) => {
@@ -98,6 +100,14 @@ pub fn compute_shard(
                 progress(Stage::Predict, done + 1, mine.len());
             }
         }
+    }
+    let failed = cache.failed_stores();
+    if failed > 0 {
+        let why = warnings.iter().find(|w| w.starts_with("pair cache not written")).cloned().unwrap_or_default();
+        return Err(ReconError::Other(format!(
+            "{failed} of {} network runs could not be stored in the cache ({why}); free space or fix the folder, then run the shard again",
+            stats.entries
+        )));
     }
     Ok(stats)
 }

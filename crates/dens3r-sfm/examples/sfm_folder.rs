@@ -24,8 +24,14 @@ fn main() {
     let n = frames.len();
     let pairs = dens3r_align::make_pairs(n, dens3r_align::PairGraph::Complete, false);
     let guess = vec![1.2 * sizes[0].0 as f64; n];
-    let input =
-        SfmInput { keypoints: &kps, sizes: &sizes, known_focals: &vec![None; n], focal_guess: &guess, pairs: &pairs };
+    let input = SfmInput {
+        keypoints: &kps,
+        sizes: &sizes,
+        known_focals: &vec![None; n],
+        prior_focals: &vec![None; n],
+        focal_guess: &guess,
+        pairs: &pairs,
+    };
     if std::env::var("EDGES").is_ok() {
         debug_edges(&scene, &kps, &pairs, frames[0].camera().intrinsics.fx);
     }

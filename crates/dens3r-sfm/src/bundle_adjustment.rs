@@ -51,6 +51,9 @@ pub struct BaProblem<'a> {
     pub focals: &'a mut [f64],
     /// Which focals are known.
     pub focal_fixed: &'a [bool],
+    /// Per focal, a value it is drawn towards (a photo's EXIF focal): a prior residual
+    /// `(f - f0) / (FOCAL_PRIOR_SIGMA f0)`, weighed as one observation.
+    pub focal_prior: &'a [Option<f64>],
     /// Points.
     pub points: &'a mut [Option<DVec3>],
     /// Per point, its observations.
@@ -124,6 +127,17 @@ fn linearise(c: &BaCamera, f: f64, x: DVec3, uv: DVec2) -> Option<Linearised> {
     Some((r, jc, DVec2::new(u, v), jp))
 }
 
+/// A focal prior's standard deviation, as a share of the prior focal: weak, so that a photo
+/// cropped in an editor (its EXIF focal half the truth) still finds its focal from the data.
+pub const FOCAL_PRIOR_SIGMA: f64 = 0.1;
+
+/// The prior residual of focal `f` (None without a prior) and its derivative.
+fn prior_residual(p: &BaProblem, f: usize) -> Option<(f64, f64)> {
+    let f0 = p.focal_prior.get(f).copied().flatten().filter(|f0| *f0 > 0.0)?;
+    let s = FOCAL_PRIOR_SIGMA * f0;
+    Some(((p.focals[f] - f0) / s, 1.0 / s))
+}
+
 /// The Huber weight of a residual of length `e`.
 fn huber(e: f64, delta: f64) -> f64 {
     if e <= delta {
@@ -148,6 +162,11 @@ fn cost(p: &BaProblem, delta: f64) -> (f64, f64, usize) {
             robust += if e <= delta { 0.5 * e * e } else { delta * (e - 0.5 * delta) };
             sq += e * e;
             count += 1;
+        }
+    }
+    for f in 0..p.focals.len() {
+        if let Some((r, _)) = prior_residual(p, f) {
+            robust += 0.5 * r * r;
         }
     }
     (robust, sq, count)
@@ -236,6 +255,13 @@ pub fn bundle_adjust(p: &mut BaProblem, opts: &BaOptions) -> BaReport {
                 couplings.push((cols.iter().map(|c| c.0).collect(), y));
             }
             point_parts.push(Some((vblk, gp, couplings)));
+        }
+        // Focal priors.
+        for (f, &col) in focal_col.iter().enumerate() {
+            if let (true, Some((r, j))) = (col != usize::MAX, prior_residual(p, f)) {
+                s[col * dim + col] += j * j;
+                g[col] -= j * r;
+            }
         }
         // Damping, then the Schur complement of each point.
         let diag: Vec<f64> = (0..dim).map(|k| s[k * dim + k]).collect();

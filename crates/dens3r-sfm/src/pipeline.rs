@@ -59,8 +59,12 @@ pub struct SfmInput<'a> {
     pub keypoints: &'a [Keypoints],
     /// Each view's size `(width, height)`; the principal point is its centre.
     pub sizes: &'a [(usize, usize)],
-    /// Focals known (EXIF, the user): kept fixed.
+    /// Focals known (the user's): kept fixed.
     pub known_focals: &'a [Option<f64>],
+    /// Focals to start from and draw towards (EXIF): refined by bundle adjustment with a weak
+    /// prior ([`crate::bundle_adjustment::FOCAL_PRIOR_SIGMA`]), as COLMAP starts from EXIF
+    /// focals without fixing them.
+    pub prior_focals: &'a [Option<f64>],
     /// Starting focal of each view whose focal is not known (e.g. the network's estimate).
     pub focal_guess: &'a [f64],
     /// Candidate pairs to match.
@@ -76,6 +80,8 @@ pub enum FocalSource {
     Cycles,
     /// Started from the guess, refined by bundle adjustment.
     Guess,
+    /// Started from a prior focal (EXIF), refined by bundle adjustment with it as a prior.
+    Prior,
 }
 
 /// A reconstructed point and the keypoints `(view, keypoint)` that see it.
@@ -146,7 +152,9 @@ fn initial_focals(input: &SfmInput, matched: &[PairMatches], opts: &SfmOptions) 
     sizes.sort_unstable();
     sizes.dedup();
     for size in sizes {
-        let group: Vec<usize> = (0..n).filter(|&k| input.sizes[k] == size && input.known_focals[k].is_none()).collect();
+        let group: Vec<usize> = (0..n)
+            .filter(|&k| input.sizes[k] == size && input.known_focals[k].is_none() && prior(input, k).is_none())
+            .collect();
         if group.is_empty() {
             continue;
         }
@@ -171,12 +179,22 @@ fn initial_focals(input: &SfmInput, matched: &[PairMatches], opts: &SfmOptions) 
             sources[k] = if cycle.is_some() { FocalSource::Cycles } else { FocalSource::Guess };
         }
     }
-    for (k, f) in input.known_focals.iter().enumerate() {
-        if let Some(f) = f {
-            focals[k] = *f;
+    for k in 0..n {
+        if let Some(f) = prior(input, k) {
+            focals[k] = f;
+            sources[k] = FocalSource::Prior;
+        }
+        if let Some(f) = input.known_focals[k] {
+            focals[k] = f;
+            sources[k] = FocalSource::Known;
         }
     }
     (focals, sources)
+}
+
+/// View `k`'s prior focal, where it has one and no known focal.
+fn prior(input: &SfmInput, k: usize) -> Option<f64> {
+    input.prior_focals.get(k).copied().flatten().filter(|_| input.known_focals[k].is_none())
 }
 
 /// Connected groups of `n` views under `edges`, largest first.
@@ -228,6 +246,12 @@ pub fn run_matched(input: &SfmInput, matched: &[PairMatches], opts: &SfmOptions)
         // Views left out keep the mean adjusted focal of their size.
         for k in 0..focals.len() {
             if input.known_focals[k].is_some() {
+                continue;
+            }
+            if prior(input, k).is_some() {
+                if let Some(f) = adjusted[k] {
+                    focals[k] = f;
+                }
                 continue;
             }
             let same: Vec<f64> =
@@ -298,7 +322,8 @@ fn solve(
         let mut keys: Vec<(usize, usize, bool)> = Vec::new();
         (0..n)
             .map(|k| {
-                let key = (input.sizes[k].0, input.sizes[k].1, input.known_focals[k].is_some());
+                let own = input.known_focals[k].is_some() || prior(input, k).is_some();
+                let key = (input.sizes[k].0, input.sizes[k].1, own);
                 let key = if key.2 { (k, usize::MAX, true) } else { key };
                 keys.iter().position(|x| *x == key).unwrap_or_else(|| {
                     keys.push(key);
@@ -310,9 +335,11 @@ fn solve(
     let n_focals = size_groups.iter().max().map_or(0, |m| m + 1);
     let mut focal_values = vec![0.0; n_focals];
     let mut focal_fixed = vec![false; n_focals];
+    let mut focal_prior = vec![None; n_focals];
     for k in 0..n {
         focal_values[size_groups[k]] = focals[k];
         focal_fixed[size_groups[k]] |= input.known_focals[k].is_some();
+        focal_prior[size_groups[k]] = prior(input, k);
     }
     let mut cameras: Vec<Option<BaCamera>> = (0..n)
         .map(|v| {
@@ -328,6 +355,7 @@ fn solve(
             cameras: &mut cameras,
             focals: &mut focal_values,
             focal_fixed: &focal_fixed,
+            focal_prior: &focal_prior,
             points: &mut points,
             observations: &obs,
             keypoints: input.keypoints,
