@@ -1,4 +1,4 @@
-use dens3r_mesh::primitives::{cuboid, torus, uv_sphere};
+use dens3r_mesh::primitives::{cuboid, quad, torus, uv_sphere};
 use dens3r_mesh::{mesh_metrics, read_mesh, write_mesh, MeshMetricsOptions};
 use glam::Vec3;
 
@@ -132,6 +132,26 @@ fn concentric_spheres_match_analytic_values() {
     d.transform(&glam::Mat4::from_translation(Vec3::new(0.2, 0.0, 0.0)));
     let r = mesh_metrics(&c, &d, &opts).unwrap();
     assert!((r.accuracy - r.completeness).abs() < 5e-3, "{r:?}");
+}
+
+/// Issue 77, 10: a predicted mesh with coordinates of 1e20 (or 1e12) scored F = 0.99 against
+/// a room: single-precision distances there cannot resolve 0.02. Refused, naming the size; a
+/// mesh of ordinary size is scored.
+#[test]
+fn meshes_too_large_to_score_are_refused() {
+    let room = cuboid(Vec3::new(2.0, 1.5, 1.25));
+    let square = |s: f32| quad(Vec3::new(-s, -s, 0.0), Vec3::new(2.0 * s, 0.0, 0.0), Vec3::new(0.0, 2.0 * s, 0.0));
+    let opts = MeshMetricsOptions { samples: 2000, thresholds: vec![0.01, 0.02], seed: 1 };
+    for size in [1e20f32, 1e12, 1e5] {
+        let huge = square(size);
+        let e = mesh_metrics(&huge, &room, &opts).unwrap_err().to_string();
+        assert!(e.contains("predicted") && e.contains("single precision"), "{size}: {e}");
+    }
+    let mut nan = square(1.0);
+    nan.positions[0].x = f32::NAN;
+    assert!(mesh_metrics(&nan, &room, &opts).unwrap_err().to_string().contains("non-finite"));
+    let r = mesh_metrics(&square(3.0), &room, &opts).unwrap();
+    assert!(r.fscores[1].fscore < 0.9, "{r:?}");
 }
 
 /// Hostile headers: counts a file cannot hold (10^12 vertices in 30 bytes) give one line

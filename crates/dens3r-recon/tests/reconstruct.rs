@@ -670,3 +670,49 @@ fn keypoints_of_flat_renders_do_not_panic() {
         assert!(!dens3r_align::keypoints::detect(&im.rgb(), 4000).is_empty(), "{}", im.name);
     }
 }
+
+/// Issue 77, 7: when no group of photos held half of them, `reconstruct` fell back to the
+/// dense path over all of them, and unrelated scenes became one. Three rooms papered in
+/// different noise (3, 2 and 2 photos; no SIFT match between rooms): the largest room is
+/// reconstructed by structure from motion, the others are named and left out, never merged.
+#[test]
+fn separate_scenes_are_never_merged() {
+    let room_of = |scale: f32, n: usize| {
+        let objects = room(3)
+            .into_iter()
+            .map(|mut o| {
+                o.material.texture = dens3r_render::Texture::Noise { scale };
+                o
+            })
+            .collect();
+        let poses = (0..n)
+            .map(|k| {
+                let eye = DVec3::new(-0.5 + 0.25 * k as f64, -1.2, 1.3);
+                dens3r_geom::camera::look_at(eye, DVec3::new(0.0, 2.0, 1.0), DVec3::Z).unwrap()
+            })
+            .collect();
+        truth_of(objects, poses, 2 * W, 2 * H, Some(62.0))
+    };
+    let rooms = [room_of(0.05, 3), room_of(0.031, 2), room_of(0.019, 2)];
+    let dir = tempfile::tempdir().unwrap();
+    let mut paths = Vec::new();
+    for (r, t) in rooms.iter().enumerate() {
+        let d = dir.path().join(format!("room{r}"));
+        std::fs::create_dir_all(&d).unwrap();
+        photos(t, &d);
+        paths.extend(list_images(&[d]).unwrap());
+    }
+    let images = load_images(&paths, 2 * W as u32, false).unwrap();
+    let all = Truth {
+        world: World::new(room(3)).unwrap(),
+        cams: rooms.iter().flat_map(|t| t.cams.clone()).collect(),
+        own: rooms.iter().flat_map(|t| t.own.clone()).collect(),
+        normals: rooms.iter().flat_map(|t| t.normals.clone()).collect(),
+    };
+    let rec =
+        reconstruct(&images, &DepthOnly(&all), &PairCache::new(None), &ReconOptions::default(), |_, _, _| {}).unwrap();
+    let w = rec.stats.warnings.join(" | ");
+    assert!(rec.stats.sfm.is_some(), "the dense path merged the rooms: {w}");
+    assert_eq!(rec.inputs, vec![0, 1, 2], "{w}");
+    assert!(w.contains("never merged"), "{w}");
+}
