@@ -11,7 +11,6 @@ use dens3r_heads::data::resize_nearest;
 use dens3r_heads::features::file_hash;
 use dens3r_heads::infer::{check_head, infer, write_head_output, HeadOutput};
 use dens3r_heads::{Backbone, Dens3rBackbone, Head, Task};
-use dens3r_recon::input::exif_focal_px;
 use dens3r_recon::mono::{write_mono_frame, FocalSource};
 use dens3r_scene::SceneWriter;
 use std::collections::HashSet;
@@ -305,7 +304,13 @@ fn load_inputs(a: &PredictArgs, nets: &Networks) -> Result<Vec<Input>> {
                     Some((f, FocalSource::Given))
                 }
                 None if a.no_exif_focal => None,
-                None => exif_focal_px(&bytes, (img.width(), img.height())).map(|f| (f, FocalSource::Exif)),
+                None => match dens3r_recon::input::exif_focal(&bytes, (img.width(), img.height())) {
+                    Ok(f) => f.map(|f| (f, FocalSource::Exif)),
+                    Err(w) => {
+                        eprintln!("warning: {}: {w}", p.display());
+                        None
+                    }
+                },
             };
             Ok((name, prep, keep_source.then(|| img.to_rgb8()), focal, extra))
         })

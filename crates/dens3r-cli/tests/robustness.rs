@@ -459,7 +459,7 @@ fn no_command_touches_files_it_did_not_create() {
 }
 
 // Issue 77, the third reliability round: output folders someone else made. Each test below
-// failed on main 850b8c2.
+// holds a case main 850b8c2 got wrong (the issue's list; the comment of each says how).
 
 /// Renders a 2- or 3-view room into `out` (`--overwrite` when `again`).
 fn small_render(out: &Path, views: &str, again: bool) -> Output {

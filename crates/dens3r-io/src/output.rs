@@ -117,6 +117,17 @@ impl Manifest {
         path.symlink_metadata().is_ok_and(|m| m.file_type().is_file() && known.iter().any(|s| s.size == m.len()))
             && Stamp::of(&path).is_some_and(|s| known.contains(&&s))
     }
+
+    /// The refusal of an output whose place holds `rel`, a file this manifest does not own.
+    fn refusal(&self, target: &Path, rel: &str) -> IoError {
+        if self.files.contains(rel) && !self.stamps.contains_key(rel) && !self.replacing.contains_key(rel) {
+            return IoError::new(
+                target,
+                "was written by a dens3r version that kept no record of its content, so it is not replaced; move it (or the folder's older outputs), or write to another folder",
+            );
+        }
+        in_the_way(target)
+    }
 }
 
 /// Whether every folder between `dest` and `dest/rel` is a real folder (not a symbolic link,
@@ -344,7 +355,7 @@ impl OutputDir {
                 return Err(in_the_way_folder(&self.dest, Path::new(rel)));
             }
             if target.symlink_metadata().is_ok() && !old.owns(&self.dest, rel) {
-                return Err(in_the_way(&target));
+                return Err(old.refusal(&target, rel));
             }
         }
         Ok(())
@@ -403,7 +414,7 @@ impl OutputDir {
                         "is a folder where dens3r writes a file; move it, or write to another folder",
                     ))
                 }
-                Ok(_) if !old.owns(&self.dest, &rel) => return Err(in_the_way(&target)),
+                Ok(_) if !old.owns(&self.dest, &rel) => return Err(old.refusal(&target, &rel)),
                 _ => {}
             }
         }
@@ -418,7 +429,8 @@ impl OutputDir {
         // The earlier run's files the new one does not write, and those it replaces.
         let stale: Vec<&String> = old.files.iter().filter(|f| !new_rel.contains(*f)).collect();
         let owned_stale: Vec<&String> = stale.iter().copied().filter(|f| old.owns(&self.dest, f)).collect();
-        for f in stale.iter().filter(|f| !owned_stale.contains(f)) {
+        let owned: BTreeSet<&String> = owned_stale.iter().copied().collect();
+        for f in stale.iter().filter(|f| !owned.contains(*f)) {
             if self.dest.join(f).symlink_metadata().is_ok() {
                 warnings.push(format!(
                     "{}: listed as an earlier output of dens3r's but changed since (or not a file dens3r wrote); left as it is",

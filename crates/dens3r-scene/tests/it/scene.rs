@@ -270,27 +270,30 @@ fn camera_similarity_places_a_scene_on_its_truth() {
     assert!(e.contains("at least 3 not on one line"), "{e}");
 }
 
-/// Issue 66, 1: a scene written before the output manifest (none beside it) is replaced by its
-/// own files only: the frames its cameras.json names go, a note beside it and a mesh of the
-/// user's stay; a user's file where the new scene writes is refused and nothing moves.
+/// Issue 77, 2: a scene folder without a manifest (written by hand, by another tool, or by a
+/// dens3r before the manifest) holds nothing of dens3r's: its files, which an earlier rule
+/// took from its cameras.json, are never replaced; the new scene is refused before anything
+/// moves. With a manifest, a user's file where the next scene's frame goes is refused too.
 #[test]
-fn scenes_from_before_the_manifest_are_replaced_by_their_own_files() {
+fn scenes_without_a_manifest_are_never_replaced() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("old");
     write_scene(&dir);
     std::fs::remove_file(dir.join(dens3r_io::output::MANIFEST)).unwrap();
     std::fs::write(dir.join("notes.txt"), "mine").unwrap();
-    std::fs::write(dir.join("mesh.glb"), "my mesh").unwrap();
     let rgb = image::RgbImage::from_pixel(W as u32, H as u32, image::Rgb([1, 2, 3]));
+    let snapshot = || -> Vec<_> { walk(&dir).iter().map(|f| (f.clone(), std::fs::read(f).unwrap())).collect() };
+    let before = snapshot();
+    let mut w = SceneWriter::create(&dir).unwrap();
+    w.add_frame(Frame::new("c", &cam()), &rgb).unwrap();
+    let e = w.finish().unwrap_err().to_string();
+    assert!(e.contains("cameras.json") && e.contains("not written by dens3r"), "{e}");
+    assert_eq!(snapshot(), before);
+
+    let dir = tmp.path().join("new");
     let mut w = SceneWriter::create(&dir).unwrap();
     w.add_frame(Frame::new("c", &cam()), &rgb).unwrap();
     w.finish().unwrap();
-    let mut files: Vec<String> =
-        walk(&dir).iter().map(|f| Path::new(f).strip_prefix(&dir).unwrap().display().to_string()).collect();
-    files.sort();
-    assert_eq!(files, [".dens3r-outputs.json", "cameras.json", "images/c.png", "mesh.glb", "notes.txt"]);
-    assert_eq!(std::fs::read_to_string(dir.join("mesh.glb")).unwrap(), "my mesh");
-
     // A user's picture where the next scene's frame goes: refused at finish, nothing moved.
     std::fs::write(dir.join("images/d.png"), "my picture").unwrap();
     let before: Vec<_> = walk(&dir).iter().map(|f| (f.clone(), std::fs::read(f).unwrap())).collect();
