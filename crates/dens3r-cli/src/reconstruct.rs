@@ -228,12 +228,13 @@ fn checked_graph(a: &ReconstructArgs) -> Result<Option<PairGraph>> {
     Ok(graph)
 }
 
+/// What `load_photos` gives: the photos' paths, the photos, the model's settings, and the
+/// warnings naming photos left out.
+type Photos = (Vec<PathBuf>, Vec<dens3r_recon::InputImage>, dens3r_recon::model::ModelSettings, Vec<String>);
+
 /// The photos of `a` that show a scene, decoded and preprocessed for the network, with their
 /// focals and masks; their paths; the model's settings; the warnings naming photos left out.
-fn load_photos(
-    a: &ReconstructArgs,
-    config: Option<&std::path::Path>,
-) -> Result<(Vec<PathBuf>, Vec<dens3r_recon::InputImage>, dens3r_recon::model::ModelSettings, Vec<String>)> {
+fn load_photos(a: &ReconstructArgs, config: Option<&std::path::Path>) -> Result<Photos> {
     let settings = dens3r_recon::model::model_settings(config)?;
     let images = load_images(&list_images(&a.photos)?, a.model.size, a.model.keep_portrait || settings.keep_portrait)?;
     let (mut images, left_out) = scene_photos(images)?;
