@@ -73,18 +73,21 @@ pub fn mesh_metrics_where(
         return Err("the number of samples must be positive".into());
     }
     // Distances are measured in single precision: a coordinate of size M carries errors of
-    // about 6e-8 M, so thresholds below 1e-6 M cannot be told apart (a mesh with coordinates
-    // of 1e20 scored as perfect).
-    let finest = opts.thresholds.iter().copied().fold(f64::INFINITY, f64::min);
+    // about 6e-8 M, so distances under about 1e-6 M cannot be told apart (a mesh with
+    // coordinates of 1e20 scored as perfect against a room). Refused where that exceeds the
+    // finest threshold, or a thousandth of the ground truth's size where a threshold is finer
+    // (such thresholds only ask whether a surface is the same).
+    let size = gt.bounds().map_or(0.0, |(lo, hi)| f64::from((hi - lo).length()));
+    let finest = opts.thresholds.iter().copied().fold(f64::INFINITY, f64::min).max(1e-3 * size);
     for (name, m) in [("predicted", pred), ("ground-truth", gt)] {
-        let big = m.positions.iter().map(|p| p.abs().max_element()).fold(0.0f32, f32::max);
-        if !big.is_finite() || m.positions.iter().any(|p| !p.is_finite()) {
+        if m.positions.iter().any(|p| !p.is_finite()) {
             return Err(format!("{name} mesh has non-finite vertex coordinates").into());
         }
+        let big = m.positions.iter().map(|p| p.abs().max_element()).fold(0.0f32, f32::max);
         if f64::from(big) * 1e-6 > finest.min(1e30) {
             return Err(format!(
-                "{name} mesh has coordinates up to {big:e}: distances there cannot resolve the threshold {finest} \
-                 in single precision; move the meshes near the origin or score with a coarser threshold"
+                "{name} mesh has coordinates up to {big:e}: distances there cannot resolve {finest} in single \
+                 precision; move the meshes near the origin or score with a coarser threshold"
             )
             .into());
         }

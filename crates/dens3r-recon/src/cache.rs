@@ -227,7 +227,7 @@ fn entries(root: &Path) -> Vec<(PathBuf, u64, std::time::SystemTime)> {
         .into_iter()
         .flatten()
         .flatten()
-        .filter(|e| e.path().extension().is_some_and(|x| x == EXT))
+        .filter(|e| is_entry_name(&e.file_name().to_string_lossy()))
         .filter_map(|e| {
             let m = e.metadata().ok()?;
             Some((e.path(), m.len(), m.modified().ok()?))
@@ -235,6 +235,12 @@ fn entries(root: &Path) -> Vec<(PathBuf, u64, std::time::SystemTime)> {
         .collect();
     out.sort_by_key(|e| e.2);
     out
+}
+
+/// Whether `name` is an entry's file name as [`PairCache::key`] makes them (32 hex digits and
+/// the suffix): eviction never removes another file a user keeps in the cache folder.
+fn is_entry_name(name: &str) -> bool {
+    name.strip_suffix(&format!(".{EXT}")).is_some_and(|k| k.len() == 32 && k.bytes().all(|b| b.is_ascii_hexdigit()))
 }
 
 /// Removes the least recently used entries of `root` (never `keep`) until they take at most
@@ -493,23 +499,32 @@ mod tests {
         assert!(w.is_empty(), "{w:?}");
     }
 
+    /// Entries' names are keys: 32 hex digits.
+    fn k(c: char) -> String {
+        c.to_string().repeat(32)
+    }
+
     #[test]
     fn a_budget_keeps_the_most_recently_used_entries() {
         let dir = tempfile::tempdir().unwrap();
-        let one = encode("a", &view_arrays("v0", &view(8, 8))).len() as u64 * 2;
+        // A user's file in the cache folder, older than every entry: never evicted.
+        std::fs::write(dir.path().join("notes.d3c"), vec![b'n'; 4096]).unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        let one = encode(&k('a'), &view_arrays("v0", &view(8, 8))).len() as u64 * 2;
         let cache = PairCache::with_budget(dir.path().to_path_buf(), 3 * one);
-        for k in ["a", "b", "c"] {
-            cache.store(k, &[view(8, 8), view(8, 8)]).unwrap();
+        for c in ['a', 'b', 'c'] {
+            cache.store(&k(c), &[view(8, 8), view(8, 8)]).unwrap();
             std::thread::sleep(std::time::Duration::from_millis(20));
         }
         // "a" is read (used again), then a fourth entry exceeds the budget: "b" goes.
-        assert!(cache.load("a", [(8, 8); 2]).is_some());
+        assert!(cache.load(&k('a'), [(8, 8); 2]).is_some());
         std::thread::sleep(std::time::Duration::from_millis(20));
-        cache.store("d", &[view(8, 8), view(8, 8)]).unwrap();
+        cache.store(&k('d'), &[view(8, 8), view(8, 8)]).unwrap();
         let left: Vec<bool> =
-            ["a", "b", "c", "d"].iter().map(|k| dir.path().join(format!("{k}.d3c")).exists()).collect();
+            ['a', 'b', 'c', 'd'].iter().map(|&c| dir.path().join(format!("{}.d3c", k(c))).exists()).collect();
         assert_eq!(left, vec![true, false, true, true]);
         let bytes: u64 = entries(dir.path()).iter().map(|e| e.1).sum();
         assert!(bytes <= 3 * one, "{bytes} > {}", 3 * one);
+        assert!(dir.path().join("notes.d3c").is_file(), "a user's file was evicted");
     }
 }
