@@ -99,6 +99,12 @@ impl Manifest {
         Ok(Some(m))
     }
 
+    /// Writes it as `dest`'s manifest (atomically).
+    fn write(&self, dest: &Path) -> Result<(), IoError> {
+        let text = serde_json::to_string_pretty(self).expect("manifest serialises");
+        crate::write_atomic(&dest.join(MANIFEST), |w| std::io::Write::write_all(w, text.as_bytes()))
+    }
+
     /// Whether it lists no file.
     pub fn is_empty(&self) -> bool {
         self.files.is_empty()
@@ -152,8 +158,7 @@ pub fn rewrite_own(dest: &Path, rel: &str, bytes: &[u8]) -> Result<bool, IoError
     let stamp = Stamp::of(&path).ok_or_else(|| IoError::new(&path, "cannot read this output back"))?;
     m.stamps.insert(rel.to_string(), stamp);
     m.replacing.remove(rel);
-    let text = serde_json::to_string_pretty(&m).expect("manifest serialises");
-    crate::write_atomic(&dest.join(MANIFEST), |w| std::io::Write::write_all(w, text.as_bytes()))?;
+    m.write(dest)?;
     Ok(true)
 }
 
@@ -400,6 +405,8 @@ impl OutputDir {
         let mut new = Vec::new();
         walk(&self.stage, Path::new(""), &mut new)
             .map_err(|e| IoError::new(&self.stage, format!("cannot list the staged outputs: {e}")))?;
+        // Which earlier files are still dens3r's: each hashed once.
+        let owned: BTreeSet<String> = old.files.iter().filter(|f| old.owns(&self.dest, f)).cloned().collect();
         // Refuse before anything moves.
         for f in &new {
             let rel = rel_string(f);
@@ -414,7 +421,7 @@ impl OutputDir {
                         "is a folder where dens3r writes a file; move it, or write to another folder",
                     ))
                 }
-                Ok(_) if !old.owns(&self.dest, &rel) => return Err(old.refusal(&target, &rel)),
+                Ok(_) if !owned.contains(&rel) => return Err(old.refusal(&target, &rel)),
                 _ => {}
             }
         }
@@ -428,9 +435,8 @@ impl OutputDir {
         let new_rel: BTreeSet<String> = stamps.keys().cloned().collect();
         // The earlier run's files the new one does not write, and those it replaces.
         let stale: Vec<&String> = old.files.iter().filter(|f| !new_rel.contains(*f)).collect();
-        let owned_stale: Vec<&String> = stale.iter().copied().filter(|f| old.owns(&self.dest, f)).collect();
-        let owned: BTreeSet<&String> = owned_stale.iter().copied().collect();
-        for f in stale.iter().filter(|f| !owned.contains(*f)) {
+        let owned_stale: Vec<&String> = stale.iter().copied().filter(|f| owned.contains(*f)).collect();
+        for f in stale.iter().filter(|f| !owned.contains(**f)) {
             if self.dest.join(f).symlink_metadata().is_ok() {
                 warnings.push(format!(
                     "{}: listed as an earlier output of dens3r's but changed since (or not a file dens3r wrote); left as it is",
@@ -446,10 +452,10 @@ impl OutputDir {
         journal.stamps.extend(stamps.iter().map(|(f, s)| (f.clone(), s.clone())));
         journal.replacing =
             old.stamps.iter().filter(|(f, _)| new_rel.contains(*f)).map(|(f, s)| (f.clone(), s.clone())).collect();
-        self.write_manifest(&journal)?;
+        journal.write(&self.dest)?;
         // Scene indexes first (stale ones and those replaced), then the other stale files.
         let replaced_index: Vec<&String> =
-            new_rel.iter().filter(|f| f.ends_with("cameras.json") && old.owns(&self.dest, f)).collect();
+            new_rel.iter().filter(|f| f.ends_with("cameras.json") && owned.contains(*f)).collect();
         let mut removed = Vec::new();
         let mut remove = |f: &String| -> Result<(), IoError> {
             let p = self.dest.join(f);
@@ -495,17 +501,12 @@ impl OutputDir {
             }
         }
         dirs.retain(|d| self.dest.join(d).symlink_metadata().is_ok_and(|m| m.is_dir()));
-        self.write_manifest(&Manifest { files: new_rel, dirs, stamps, ..Default::default() })?;
+        Manifest { files: new_rel, dirs, stamps, ..Default::default() }.write(&self.dest)?;
         let _ = std::fs::remove_dir_all(&self.stage);
         self.created.clear();
         self._created_guards.clear();
         self.lock.take();
         Ok((self.dest.clone(), warnings))
-    }
-
-    fn write_manifest(&self, m: &Manifest) -> Result<(), IoError> {
-        let text = serde_json::to_string_pretty(m).expect("manifest serialises");
-        crate::write_atomic(&self.dest.join(MANIFEST), |w| std::io::Write::write_all(w, text.as_bytes()))
     }
 }
 

@@ -32,8 +32,8 @@ pub struct PairCache {
     dir: Option<PathBuf>,
     /// Most bytes the entries may take, and the bytes they take now (None: not counted yet).
     budget: Option<(u64, Mutex<Option<u64>>)>,
-    /// Entries that could not be stored.
-    failed: std::sync::atomic::AtomicUsize,
+    /// How many entries could not be stored, and why the first could not.
+    failed: Mutex<(usize, Option<String>)>,
 }
 
 /// A photo's own-frame depth (z), confidence and normals: one network pass of its self-pair.
@@ -58,9 +58,10 @@ impl PairCache {
         Self { dir: Some(dir), budget: Some((bytes, Mutex::new(None))), failed: Default::default() }
     }
 
-    /// How many entries this cache could not store (a folder that is a file, read-only, full).
-    pub fn failed_stores(&self) -> usize {
-        self.failed.load(std::sync::atomic::Ordering::SeqCst)
+    /// How many entries this cache could not store (a folder that is a file, read-only, full),
+    /// and why the first could not.
+    pub fn failed_stores(&self) -> (usize, Option<String>) {
+        self.failed.lock().unwrap_or_else(|e| e.into_inner()).clone()
     }
 
     /// Refuses a folder entries cannot be stored in: created if missing, then a probe file
@@ -127,7 +128,9 @@ impl PairCache {
     fn put(&self, key: &str, arrays: &[Array], warnings: &mut Vec<String>) -> Vec<Array> {
         let bytes = encode(key, arrays);
         if let Err(w) = self.write_bytes(key, &bytes) {
-            self.failed.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            let mut failed = self.failed.lock().unwrap_or_else(|e| e.into_inner());
+            failed.0 += 1;
+            failed.1.get_or_insert_with(|| w.to_string());
             warnings.push(format!("pair cache not written: {w}"));
         }
         decode(&bytes, key).expect("an entry just encoded decodes")

@@ -23,7 +23,7 @@ pub struct InputImage {
     /// FNV-1a hash of the file's bytes (pair cache key).
     pub hash: u64,
     /// Focal length in pixels at [`size`](Self::size), when known: from the photo's EXIF 35 mm
-    /// equivalent focal length ([`exif_focal_px`]), or given by [`set_focal`](Self::set_focal).
+    /// equivalent focal length ([`exif_focal`]), or given by [`set_focal`](Self::set_focal).
     /// Structure from motion keeps a focal the user gave fixed ([`focal_fixed`](Self::focal_fixed))
     /// and refines an EXIF focal with it as a prior; the dense path keeps either fixed.
     pub focal: Option<f64>,
@@ -163,9 +163,13 @@ pub fn no_scene(img: &image::DynamicImage) -> Option<String> {
             "is {w} x {h} pixels: too small to show a scene (at least {MIN_PHOTO_SIDE} on each side)"
         ));
     }
-    let grey = img.to_luma32f();
+    // Grey levels read at the sampled pixels only (a whole grey copy of a 12-megapixel photo
+    // is 48 MB).
     let step = ((w as f64 * h as f64 / 1e6).sqrt().ceil() as u32).max(1);
-    let at = |x: u32, y: u32| f64::from(grey.get_pixel(x, y).0[0]) * 255.0;
+    let at = |x: u32, y: u32| {
+        use image::{GenericImageView, Pixel};
+        f64::from(img.get_pixel(x, y).to_luma().0[0])
+    };
     let (mut n, mut sum, mut sq) = (0.0, 0.0, 0.0);
     let (mut pairs, mut sa, mut sb, mut saa, mut sbb, mut sab) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     for y in (0..h - 1).step_by(step as usize) {
@@ -217,15 +221,10 @@ pub fn keep_scenes(images: Vec<InputImage>) -> (Vec<InputImage>, Vec<String>) {
 pub const FULL_FRAME_DIAGONAL_MM: f64 = 43.266_615;
 
 /// The focal length in pixels of a `(w, h)` photo from its EXIF `FocalLengthIn35mmFilm` tag
-/// (JPEG, PNG, TIFF or HEIF container): `f35 / 43.27 mm * diagonal`. `None` when the file has
-/// no EXIF, no such tag, the value 0 ("unknown"), or a focal outside the bounds `--focal` has
-/// (fields of view of 1 to 170 degrees: [`exif_focal`] says why).
-pub fn exif_focal_px(bytes: &[u8], size: (u32, u32)) -> Option<f64> {
-    exif_focal(bytes, size).ok().flatten()
-}
-
-/// [`exif_focal_px`], with the reason a focal the EXIF gives is not used (outside fields of
-/// view of 1 to 170 degrees, as `--focal` is bounded: a damaged or edited tag) as the error.
+/// (JPEG, PNG, TIFF or HEIF container): `f35 / 43.27 mm * diagonal`. `Ok(None)` when the file
+/// has no EXIF, no such tag, or the value 0 ("unknown"); an error saying why where the focal
+/// lies outside the bounds `--focal` has (fields of view of 1 to 170 degrees: a damaged or
+/// edited tag), so it is not used.
 pub fn exif_focal(bytes: &[u8], (w, h): (u32, u32)) -> Result<Option<f64>, String> {
     let Ok(exif) = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(bytes)) else { return Ok(None) };
     let Some(f35) = exif
@@ -302,13 +301,13 @@ mod tests {
     #[test]
     fn exif_focal_gives_the_field_of_view_of_its_35mm_equivalent() {
         let bytes = jpeg_with_focal(400, 300, Some(26));
-        let f = exif_focal_px(&bytes, (400, 300)).expect("EXIF focal");
+        let f = exif_focal(&bytes, (400, 300)).unwrap().expect("EXIF focal");
         let hfov = 2.0 * (200.0 / f).atan().to_degrees();
         let dfov = 2.0 * (250.0 / f).atan().to_degrees();
         assert!((hfov - 67.3).abs() < 0.1 && (dfov - 79.5).abs() < 0.1, "{hfov} {dfov}");
         // No EXIF, or "unknown" (0): no focal.
-        assert_eq!(exif_focal_px(&jpeg_with_focal(400, 300, None), (400, 300)), None);
-        assert_eq!(exif_focal_px(&jpeg_with_focal(400, 300, Some(0)), (400, 300)), None);
+        assert_eq!(exif_focal(&jpeg_with_focal(400, 300, None), (400, 300)).unwrap(), None);
+        assert_eq!(exif_focal(&jpeg_with_focal(400, 300, Some(0)), (400, 300)).unwrap(), None);
         // Issue 77, 9: an EXIF focal of 1 mm (a 173 deg field of view here) was kept as a
         // fixed focal of a few pixels, 3000 mm (0.7 deg) as a telescope's. Outside --focal's
         // bounds (1 to 170 degrees): ignored, and said why.

@@ -101,9 +101,8 @@ pub fn compute_shard(
             }
         }
     }
-    let failed = cache.failed_stores();
-    if failed > 0 {
-        let why = warnings.iter().find(|w| w.starts_with("pair cache not written")).cloned().unwrap_or_default();
+    if let (failed @ 1.., why) = cache.failed_stores() {
+        let why = why.unwrap_or_default();
         return Err(ReconError::Other(format!(
             "{failed} of {} network runs could not be stored in the cache ({why}); free space or fix the folder, then run the shard again",
             stats.entries
