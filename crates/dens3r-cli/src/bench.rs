@@ -30,6 +30,9 @@ pub enum BenchCommand {
     /// `reconstruct`'s cameras vs COLMAP's on rendered walkthroughs and orbits (registered
     /// views, rotation, baseline and focal errors, reprojection error, time, memory).
     Sfm(crate::bench_sfm::SfmBenchArgs),
+    /// Multi-view stereo on rendered textured scenes with their true meshes: the network-only
+    /// path, MVS without and with the prior, and the truth's depth through the same fusion.
+    Mvs(crate::bench_mvs::MvsBenchArgs),
     /// `reconstruct` on walkthroughs of 25 to 300 views (time per stage, peak RSS, camera
     /// error, the pair graph against the truth's co-visibility).
     Scale(crate::bench_scale::ScaleBenchArgs),
@@ -96,6 +99,7 @@ pub fn run(c: BenchCommand) -> Result<()> {
         BenchCommand::Fusion(a) => crate::bench_fusion::fusion(a),
         BenchCommand::Nsdf(a) => crate::bench_nsdf::run(a),
         BenchCommand::Sfm(a) => crate::bench_sfm::run(a),
+        BenchCommand::Mvs(a) => crate::bench_mvs::run(a),
         BenchCommand::Scale(a) => crate::bench_scale::run(a),
         BenchCommand::Train(a) => crate::bench_train::train(a),
         BenchCommand::RunTrain { dir } => crate::bench_train::run_train(&dir),

@@ -3,6 +3,7 @@
 
 mod bench;
 mod bench_fusion;
+mod bench_mvs;
 mod bench_nsdf;
 mod bench_peer;
 mod bench_scale;
@@ -16,6 +17,7 @@ mod fuse;
 mod info;
 mod model_args;
 mod models;
+mod mvs;
 mod nsdf;
 mod pairs;
 mod predict;
@@ -126,6 +128,9 @@ enum Command {
     CliReference,
     /// Fuse a scene folder's depth (+ colour, confidence, normals) into a mesh (TSDF).
     Fuse(fuse::FuseArgs),
+    /// Multi-view stereo on a scene folder's cameras (PatchMatch with the network's depth and
+    /// normals as the prior, fusion by multi-view agreement, a mesh).
+    Mvs(mvs::MvsArgs),
     /// Train a neural SDF (NeuS-style, normal- and depth-supervised) on a scene folder and mesh it.
     Nsdf(nsdf::NsdfArgs),
     /// Write procedural training scenes (rooms, object orbits) with their pairs' co-visibility.
@@ -193,6 +198,7 @@ fn main() {
             print!("{}", cli_reference::markdown(&Cli::command()));
             Ok(())
         }
+        Command::Mvs(a) => mvs::run(a),
         Command::Nsdf(a) => nsdf::run(a),
         Command::Synth(a) => synth::run(a),
         Command::RealScenes(a) => real_scenes::run(a),

@@ -148,6 +148,13 @@ pub struct ReconstructArgs {
     /// Skip the mesh (scene folder and exports only).
     #[arg(long)]
     no_mesh: bool,
+    /// Where the dense geometry (the mesh, the page's points) comes from: multi-view stereo
+    /// on the cameras with the network's depth and normals as its prior (OUTPUT/mvs/), or the
+    /// network's depth alone, fused.
+    #[arg(long, value_enum, default_value = "mvs")]
+    dense: Dense,
+    #[command(flatten)]
+    mvs: crate::mvs::MvsSettings,
     /// Skip the page (OUTPUT/index.html and OUTPUT/viewer/).
     #[arg(long)]
     no_page: bool,
@@ -328,8 +335,18 @@ impl StageBars {
     }
 }
 
+/// Where `reconstruct`'s dense geometry comes from.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Dense {
+    /// Multi-view stereo with the network as its prior.
+    Mvs,
+    /// The network's depth alone, fused.
+    Network,
+}
+
 pub fn run(a: ReconstructArgs) -> Result<()> {
     let graph = checked_graph(&a)?;
+    let mvs_options = a.mvs.options()?;
     let (weights, config) = a.model.resolve()?;
     let t0 = Instant::now();
     // Every photo is decoded before the model loads: a bad photo fails in a second.
@@ -359,9 +376,13 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
         mesh: !a.no_mesh,
         match_pictures: a.match_pictures,
         page: (!a.no_page).then(dens3r_viewer::PageOptions::default),
+        mvs: match a.dense {
+            Dense::Mvs => Some(mvs_options),
+            Dense::Network => None,
+        },
         ..Default::default()
     };
-    let fbar = bar("fuse", images.len(), "frames");
+    let fbar = bar(if a.dense == Dense::Mvs { "dense" } else { "fuse" }, images.len(), "steps");
     let summary = write_outputs_into(&rec, &paths, &out_dir, &out_opts, |done, total| {
         fbar.set_length(total as u64);
         fbar.set_position(done as u64);
@@ -403,6 +424,18 @@ fn report(
     match &s.sfm {
         Some(sfm) => report_sfm(rec, sfm),
         None => report_dense(a, rec, encoded),
+    }
+    if let Some(m) = &summary.mvs {
+        println!(
+            "mvs: {} views at {}x{}, {:.1}s a view (median), {:.1}% of pixels kept by agreeing views, {} points -> {}",
+            m.views,
+            m.working_size.0,
+            m.working_size.1,
+            m.seconds_per_view,
+            100.0 * m.kept_fraction,
+            m.points,
+            a.output.join("mvs").display()
+        );
     }
     match &summary.mesh {
         Some(m) => println!(

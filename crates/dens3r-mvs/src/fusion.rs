@@ -147,3 +147,104 @@ pub fn fuse_view(i: usize, maps: &[DepthNormalMap], partners: &[usize], o: &Fusi
     }
     FusedView { kept: Raster::from_vec(w, h, kept).expect("sized"), points }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dens3r_geom::{look_at, Intrinsics};
+    use glam::DVec3;
+
+    /// Depth and normals of the plane z = 0 seen by `camera` (analytic).
+    fn plane_maps(camera: PinholeCamera) -> DepthNormalMap {
+        let (w, h) = (camera.width, camera.height);
+        let c2w = camera.cam_to_world;
+        let w2c = camera.world_to_cam();
+        let centre = camera.center();
+        let normal_cam = w2c.transform_vector3(DVec3::Z);
+        let normal_cam = if normal_cam.z > 0.0 { -normal_cam } else { normal_cam };
+        let depth = Raster::from_fn(w, h, |x, y| {
+            let ray = c2w.transform_vector3(camera.intrinsics.unproject(x as f64, y as f64));
+            let t = -centre.z / ray.z;
+            if t > 0.0 {
+                t as f32
+            } else {
+                0.0
+            }
+        });
+        DepthNormalMap {
+            camera,
+            depth,
+            normals: Raster::filled(w, h, normal_cam.as_vec3()),
+            cost: Raster::filled(w, h, 0.1),
+        }
+    }
+
+    fn camera(eye: DVec3, target: DVec3, hfov: f64) -> PinholeCamera {
+        PinholeCamera {
+            intrinsics: Intrinsics::from_hfov(64, 48, hfov),
+            width: 64,
+            height: 48,
+            cam_to_world: look_at(eye, target, DVec3::Y).unwrap(),
+        }
+    }
+
+    #[test]
+    fn a_pixel_enters_only_where_two_other_views_agree() {
+        // View 0 sees wide; views 1 and 2 look at the middle only, so view 0's border is seen
+        // by it alone.
+        let maps = vec![
+            plane_maps(camera(DVec3::new(0.0, 0.0, 3.0), DVec3::ZERO, 90.0)),
+            plane_maps(camera(DVec3::new(0.3, 0.0, 3.0), DVec3::ZERO, 30.0)),
+            plane_maps(camera(DVec3::new(-0.3, 0.0, 3.0), DVec3::ZERO, 30.0)),
+        ];
+        let mut disagree = maps.clone();
+        // In view 2 a patch 2% too far: view 0's pixels there have one agreeing view, not two.
+        let m2 = &mut disagree[2];
+        for y in 20..28 {
+            for x in 28..36 {
+                *m2.depth.get_mut(x, y) *= 1.02;
+            }
+        }
+        let o = FusionOptions::default();
+        let f = fuse_view(0, &maps, &[1, 2], &o);
+        let g = fuse_view(0, &disagree, &[1, 2], &o);
+        let w2c: Vec<_> = maps.iter().map(|m| m.camera.world_to_cam()).collect();
+        let (mut alone_kept, mut shared_dropped, mut shared) = (0, 0, 0);
+        for y in 0..48 {
+            for x in 0..64 {
+                let m = &maps[0];
+                let d = *m.depth.get(x, y) as f64;
+                let p = m.camera.cam_to_world.transform_point3(m.camera.intrinsics.unproject(x as f64, y as f64) * d);
+                // Inside views 1 and 2 with a margin of 2 pixels?
+                let seen = |j: usize| {
+                    let q = w2c[j].transform_point3(p);
+                    let (u, v) = maps[j].camera.intrinsics.project(q);
+                    u > 2.0 && v > 2.0 && u < 61.0 && v < 45.0
+                };
+                let outside = |j: usize| {
+                    let q = w2c[j].transform_point3(p);
+                    let (u, v) = maps[j].camera.intrinsics.project(q);
+                    !(u > -1.0 && v > -1.0 && u < 64.0 && v < 48.0)
+                };
+                if outside(1) && outside(2) {
+                    alone_kept += *f.kept.get(x, y) as usize;
+                } else if seen(1) && seen(2) {
+                    shared += 1;
+                    shared_dropped += !*f.kept.get(x, y) as usize;
+                }
+            }
+        }
+        assert!(shared > 50, "the test's views overlap in {shared} pixels");
+        assert_eq!(alone_kept, 0, "pixels seen by one view only were fused");
+        assert_eq!(shared_dropped, 0, "pixels all three views agree on were dropped");
+        // The disagreeing patch: fewer kept than with agreement, by the patch's pixels.
+        let kept = |v: &FusedView| v.kept.data().iter().filter(|b| **b).count();
+        assert!(kept(&g) < kept(&f), "a 2% depth disagreement left {} vs {} pixels", kept(&g), kept(&f));
+        // Points are emitted once: view 0 is first among every agreeing set.
+        assert_eq!(f.points.len(), kept(&f));
+        for p in &f.points {
+            assert!(p.position.z.abs() < 1e-3, "a fused point off the plane: {:?}", p.position);
+            assert!((p.normal.z.abs() - 1.0).abs() < 1e-4);
+        }
+    }
+}

@@ -9,6 +9,13 @@ pub struct Grey {
     width: usize,
     height: usize,
     data: Vec<f32>,
+    /// Largest sample coordinates whose 2 x 2 neighbourhood is inside (just under w - 1, h - 1).
+    umax: f32,
+    vmax: f32,
+}
+
+fn limit(n: usize) -> f32 {
+    (n as f32 - 1.0 - 1e-3).max(0.0)
 }
 
 impl Grey {
@@ -16,13 +23,15 @@ impl Grey {
     pub fn from_rgb(img: &RgbImage) -> Self {
         let data =
             img.pixels().map(|p| (0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32) / 255.0).collect();
-        Self { width: img.width() as usize, height: img.height() as usize, data }
+        let (width, height) = (img.width() as usize, img.height() as usize);
+        Self::from_vec(width, height, data)
     }
 
     /// An image from its pixels, row-major.
     pub fn from_vec(width: usize, height: usize, data: Vec<f32>) -> Self {
         assert_eq!(data.len(), width * height, "grey image of {width} x {height} needs that many pixels");
-        Self { width, height, data }
+        assert!(width >= 2 && height >= 2, "grey images are at least 2 x 2");
+        Self { width, height, data, umax: limit(width), vmax: limit(height) }
     }
 
     /// Width in pixels.
@@ -42,27 +51,42 @@ impl Grey {
     }
 
     /// Bilinear sample at `(u, v)` (pixel centres at integers), clamped at the border.
-    #[inline]
+    #[inline(always)]
     pub fn sample(&self, u: f32, v: f32) -> f32 {
-        let u = u.clamp(0.0, (self.width - 1) as f32);
-        let v = v.clamp(0.0, (self.height - 1) as f32);
-        let x0 = u as usize;
-        let y0 = v as usize;
-        let x1 = (x0 + 1).min(self.width - 1);
-        let y1 = (y0 + 1).min(self.height - 1);
-        let fx = u - x0 as f32;
-        let fy = v - y0 as f32;
-        let r0 = y0 * self.width;
-        let r1 = y1 * self.width;
-        let a = self.data[r0 + x0] + fx * (self.data[r0 + x1] - self.data[r0 + x0]);
-        let b = self.data[r1 + x0] + fx * (self.data[r1 + x1] - self.data[r1 + x0]);
-        a + fy * (b - a)
+        // NaN clamps to 0 through `max`.
+        let u = u.max(0.0).min(self.umax);
+        let v = v.max(0.0).min(self.vmax);
+        let (x0, y0) = (u as usize, v as usize);
+        let (fx, fy) = (u - x0 as f32, v - y0 as f32);
+        let i = y0 * self.width + x0;
+        // In bounds: x0 + 1 <= width - 1 and y0 + 1 <= height - 1 by the clamps above.
+        let (a, b, c, d) = if i + self.width + 1 < self.data.len() {
+            // SAFETY: the largest index read, i + width + 1, was just checked.
+            unsafe {
+                (
+                    *self.data.get_unchecked(i),
+                    *self.data.get_unchecked(i + 1),
+                    *self.data.get_unchecked(i + self.width),
+                    *self.data.get_unchecked(i + self.width + 1),
+                )
+            }
+        } else {
+            return self.data[i.min(self.data.len() - 1)];
+        };
+        let top = a + fx * (b - a);
+        let bottom = c + fx * (d - c);
+        top + fy * (bottom - top)
+    }
+
+    /// Pixels, width and the largest in-bounds sample coordinates, for vector kernels.
+    pub(crate) fn raw(&self) -> (&[f32], usize, f32, f32) {
+        (&self.data, self.width, self.umax, self.vmax)
     }
 
     /// Half the size: each pixel the mean of its 2 x 2 block (intrinsics follow by
     /// `Intrinsics::scaled(0.5, 0.5)`).
     pub fn half(&self) -> Self {
-        let (w, h) = ((self.width / 2).max(1), (self.height / 2).max(1));
+        let (w, h) = ((self.width / 2).max(2), (self.height / 2).max(2));
         let mut data = Vec::with_capacity(w * h);
         for y in 0..h {
             let (y0, y1) = ((2 * y).min(self.height - 1), (2 * y + 1).min(self.height - 1));
@@ -71,7 +95,7 @@ impl Grey {
                 data.push(0.25 * (self.at(x0, y0) + self.at(x1, y0) + self.at(x0, y1) + self.at(x1, y1)));
             }
         }
-        Self { width: w, height: h, data }
+        Self::from_vec(w, h, data)
     }
 }
 

@@ -11,8 +11,11 @@
 pub mod fusion;
 pub mod image;
 pub mod options;
+pub mod output;
 pub mod patch_match;
 pub mod pipeline;
+pub mod scene;
+mod simd;
 pub mod views;
 
 pub use fusion::{DepthNormalMap, FusedPoint};

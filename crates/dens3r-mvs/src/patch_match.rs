@@ -9,12 +9,13 @@
 
 use crate::image::Grey;
 use crate::options::PatchMatchOptions;
+use crate::simd::{window_sums, LANES};
 use dens3r_geom::{Intrinsics, Raster};
 use glam::{Mat3, Vec3};
 use rayon::prelude::*;
 
-/// Most window samples (e.g. radius 7 at step 1 is 225).
-const MAX_SAMPLES: usize = 256;
+/// Most window samples (radius 7 at step 2 is 64; radius 5 at step 1 is 121).
+pub const MAX_SAMPLES: usize = 128;
 /// Most source views one reference is matched against.
 pub const MAX_SOURCES: usize = 16;
 /// Cost of a view the hypothesis does not project into.
@@ -212,8 +213,6 @@ impl Rng {
 /// weighted grey values, computed once per visit and shared by every hypothesis.
 struct RefWindow {
     n: usize,
-    du: [f32; MAX_SAMPLES],
-    dv: [f32; MAX_SAMPLES],
     w: [f32; MAX_SAMPLES],
     /// `w * (r - mean)`.
     wr: [f32; MAX_SAMPLES],
@@ -226,6 +225,8 @@ struct RefWindow {
 /// The fixed part of a level: window offsets and their spatial weights.
 struct Window {
     offsets: Vec<(i32, i32)>,
+    du: Vec<f32>,
+    dv: Vec<f32>,
     spatial: Vec<f32>,
     inv_two_sigma_c2: f32,
 }
@@ -250,14 +251,18 @@ impl Window {
         offsets.truncate(MAX_SAMPLES);
         let s2 = 2.0 * o.sigma_spatial * o.sigma_spatial;
         let spatial = offsets.iter().map(|&(dx, dy)| (-((dx * dx + dy * dy) as f32) / s2).exp()).collect();
-        Self { offsets, spatial, inv_two_sigma_c2: 1.0 / (2.0 * o.sigma_color * o.sigma_color) }
+        // Padded to whole vectors; the padding's weights stay 0.
+        let padded = offsets.len().div_ceil(LANES) * LANES;
+        let mut du: Vec<f32> = offsets.iter().map(|o| o.0 as f32).collect();
+        let mut dv: Vec<f32> = offsets.iter().map(|o| o.1 as f32).collect();
+        du.resize(padded, 0.0);
+        dv.resize(padded, 0.0);
+        Self { offsets, du, dv, spatial, inv_two_sigma_c2: 1.0 / (2.0 * o.sigma_color * o.sigma_color) }
     }
 
     fn at(&self, img: &Grey, x: usize, y: usize) -> RefWindow {
         let mut win = RefWindow {
-            n: self.offsets.len(),
-            du: [0.0; MAX_SAMPLES],
-            dv: [0.0; MAX_SAMPLES],
+            n: self.du.len(),
             w: [0.0; MAX_SAMPLES],
             wr: [0.0; MAX_SAMPLES],
             wsum: 0.0,
@@ -274,8 +279,6 @@ impl Window {
             let r = img.at(xx, yy);
             let dc = r - centre;
             let wt = self.spatial[i] * (-dc * dc * self.inv_two_sigma_c2).exp();
-            win.du[i] = dx as f32;
-            win.dv[i] = dy as f32;
             win.w[i] = wt;
             vals[i] = r;
             sw += wt;
@@ -333,16 +336,9 @@ impl<'a, 'p> Solver<'a, 'p> {
                 FLAT_COST
             } else {
                 let (c0, c1) = (hmat.x_axis, hmat.y_axis);
-                let (mut s_ws, mut s_wss, mut s_wrs) = (0.0f32, 0.0f32, 0.0f32);
-                for i in 0..win.n {
-                    let q = h0 + c0 * win.du[i] + c1 * win.dv[i];
-                    let inv = 1.0 / q.z;
-                    let v = src.image.sample(q.x * inv, q.y * inv);
-                    let wi = win.w[i];
-                    s_ws += wi * v;
-                    s_wss += wi * v * v;
-                    s_wrs += win.wr[i] * v;
-                }
+                let n = win.n;
+                let [s_ws, s_wss, s_wrs] =
+                    window_sums(src.image, h0, c0, c1, &self.win.du[..n], &self.win.dv[..n], &win.w[..n], &win.wr[..n]);
                 let var_s = (s_wss - s_ws * s_ws / win.wsum).max(0.0);
                 let den = (win.var * var_s).sqrt();
                 if den > 1e-10 {
@@ -523,7 +519,7 @@ impl<'a, 'p> Solver<'a, 'p> {
                 best = Hyp { depth: d, normal: n, cost };
             }
         }
-        if let Some(prior) = &self.p.prior {
+        if let Some(prior) = self.p.prior.as_ref().filter(|_| self.o.prior_weight > 0.0) {
             let dp = *prior.depth.get(x, y);
             let np = *prior.normals.get(x, y);
             if dp > 0.0 && dp.is_finite() && np.length_squared() > 0.5 && (dp != best.depth || np != best.normal) {

@@ -257,11 +257,13 @@ pub fn run_mvs(
     let pm = &o.patch_match;
     if pm.window_radius == 0 || pm.window_step == 0 || {
         let per_side = 2 * pm.window_radius / pm.window_step + 1;
-        per_side * per_side > 256
+        per_side * per_side > patch_match::MAX_SAMPLES
     } {
         return Err(MvsError::Setting(format!(
-            "window radius {} at step {} gives no window or more than 256 samples",
-            pm.window_radius, pm.window_step
+            "window radius {} at step {} gives no window or more than {} samples",
+            pm.window_radius,
+            pm.window_step,
+            patch_match::MAX_SAMPLES
         )));
     }
     let cams: Vec<PinholeCamera> = (0..n).map(|i| source.camera(i)).collect();
@@ -309,7 +311,11 @@ pub fn run_mvs(
         (Mat3::from_mat4(m), m.w_axis.truncate())
     };
 
-    // Photometric pass, coarse to fine, one reference at a time.
+    // Photometric pass, coarse to fine, one reference at a time. When geometric passes follow,
+    // it stops one level short of the working size: the first geometric pass polishes the
+    // upsampled planes at full size anyway, and the full-size photometric sweep would cost as
+    // much again.
+    let top = if pm.geom_iterations > 0 && levels > 1 { 1 } else { 0 };
     for i in 0..n {
         let t = Instant::now();
         let sel = &selection[i];
@@ -337,7 +343,7 @@ pub fn run_mvs(
             priors.push(next);
         }
         let mut state: Option<patch_match::PlaneMap> = None;
-        for l in (0..levels).rev() {
+        for l in (top..levels).rev() {
             let img = &refp.pyramid[l];
             let k = K::from(&level_intrinsics(&work[i].intrinsics, l));
             let sources: Vec<Source> = srcs
@@ -365,7 +371,11 @@ pub fn run_mvs(
             };
             state = Some(patch_match::solve(&problem, pm, start, iters, explore, seed));
         }
-        let s = state.expect("at least one level");
+        let mut s = state.expect("at least one level");
+        if top == 1 {
+            let (k1, k0) = (K::from(&level_intrinsics(&work[i].intrinsics, 1)), K::from(&work[i].intrinsics));
+            s = s.upsample(k1, k0, sizes[i].0, sizes[i].1);
+        }
         maps[i] = Some(DepthNormalMap { camera: work[i], depth: s.depth(), normals: s.normals(), cost: s.costs() });
         seconds[i] = t.elapsed().as_secs_f64();
         progress(Stage::Photometric, i + 1, n);

@@ -159,3 +159,46 @@ fn a_textured_sphere_is_recovered_within_half_a_percent() {
     assert!(within > 0.9, "only {:.1}% of the sphere's pixels within 0.5% of the truth", within * 100.0);
     assert!(normal_deg < 3.0, "median normal error {normal_deg:.2} deg");
 }
+
+/// Each view's own depth, scaled by `factor` (a prior that is off by a known amount), its
+/// true normals, full confidence.
+fn priors(r: &Rendered, factor: f32) -> Vec<Option<PriorMaps>> {
+    r.views
+        .iter()
+        .map(|v| Some(PriorMaps { depth: v.depth.map(|d| d * factor), normals: Some(v.normals.clone()), conf: None }))
+        .collect()
+}
+
+#[test]
+fn the_prior_moves_a_texture_less_plane_to_it() {
+    // A plain wall: no photometric evidence anywhere on it.
+    let wall = object(Shape::Cuboid { half: Vec3::new(6.0, 6.0, 0.05) }, Vec3::new(0.0, 0.0, -1.0), Texture::Plain, 2);
+    let mut r = render(&World::new(vec![wall]).unwrap(), cameras(160, 120));
+    let pts = truth_points(&r);
+    // The prior says the wall is 3% nearer than it is: with the prior on, PatchMatch follows it.
+    r.priors = priors(&r, 0.97);
+    let with = run_mvs(&r, Some(pts.clone()), &MvsOptions::default(), |_, _, _| {}).unwrap();
+    let mut o = MvsOptions::default();
+    o.patch_match.prior_weight = 0.0;
+    let without = run_mvs(&r, Some(pts), &o, |_, _, _| {}).unwrap();
+    let near_prior = |res: &MvsResult| {
+        let maps = &res.views[0].maps;
+        let t = &r.views[0].depth;
+        let inside = interior(t);
+        let (mut ok, mut n) = (0, 0);
+        for y in 0..t.height() {
+            for x in 0..t.width() {
+                if *inside.get(x, y) {
+                    n += 1;
+                    let p = 0.97 * *t.get(x, y);
+                    ok += (((*maps.depth.get(x, y) - p) / p).abs() < 0.005) as usize;
+                }
+            }
+        }
+        ok as f64 / n as f64
+    };
+    let (a, b) = (near_prior(&with), near_prior(&without));
+    eprintln!("texture-less wall: {:.1}% of pixels at the prior with it, {:.1}% without", 100.0 * a, 100.0 * b);
+    assert!(a > 0.95, "with the prior only {:.1}% of the wall's pixels follow it", 100.0 * a);
+    assert!(b < 0.5, "without the prior {:.1}% of the wall's pixels sit at the prior's depth", 100.0 * b);
+}

@@ -50,6 +50,10 @@ pub struct OutputOptions {
     pub generator: String,
     /// Write `index.html`, the page that shows the result (`None`: no page).
     pub page: Option<dens3r_viewer::PageOptions>,
+    /// Multi-view stereo on the cameras, the network's depth and normals as its prior: its
+    /// maps in `OUT/mvs/` (a scene folder with `points.ply` and `mesh.ply`), and the mesh
+    /// and page from it. `None`: the mesh is the network's depth fused (`--dense network`).
+    pub mvs: Option<dens3r_mvs::MvsOptions>,
 }
 
 impl Default for OutputOptions {
@@ -66,6 +70,7 @@ impl Default for OutputOptions {
             match_lines: 150,
             generator: "dens3r reconstruct".into(),
             page: Some(dens3r_viewer::PageOptions::default()),
+            mvs: None,
         }
     }
 }
@@ -93,6 +98,8 @@ pub struct OutputSummary {
     pub page: Option<PathBuf>,
     /// Seconds writing the page.
     pub page_seconds: f64,
+    /// What multi-view stereo did, where it ran.
+    pub mvs: Option<dens3r_mvs::output::MvsSummary>,
 }
 
 /// The match pictures' files of pairs of frame names, `matches/<a>-<b>.png`, each its own:
@@ -188,19 +195,40 @@ pub fn write_outputs_into(
     let mut summary = OutputSummary { scene: dest.join("scene"), colmap: dest.join("colmap"), ..Default::default() };
     let _ = colmap;
     let mut mesh = None;
-    if opts.mesh {
-        mesh = fuse(rec, out, opts, &mut summary, &mut fuse_progress)?;
-        summary.mesh = summary.mesh.map(|_| dest.join("mesh.glb"));
+    let mut mvs_scene = None;
+    if let Some(mvs) = &opts.mvs {
+        match dense_stage(&scene, out, opts, mvs, &mut summary, &mut fuse_progress) {
+            Ok(m) => {
+                mesh = Some(m);
+                mvs_scene = Some(Scene::open(&out.join("mvs"))?);
+            }
+            Err(e) => {
+                // Nothing of a failed dense stage stays in the (staged) output.
+                let _ = std::fs::remove_dir_all(out.join("mvs"));
+                summary.warnings.push(format!("multi-view stereo: {e}; the mesh is the network's depth fused"))
+            }
+        }
     }
+    if opts.mesh && mesh.is_none() {
+        mesh = fuse(rec, out, opts, &mut summary, &mut fuse_progress)?;
+    }
+    summary.mesh = summary.mesh.map(|_| dest.join("mesh.glb"));
     let write_seconds = t_write.elapsed().as_secs_f64() - summary.fuse_seconds;
-    let json = run_summary(rec, &summary, write_seconds);
+    let json = run_summary(rec, &summary, write_seconds, opts.min_conf);
     let text = serde_json::to_string_pretty(&json).expect("plain JSON values");
     dens3r_io::write_atomic(&out.join("summary.json"), |w| std::io::Write::write_all(w, text.as_bytes()))?;
     if let Some(page_opts) = &opts.page {
         let t_page = Instant::now();
+        let mvs_views = match &mvs_scene {
+            Some(m) => Some(dens3r_viewer::scene_views::SceneViews::read(m, "mvs/")?),
+            None => None,
+        };
         let page = Page {
             title: dens3r_viewer::title_of(dest),
-            views: page_views(rec, &scene),
+            views: match &mvs_views {
+                Some(v) => v.views(),
+                None => page_views(rec, &scene),
+            },
             mesh: mesh.as_ref(),
             summary: Some(json),
             scores: None,
@@ -235,7 +263,7 @@ fn page_views<'a>(rec: &'a Reconstruction, scene: &Scene) -> Vec<View<'a>> {
 
 /// `OUT/summary.json`: what the run did and how long each stage took (seconds), for tools
 /// and benchmarks that read a run rather than its printout.
-fn run_summary(rec: &Reconstruction, out: &OutputSummary, write_seconds: f64) -> serde_json::Value {
+fn run_summary(rec: &Reconstruction, out: &OutputSummary, write_seconds: f64, rec_min_conf: f32) -> serde_json::Value {
     let s = &rec.stats;
     let mut focals: Vec<f64> = rec.alignment.views.iter().map(|v| v.camera.intrinsics.fx).collect();
     focals.dedup();
@@ -254,6 +282,8 @@ fn run_summary(rec: &Reconstruction, out: &OutputSummary, write_seconds: f64) ->
         "reprojection_rms_px": s.sfm.as_ref().map(|f| f.rms_px.1),
         "points": rec.points.len(),
         "mesh_triangles": out.triangles,
+        "mesh": {"voxel": out.voxel, "min_conf": if out.mvs.is_some() { serde_json::Value::Null } else { serde_json::json!(rec_min_conf) }, "from": if out.mvs.is_some() { "mvs" } else { "network" }},
+        "mvs": out.mvs.as_ref().map(|m| m.to_json()),
         "seconds": {
             "retrieval": s.graph.seconds,
             "keypoints": s.keypoint_seconds,
@@ -290,6 +320,41 @@ pub fn auto_voxel(rec: &Reconstruction) -> Option<f32> {
         })
         .collect();
     dens3r_geom::focal::median(&mut per_view).map(|v| v as f32).filter(|v| v.is_finite() && *v > 0.0)
+}
+
+/// Multi-view stereo on the scene folder just written (its depth and normals the prior): the
+/// result in `out/mvs/`, its mesh as `out/mesh.glb`.
+fn dense_stage(
+    scene: &Scene,
+    out: &Path,
+    opts: &OutputOptions,
+    mvs: &dens3r_mvs::MvsOptions,
+    summary: &mut OutputSummary,
+    progress: &mut impl FnMut(usize, usize),
+) -> Result<TriMesh, ReconError> {
+    let t = Instant::now();
+    let source = dens3r_mvs::scene::SceneViews::new(scene);
+    let stages = |s: dens3r_mvs::Stage| match s {
+        dens3r_mvs::Stage::Photometric => 0,
+        dens3r_mvs::Stage::Geometric => 1,
+        dens3r_mvs::Stage::Fusion => 2,
+    };
+    let result =
+        dens3r_mvs::run_mvs(&source, None, mvs, |s, done, total| progress(stages(s) * total + done, 3 * total))
+            .map_err(|e| ReconError::Other(e.to_string()))?;
+    let mesh_opts = dens3r_mvs::output::MeshOptions { voxel: opts.voxel, budget_bytes: Some(opts.budget_bytes) };
+    let (ms, mesh) = dens3r_mvs::output::write_mvs(&out.join("mvs"), &source, &result, &mesh_opts, &[])
+        .map_err(|e| ReconError::Other(e.to_string()))?;
+    if opts.mesh {
+        let path = out.join("mesh.glb");
+        dens3r_mesh::write_mesh(&path, &mesh).map_err(|e| ReconError::Other(e.to_string()))?;
+        summary.mesh = Some(path);
+        summary.triangles = mesh.indices.len();
+        summary.voxel = ms.voxel;
+    }
+    summary.fuse_seconds = t.elapsed().as_secs_f64();
+    summary.mvs = Some(ms);
+    Ok(mesh)
 }
 
 /// The aligned views fused into a mesh straight from memory (what the scene folder holds,
