@@ -2,7 +2,8 @@
 //! by side in one run: today's network-only path (`reconstruct`'s fused network depth), MVS
 //! without the prior, MVS with it (both on `reconstruct`'s own SfM cameras), and the truth's
 //! depth through the same TSDF (the ceiling). Per side: mesh accuracy / completeness / F-score
-//! at 0.02 and 0.05 (`eval mesh`, reconstructions placed by their cameras), per-view depth
+//! at 0.02 and 0.05 of the scene's size (the true mesh's largest bounding-box side; `eval mesh`,
+//! reconstructions placed by their cameras), per-view depth
 //! error against the truth (AbsRel, share within 1% and 2%), seconds per depth map, peak RSS.
 
 use crate::bench_sfm::{measured, Measured};
@@ -59,10 +60,24 @@ fn sets(data: &Path) -> Vec<(String, Vec<String>)> {
     ]
 }
 
-/// `eval mesh PRED GT --json` (placed by the cameras of `placed` = (pred scene, truth scene)).
-fn eval_mesh(exe: &Path, pred: &Path, gt: &Path, placed: Option<(&Path, &Path)>, log: &Path) -> Result<Value> {
+/// The fractions of the scene's size F-scores are taken at.
+const THRESHOLDS: [f64; 2] = [0.02, 0.05];
+
+/// The scene's size: the true mesh's largest bounding-box side.
+fn scene_size(gt: &Path) -> Result<f64> {
+    let mesh = dens3r_mesh::read_mesh(gt)?;
+    let (lo, hi) = mesh.bounds().context("the true mesh is empty")?;
+    Ok((hi - lo).max_element() as f64)
+}
+
+/// `eval mesh PRED GT --json` at [`THRESHOLDS`] x `size` (placed by the cameras of `placed` =
+/// (pred scene, truth scene)); its F-scores are re-keyed by the fractions.
+fn eval_mesh(exe: &Path, pred: &Path, gt: &Path, size: f64, placed: Option<(&Path, &Path)>, log: &Path) -> Result<Value> {
     let mut c = Command::new(exe);
-    c.args(["eval", "mesh", "--json", "--threshold", "0.02", "--threshold", "0.05"]).arg(pred).arg(gt);
+    c.args(["eval", "mesh", "--json"]).arg(pred).arg(gt);
+    for t in THRESHOLDS {
+        c.arg("--threshold").arg((t * size).to_string());
+    }
     if let Some((p, g)) = placed {
         c.arg("--align-cameras").arg(p).arg(g);
     }
@@ -71,7 +86,20 @@ fn eval_mesh(exe: &Path, pred: &Path, gt: &Path, placed: Option<(&Path, &Path)>,
     if !out.status.success() {
         bail!("eval mesh {} failed (its output: {})", pred.display(), log.display());
     }
-    Ok(serde_json::from_slice(&out.stdout)?)
+    let mut v: Value = serde_json::from_slice(&out.stdout)?;
+    if let Some(fs) = v["fscores"].as_array_mut() {
+        for f in fs {
+            let t = f["threshold"].as_f64().unwrap_or(f64::NAN) / size;
+            f["threshold"] = json!((t * 1e6).round() / 1e6);
+        }
+    }
+    for k in ["accuracy", "completeness", "chamfer_l1"] {
+        if let Some(x) = v[k].as_f64() {
+            v[k] = json!(x / size);
+        }
+    }
+    v["scene_size"] = json!(size);
+    Ok(v)
 }
 
 /// Per-view depth error of `pred` (a scene folder in the reconstruction's frame, scaled by
@@ -133,7 +161,7 @@ fn side(mesh: Value, depth: Value, seconds_per_map: f64, m: &Measured) -> Value 
     json!({"mesh": mesh, "depth": depth, "seconds_per_map": seconds_per_map, "seconds": m.seconds, "peak_rss_mb": m.rss_mb})
 }
 
-fn mvs_side(exe: &Path, dir: &Path, truth: &Path, name: &str, extra: &[&str], user: &str) -> Result<Value> {
+fn mvs_side(exe: &Path, dir: &Path, truth: &Path, size: f64, name: &str, extra: &[&str], user: &str) -> Result<Value> {
     let out = dir.join(name);
     let _ = std::fs::remove_dir_all(&out);
     let mut c = Command::new(exe);
@@ -143,6 +171,7 @@ fn mvs_side(exe: &Path, dir: &Path, truth: &Path, name: &str, extra: &[&str], us
         exe,
         &out.join("mesh.ply"),
         &truth.join("gt_mesh.ply"),
+        size,
         Some((&out, truth)),
         &dir.join(format!("{name}-eval.log")),
     )?;
@@ -170,38 +199,36 @@ pub fn run(a: MvsBenchArgs) -> Result<()> {
             measured(&mut render, "render", &dir.join("render.log"))?;
         }
         let gt = truth.join("gt_mesh.ply");
-        let mut row = json!({"set": name});
+        let size = scene_size(&gt)?;
+        let mut row = json!({"set": name, "scene_size": size});
         // Today's path: SfM cameras, the network's depth fused (reconstruct's own mesh
         // settings; its voxel from summary.json).
         let net = dir.join("network");
-        if !net.join("scene/cameras.json").is_file() || !skip("network") {
+        let mut m = Measured { seconds: f64::NAN, rss_mb: f64::NAN };
+        if !net.join("summary.json").is_file() || !skip("network") {
             let _ = std::fs::remove_dir_all(&net);
             let mut rec = Command::new(&exe);
             rec.args(["reconstruct", "--no-cache", "--dense", "network", "-o"]).arg(&net).arg(truth.join("images"));
-            let m = measured(&mut rec, "dens3r reconstruct", &dir.join("network.log"))?;
-            let summary: Value = serde_json::from_str(&std::fs::read_to_string(net.join("summary.json"))?)?;
-            let voxel = summary["mesh"]["voxel"].as_f64().context("reconstruct's summary.json has no mesh voxel")?;
-            let min_conf = summary["mesh"]["min_conf"].as_f64().unwrap_or(0.0);
-            let mut fuse = Command::new(&exe);
-            fuse.arg("fuse").arg(net.join("scene")).arg("-o").arg(dir.join("network.ply"));
-            fuse.args(["--voxel", &voxel.to_string(), "--conf-weight", "--min-conf", &min_conf.to_string()]);
-            fuse.args(["--max-depth", "1e9", "--min-depth", "0"]);
-            measured(&mut fuse, "dens3r fuse (network)", &dir.join("network-fuse.log"))?;
-            let mesh = eval_mesh(
-                &exe,
-                &dir.join("network.ply"),
-                &gt,
-                Some((&net.join("scene"), &truth)),
-                &dir.join("network-eval.log"),
-            )?;
-            let depth = depth_scores(&net.join("scene"), &truth, placed_scale(&mesh))?;
-            row["network"] = side(mesh, depth, f64::NAN, &m);
+            m = measured(&mut rec, "dens3r reconstruct", &dir.join("network.log"))?;
         }
+        let summary: Value = serde_json::from_str(&std::fs::read_to_string(net.join("summary.json"))?)?;
+        let voxel = summary["mesh"]["voxel"].as_f64().context("reconstruct's summary.json has no mesh voxel")?;
+        let min_conf = summary["mesh"]["min_conf"].as_f64().unwrap_or(0.0);
+        let mut fuse = Command::new(&exe);
+        fuse.arg("fuse").arg(net.join("scene")).arg("-o").arg(dir.join("network.ply"));
+        fuse.args(["--voxel", &voxel.to_string(), "--conf-weight", "--min-conf", &min_conf.to_string()]);
+        fuse.args(["--max-depth", "1e9", "--min-depth", "0"]);
+        measured(&mut fuse, "dens3r fuse (network)", &dir.join("network-fuse.log"))?;
+        let placed = Some((net.join("scene"), truth.clone()));
+        let placed = placed.as_ref().map(|(a, b)| (a.as_path(), b.as_path()));
+        let mesh = eval_mesh(&exe, &dir.join("network.ply"), &gt, size, placed, &dir.join("network-eval.log"))?;
+        let depth = depth_scores(&net.join("scene"), &truth, placed_scale(&mesh))?;
+        row["network"] = side(mesh, depth, f64::NAN, &m);
         if !skip("mvs-no-prior") {
-            row["mvs-no-prior"] = mvs_side(&exe, &dir, &truth, "mvs-no-prior", &["--no-prior"], &a.mvs_args)?;
+            row["mvs-no-prior"] = mvs_side(&exe, &dir, &truth, size, "mvs-no-prior", &["--no-prior"], &a.mvs_args)?;
         }
         if !skip("mvs-prior") {
-            row["mvs-prior"] = mvs_side(&exe, &dir, &truth, "mvs-prior", &[], &a.mvs_args)?;
+            row["mvs-prior"] = mvs_side(&exe, &dir, &truth, size, "mvs-prior", &[], &a.mvs_args)?;
         }
         if !skip("ceiling") {
             // The truth's depth through the same TSDF at the MVS mesh's voxel in truth units.
@@ -217,7 +244,7 @@ pub fn run(a: MvsBenchArgs) -> Result<()> {
             fuse.arg("fuse").arg(&truth).arg("-o").arg(dir.join("ceiling.ply")).args(["--voxel", &voxel.to_string()]);
             fuse.args(["--normal-weight", "--max-depth", "1e9", "--min-depth", "0"]);
             let m = measured(&mut fuse, "dens3r fuse (truth)", &dir.join("ceiling.log"))?;
-            let mesh = eval_mesh(&exe, &dir.join("ceiling.ply"), &gt, None, &dir.join("ceiling-eval.log"))?;
+            let mesh = eval_mesh(&exe, &dir.join("ceiling.ply"), &gt, size, None, &dir.join("ceiling-eval.log"))?;
             row["ceiling"] = side(mesh, Value::Null, f64::NAN, &m);
         }
         print_rows(&row);
@@ -231,7 +258,7 @@ pub fn run(a: MvsBenchArgs) -> Result<()> {
 
 fn print_rows(row: &Value) {
     let name = row["set"].as_str().unwrap_or("?");
-    println!("| set | side | F@0.02 | F@0.05 | accuracy | completeness | depth AbsRel | within 1% | within 2% | s / map | wall (s) | peak RSS (MB) |");
+    println!("| set | side | F@0.02 | F@0.05 | accuracy (x size) | completeness (x size) | depth AbsRel | within 1% | within 2% | s / map | wall (s) | peak RSS (MB) |");
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     let ceiling = fscore(&row["ceiling"]["mesh"], 0.02);
     for s in ["network", "mvs-no-prior", "mvs-prior", "ceiling"] {
