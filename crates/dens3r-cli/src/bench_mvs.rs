@@ -72,7 +72,14 @@ fn scene_size(gt: &Path) -> Result<f64> {
 
 /// `eval mesh PRED GT --json` at [`THRESHOLDS`] x `size` (placed by the cameras of `placed` =
 /// (pred scene, truth scene)); its F-scores are re-keyed by the fractions.
-fn eval_mesh(exe: &Path, pred: &Path, gt: &Path, size: f64, placed: Option<(&Path, &Path)>, log: &Path) -> Result<Value> {
+fn eval_mesh(
+    exe: &Path,
+    pred: &Path,
+    gt: &Path,
+    size: f64,
+    placed: Option<(&Path, &Path)>,
+    log: &Path,
+) -> Result<Value> {
     let mut c = Command::new(exe);
     c.args(["eval", "mesh", "--json"]).arg(pred).arg(gt);
     for t in THRESHOLDS {

@@ -1933,3 +1933,45 @@ fn the_cli_reference_in_docs_is_current() {
     assert!(now.contains("## `dens3r reconstruct`") && now.contains("--cache-budget"), "{now}");
     assert!(written == now, "docs/cli.md is out of date: run scripts/gen-cli-docs.sh");
 }
+
+#[test]
+fn mvs_meshes_a_rendered_orbit_close_to_its_true_mesh() {
+    // A textured blob seen by 12 views; its true depth is the scene's (the prior and the depth
+    // range), so the test asks only that MVS's output files are there, its fused points lie
+    // on the true surface and the mesh scores high against the true mesh.
+    let dir = tempfile::tempdir().unwrap();
+    let (scene, out) = (dir.path().join("blob"), dir.path().join("dense"));
+    let (s, o) = (scene.to_str().unwrap(), out.to_str().unwrap());
+    ok(&["render", "--procedural", "blob", "--views", "12", "--width", "160", "--height", "120", "-o", s]);
+    let text = ok(&["mvs", s, "-o", o]);
+    assert!(text.contains("mvs: 12 views at 160x120"), "{text}");
+    for f in ["cameras.json", "mesh.ply", "points.ply", "mvs.json", "index.html", "depth/0000.npy", "normals/0000.npy"]
+    {
+        assert!(out.join(f).is_file(), "{f} missing: {text}");
+    }
+    let gt = scene.join("gt_mesh.ply");
+    let m = json(&[
+        "eval",
+        "mesh",
+        out.join("mesh.ply").to_str().unwrap(),
+        gt.to_str().unwrap(),
+        "--threshold",
+        "0.05",
+        "--json",
+    ]);
+    // Small images and 12 views leave parts unseen by three: the mesh must be right where it
+    // is (precision) and cover most of the object (recall).
+    let (p, r) = (m["fscores"][0]["precision"].as_f64().unwrap(), m["fscores"][0]["recall"].as_f64().unwrap());
+    assert!(p > 0.9 && r > 0.6, "mesh against the true mesh at 0.05: precision {p}, recall {r}");
+    // A scene without depth and with nothing else to give a depth range is refused in one line.
+    let bare = dir.path().join("bare");
+    std::fs::create_dir_all(bare.join("images")).unwrap();
+    let cams = std::fs::read_to_string(scene.join("cameras.json")).unwrap();
+    std::fs::write(bare.join("cameras.json"), cams).unwrap();
+    for e in std::fs::read_dir(scene.join("images")).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), bare.join("images").join(e.file_name())).unwrap();
+    }
+    let err = fails(&["mvs", bare.to_str().unwrap(), "-o", dir.path().join("x").to_str().unwrap()]);
+    assert!(err.contains("has no depth"), "{err}");
+}

@@ -81,6 +81,7 @@ pub fn fuse_view(i: usize, maps: &[DepthNormalMap], partners: &[usize], o: &Fusi
         .map(|y| {
             let mut kept = vec![false; w];
             let mut points = Vec::new();
+            #[allow(clippy::needless_range_loop)] // x is also the pixel's coordinate
             for x in 0..w {
                 let d = *m.depth.get(x, y);
                 let n = *m.normals.get(x, y);

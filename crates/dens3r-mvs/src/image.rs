@@ -83,6 +83,23 @@ impl Grey {
         (&self.data, self.width, self.umax, self.vmax)
     }
 
+    /// Smoothed by a 3 x 3 binomial filter (clamped border): takes the edge off aliased
+    /// pixel-scale texture that no two views see alike.
+    pub fn smoothed(&self) -> Self {
+        let (w, h) = (self.width, self.height);
+        let at = |x: isize, y: isize| {
+            self.data[(y.clamp(0, h as isize - 1) as usize) * w + x.clamp(0, w as isize - 1) as usize]
+        };
+        let mut data = Vec::with_capacity(w * h);
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                let row = |yy: isize| at(x - 1, yy) + 2.0 * at(x, yy) + at(x + 1, yy);
+                data.push((row(y - 1) + 2.0 * row(y) + row(y + 1)) / 16.0);
+            }
+        }
+        Self::from_vec(w, h, data)
+    }
+
     /// Half the size: each pixel the mean of its 2 x 2 block (intrinsics follow by
     /// `Intrinsics::scaled(0.5, 0.5)`).
     pub fn half(&self) -> Self {

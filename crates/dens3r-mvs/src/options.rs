@@ -71,11 +71,14 @@ pub struct FusionOptions {
     pub normal_tolerance_deg: f32,
     /// Matching cost above which a pixel is not trusted at all (costs run 0..2).
     pub max_cost: f32,
+    /// Views each view's pixels are checked against (its best-scoring partners, and the views
+    /// that chose it).
+    pub partners: usize,
 }
 
 impl Default for FusionOptions {
     fn default() -> Self {
-        Self { min_agreeing: 2, depth_tolerance: 0.01, normal_tolerance_deg: 15.0, max_cost: 1.2 }
+        Self { min_agreeing: 2, depth_tolerance: 0.01, normal_tolerance_deg: 15.0, max_cost: 1.2, partners: 16 }
     }
 }
 

@@ -286,8 +286,8 @@ impl Window {
             swrr += wt * r * r;
         }
         let mean = swr / sw;
-        for i in 0..win.n {
-            win.wr[i] = win.w[i] * (vals[i] - mean);
+        for ((wr, w), v) in win.wr.iter_mut().zip(&win.w).zip(&vals).take(win.n) {
+            *wr = w * (v - mean);
         }
         win.wsum = sw;
         win.var = (swrr - swr * mean).max(0.0);
@@ -315,7 +315,7 @@ impl<'a, 'p> Solver<'a, 'p> {
         let (xf, yf) = (x as f32, y as f32);
         let point = self.p.k.ray(xf, yf) * d;
         let c = n.dot(point);
-        if c > -1e-6 * d || !(d > 0.0) {
+        if c > -1e-6 * d || d.is_nan() || d <= 0.0 {
             return 2.0 * INVALID_VIEW_COST;
         }
         let mut view_costs = [INVALID_VIEW_COST; MAX_SOURCES];
@@ -386,7 +386,7 @@ impl<'a, 'p> Solver<'a, 'p> {
             return cap;
         }
         let ds = *dv.depth.get(ui as usize, vi as usize);
-        if !(ds > 0.0) {
+        if ds.is_nan() || ds <= 0.0 {
             return cap;
         }
         let back = dv.k.ray(ui, vi) * ds;

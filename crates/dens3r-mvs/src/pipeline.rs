@@ -149,7 +149,7 @@ impl PyramidCache<'_> {
             )));
         }
         let (small, _) = resize_view(&img, &cam.intrinsics, self.sizes[i]);
-        let mut pyramid = vec![Grey::from_rgb(&small)];
+        let mut pyramid = vec![Grey::from_rgb(&small).smoothed()];
         for _ in 1..self.levels {
             let next = pyramid.last().expect("one level").half();
             pyramid.push(next);
@@ -294,7 +294,19 @@ pub fn run_mvs(
             all
         }
     };
-    let selection = select_views(&cams, &points, o.neighbours.min(patch_match::MAX_SOURCES));
+    // PatchMatch matches each view against its best few; fusion checks its pixels against more
+    // (a surface near one camera may be seen by views that score low over the whole image).
+    let wide = select_views(&cams, &points, o.neighbours.max(o.fusion.partners));
+    let fusion_lists: Vec<Vec<usize>> = wide.iter().map(|s| s.neighbours.clone()).collect();
+    let selection: Vec<ViewSelection> = wide
+        .into_iter()
+        .map(|mut s| {
+            let k = o.neighbours.min(patch_match::MAX_SOURCES);
+            s.neighbours.truncate(k);
+            s.scores.truncate(k);
+            s
+        })
+        .collect();
     drop(points);
     let long = sizes.iter().map(|s| s.0.max(s.1)).max().unwrap_or(1);
     let mut levels = 1;
@@ -454,7 +466,7 @@ pub fn run_mvs(
             })
         })
         .collect();
-    let partners = fusion_partners(&selection.iter().map(|s| s.neighbours.clone()).collect::<Vec<_>>());
+    let partners = fusion_partners(&fusion_lists);
     let mut views = Vec::with_capacity(n);
     let mut points = Vec::new();
     let mut colors = Vec::new();

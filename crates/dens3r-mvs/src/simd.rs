@@ -12,6 +12,7 @@ pub const LANES: usize = 8;
 /// `H (x + du, y + dv, 1)`, `H`'s centre column `h0` and first two columns `c0`, `c1`.
 /// All slices have the same length, a multiple of [`LANES`].
 #[inline]
+#[allow(clippy::too_many_arguments)]
 pub fn window_sums(
     img: &Grey,
     h0: Vec3,
@@ -22,7 +23,9 @@ pub fn window_sums(
     w: &[f32],
     wr: &[f32],
 ) -> [f32; 3] {
-    debug_assert!(du.len() % LANES == 0 && dv.len() == du.len() && w.len() == du.len() && wr.len() == du.len());
+    debug_assert!(
+        du.len().is_multiple_of(LANES) && dv.len() == du.len() && w.len() == du.len() && wr.len() == du.len()
+    );
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
