@@ -73,7 +73,7 @@ pub struct ViewResult {
     pub maps: DepthNormalMap,
     /// Pixels fusion kept.
     pub kept: Raster<bool>,
-    /// The photo at the working size.
+    /// Seconds of PatchMatch on this view (photometric + geometric).
     pub seconds: f64,
 }
 
