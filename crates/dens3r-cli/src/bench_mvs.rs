@@ -115,8 +115,7 @@ fn eval_mesh(
 fn depth_scores(pred: &Path, truth: &Path, scale: f64) -> Result<Value> {
     let p = Scene::open(pred)?;
     let t = Scene::open(truth)?;
-    let (mut n, mut abs_rel, mut w1, mut w2, mut covered, mut truth_px) =
-        (0usize, 0.0f64, 0usize, 0usize, 0usize, 0usize);
+    let (mut n, mut abs_rel, mut w1, mut w2, mut truth_px) = (0usize, 0.0f64, 0usize, 0usize, 0usize);
     for f in p.frames() {
         let Some(tf) = t.frame(&f.name) else { continue };
         let (Some(dp), Some(dt)) = (p.depth(f)?, t.depth(tf)?) else { continue };
@@ -134,7 +133,6 @@ fn depth_scores(pred: &Path, truth: &Path, scale: f64) -> Result<Value> {
                 if !(d > 0.0 && d.is_finite() && g > 0.0) {
                     continue;
                 }
-                covered += 1;
                 let r = (d - g).abs() / g;
                 n += 1;
                 abs_rel += r;
@@ -142,12 +140,11 @@ fn depth_scores(pred: &Path, truth: &Path, scale: f64) -> Result<Value> {
                 w2 += (r <= 0.02) as usize;
             }
         }
-        let _ = (sx * sy).max(1.0);
     }
     let area = |k: usize| k as f64 / n.max(1) as f64;
     Ok(json!({
         "abs_rel": abs_rel / n.max(1) as f64, "within_1pct": area(w1), "within_2pct": area(w2),
-        "pixels": n, "coverage": covered as f64 / truth_px.max(1) as f64,
+        "pixels": n, "coverage": n as f64 / truth_px.max(1) as f64,
     }))
 }
 

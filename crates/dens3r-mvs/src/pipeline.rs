@@ -73,8 +73,6 @@ pub struct ViewResult {
     pub maps: DepthNormalMap,
     /// Pixels fusion kept.
     pub kept: Raster<bool>,
-    /// Seconds of PatchMatch on this view (photometric + geometric).
-    pub seconds: f64,
 }
 
 /// The dense stage's result.
@@ -482,11 +480,6 @@ pub fn run_mvs(
         progress(Stage::Fusion, i + 1, n);
     }
     let fusion_seconds = t.elapsed().as_secs_f64();
-    let views = maps
-        .into_iter()
-        .zip(views)
-        .zip(&seconds)
-        .map(|((maps, kept), &s)| ViewResult { maps, kept, seconds: s })
-        .collect();
+    let views = maps.into_iter().zip(views).map(|(maps, kept)| ViewResult { maps, kept }).collect();
     Ok(MvsResult { views, selection, points, colors, seconds_per_view: seconds, fusion_seconds })
 }
